@@ -1,0 +1,1 @@
+"""The knowledge database: entity and event frames, pointers, classes, memory tiers, persistence."""

@@ -1,0 +1,1 @@
+"""Rolling multiresolution maps (one geometry per level, many named layers) and shared geometry."""

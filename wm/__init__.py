@@ -1,0 +1,1 @@
+"""World modeling: the node cycle, predictions, What Is / What If, the command line and the API."""
