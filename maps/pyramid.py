@@ -1,0 +1,517 @@
+"""Pyramids of scale and coarse-to-fine correlation (reference 4.5.5 "Pyramids of Scale").
+
+One implementation serves image flow, entity correlation and map registration:
+
+* :func:`build_pyramid` turns any attribute image into a list of images, each half the size of
+  the one before, by averaging 2x2 blocks (4.5.5: "averaging attributes from several higher
+  resolution pixels"), so a 256x256 image becomes 256, 128, 64 and 32.
+* :func:`register` finds the translation (and, as an option, the rotation) between two images:
+  at the coarsest level it evaluates the normalised correlation at the 9 offsets zero and plus
+  or minus one pixel in rows and columns, moves to the best one, doubles the offset for the next
+  finer level and evaluates 9 offsets again, down to full size (4.5.5: "a form of binary search
+  for the correlation offset peak"). A quadratic fit through the 3x3 correlation values at the
+  finest level gives the sub-pixel peak.
+
+Images are (H, W) float arrays indexed ``[row, col]``; offsets are ``(rows, cols)`` in pixels of
+the full-size image. Masks (attention windows, validity) are (H, W) bool or float weights in
+[0, 1]; a pixel with weight 0 takes no part in the correlation.
+
+Pure numpy (plus ``cv2.warpAffine`` for the optional rotation search).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MIN_LEVEL_SIZE_PX = 8  # a pyramid level smaller than this per side carries no usable structure
+MAX_CLIMB_STEPS = 32  # 9-offset steps allowed per level while the peak is not yet the centre
+EAGER_WINDOW_PX = 64 * 64  # windows up to this size get all their offsets in one call
+CLIMB_REACH_PX = 2  # a correlation window serves offsets this far from where it was built
+FLAT_STD = 1e-9  # an image window with a smaller standard deviation has no texture
+
+
+class PyramidError(ValueError):
+    """An image, mask or search that the pyramid code cannot work with; names the value."""
+
+
+@dataclass(frozen=True)
+class Match:
+    """Result of :func:`register`.
+
+    shift_rc:    (2,) float64, pixels: ``moving[r, c] ~= reference[r - shift_r, c - shift_c]``
+                 (moving is reference translated by +shift, after rotation when one was searched).
+    peak:        normalised correlation at the integer peak, -1..1.
+    confidence:  0..1; the peak correlation scaled by the fraction of the window that overlapped
+                 and by how distinct the peak is from its 8 neighbours; 0 when a window has no
+                 texture or the peak sits on the border of the allowed search.
+    rotation_rad: rotation of moving against reference about the image centre (counter-clockwise
+                 in the (col right, row up) sense, i.e. x right / y up), 0 unless searched.
+    multiply_adds: multiply-add operations spent on correlation sums (for cost comparisons).
+    """
+
+    shift_rc: np.ndarray
+    peak: float
+    confidence: float
+    rotation_rad: float = 0.0
+    multiply_adds: int = 0
+    levels_used: int = 0
+    surface: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)), repr=False)
+
+
+def _as_image(image: np.ndarray, name: str) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim != 2:
+        raise PyramidError(f"{name} must be a 2-D (H, W) image, got shape {a.shape}")
+    if a.dtype.kind not in "fiub":
+        raise PyramidError(f"{name} must be numeric, got dtype {a.dtype}")
+    if min(a.shape) < 2:
+        raise PyramidError(f"{name} is too small to correlate: shape {a.shape}")
+    return a.astype(np.float32, copy=False) if a.dtype != np.float64 else a
+
+
+def _as_weight(valid: np.ndarray | None, shape: tuple[int, ...], name: str) -> np.ndarray | None:
+    if valid is None:
+        return None
+    w = np.asarray(valid)
+    if w.shape != shape:
+        raise PyramidError(f"{name} has shape {w.shape}, the image has shape {shape}")
+    return w.astype(np.float32)
+
+
+def _centred(image: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
+    """float32 image minus its (weighted) mean, so float32 correlation sums keep precision
+    even for attributes far from zero (ranges of 50 m varying by centimetres)."""
+    if weight is None:
+        mean = float(np.einsum("ij->", image, dtype=np.float64)) / image.size
+    else:
+        sw = float(weight.sum(dtype=np.float64))
+        mean = float((image * weight).sum(dtype=np.float64) / sw) if sw > 0 else 0.0
+    return (image - mean).astype(np.float32)
+
+
+def downsample(image: np.ndarray) -> np.ndarray:
+    """Average 2x2 blocks: (H, W) -> (H // 2, W // 2); an odd last row or column is dropped."""
+    h, w = image.shape[0] // 2, image.shape[1] // 2
+    a = image[: 2 * h, : 2 * w]
+    out = a[0::2, 0::2] + a[1::2, 0::2]
+    out += a[0::2, 1::2]
+    out += a[1::2, 1::2]
+    out *= 0.25
+    return out
+
+
+def _weighted_pyramids(
+    image: np.ndarray, weight: np.ndarray | None, levels: int
+) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """Image and weight pyramids; each coarse pixel is the weighted mean of its 2x2 block and
+    its weight the mean of their weights (so weights are fractions of valid area)."""
+    if weight is None:
+        images = [image]
+        for _ in range(1, levels):
+            images.append(downsample(images[-1]))
+        return images, None
+    image = np.where(weight > 0, image, 0.0).astype(image.dtype)
+    images, weights = [image], [weight]
+    for _ in range(1, levels):
+        w = downsample(weights[-1])
+        s = downsample(images[-1] * weights[-1])
+        images.append(np.divide(s, w, out=np.zeros_like(s), where=w > 0))
+        weights.append(w)
+    return images, weights
+
+
+def max_levels(shape: tuple[int, ...]) -> int:
+    """How many levels an image of this shape supports with the coarsest >= 8 px per side."""
+    n, size = 1, min(shape[:2])
+    while size // 2 >= MIN_LEVEL_SIZE_PX:
+        size //= 2
+        n += 1
+    return n
+
+
+def build_pyramid(
+    image: np.ndarray, levels: int = 4, valid: np.ndarray | None = None
+) -> list[np.ndarray]:
+    """Pyramid of scale of an attribute image (4.5.5).
+
+    image:  (H, W) numeric attribute image (range, intensity, gradient, ...).
+    levels: number of images returned; level 0 is ``image`` itself (as float), level k is
+            (H >> k, W >> k), each pixel the mean of a 2x2 block of level k - 1.
+    valid:  optional (H, W) bool mask or [0, 1] weights: invalid pixels are left out of the
+            averages; a coarse pixel with no valid pixel under it is NaN.
+    Returns a list of float arrays (float32 unless the input was float64).
+    """
+    a = _as_image(image, "image")
+    if levels < 1 or (a.shape[0] >> (levels - 1)) < 1 or (a.shape[1] >> (levels - 1)) < 1:
+        raise PyramidError(f"levels={levels} is impossible for an image of shape {a.shape}")
+    w = _as_weight(valid, a.shape, "valid")
+    images, weights = _weighted_pyramids(a, w, levels)
+    if weights is None:
+        return images
+    return [
+        np.where(wl > 0, im, np.nan).astype(im.dtype)
+        for im, wl in zip(images, weights, strict=True)
+    ]
+
+
+def _box_sums(region: np.ndarray, shape: tuple[int, int], reach: int) -> np.ndarray:
+    """Sums of every (h, w) = ``shape`` window of ``region`` ((h + 2 reach, w + 2 reach)), as a
+    (2 reach + 1, 2 reach + 1) float64 array indexed by the window's top-left corner, from one
+    integral image (summed-area table) instead of a pass per window."""
+    import cv2
+
+    h, w = shape
+    k = 2 * reach + 1
+    ii = cv2.integral(np.ascontiguousarray(region, dtype=np.float32), sdepth=cv2.CV_64F)
+    return ii[h : h + k, w : w + k] - ii[:k, w : w + k] - ii[h : h + k, :k] + ii[:k, :k]
+
+
+class _Window:
+    """Normalised correlation of one fixed window of ``mov`` against ``ref`` near an offset.
+
+    The window holds every pixel of ``mov`` whose partner ``ref[r - dr, c - dc]`` exists for
+    every offset within ``reach`` (Chebyshev) of ``center_rc``, so all values compare the same
+    pixels of ``mov``. ``table[dr - center_r + reach, dc - center_c + reach]`` caches values
+    (NaN: no texture); small plain windows fill the whole table in one call, large ones fill
+    entries on demand. ``multiply_adds`` counts the work.
+    """
+
+    def __init__(
+        self,
+        ref: np.ndarray,
+        mov: np.ndarray,
+        center_rc: tuple[int, int],
+        reach: int,
+        w_ref: np.ndarray | None,
+        w_mov: np.ndarray | None,
+    ) -> None:
+        h, w = mov.shape
+        cr, cc = center_rc
+        r0, r1 = max(0, cr + reach), min(h, ref.shape[0] + cr - reach)
+        c0, c1 = max(0, cc + reach), min(w, ref.shape[1] + cc - reach)
+        if r1 - r0 < 2 or c1 - c0 < 2:
+            raise PyramidError(
+                f"offset {center_rc} +- {reach} px leaves no overlap between images of shapes "
+                f"{ref.shape} and {mov.shape}: the correlation window is larger than the image"
+            )
+        self.center, self.reach = center_rc, reach
+        k = 2 * reach + 1
+        self.table = np.full((k, k), np.nan)
+        self.done = np.zeros((k, k), dtype=bool)
+        self.multiply_adds = 0
+        t = mov[r0:r1, c0:c1]
+        self.n = t.size
+        # ref window for offset (dr, dc) starts at (r0 - dr, c0 - dc); the region spans them all.
+        rows = slice(r0 - cr - reach, r1 - cr + reach)
+        cols = slice(c0 - cc - reach, c1 - cc + reach)
+        self.region = ref[rows, cols]
+        self.w_region = None if w_ref is None else w_ref[rows, cols]
+        if w_mov is None and w_ref is None:
+            self.wt = None
+            self.t = t - np.float32(np.einsum("ij->", t) / self.n)
+            self.t_norm = float(np.sqrt(np.einsum("ij,ij->", self.t, self.t)))
+            self.cover = self.n / mov.size
+            if self.t_norm < FLAT_STD * np.sqrt(self.n):
+                self.done[:] = True  # no texture: every offset correlates as NaN
+                return
+            # Box sums come indexed by window top-left corner; flip to offset order.
+            s = _box_sums(self.region, t.shape, reach)[::-1, ::-1]
+            ss = _box_sums(self.region * self.region, t.shape, reach)[::-1, ::-1]
+            self.multiply_adds += self.region.size + self.n  # squares for ss, template norm
+            var = ss - s * s / self.n
+            self.denominator = np.where(
+                var > (FLAT_STD**2) * self.n, self.t_norm * np.sqrt(np.maximum(var, 0.0)), np.nan
+            )
+            if self.n <= EAGER_WINDOW_PX:
+                # Small windows: all (2 reach + 1)^2 cross sums in one call beats a call each.
+                view = np.lib.stride_tricks.sliding_window_view(self.region, t.shape)
+                cross = np.einsum("abij,ij->ab", view, self.t)[::-1, ::-1]
+                self.multiply_adds += k * k * self.n
+                self.table = cross / self.denominator
+                self.done[:] = True
+        else:
+            self.t = t
+            self.wt = np.ones_like(t) if w_mov is None else w_mov[r0:r1, c0:c1]
+            self.twt = self.t * self.wt
+            total = mov.size if w_mov is None else max(float(w_mov.sum()), 1e-9)
+            self.cover = min(1.0, float(self.wt.sum()) / total)
+
+    def covers(self, center_rc: tuple[int, int]) -> bool:
+        """Whether the 3x3 neighbourhood of ``center_rc`` lies inside this window's reach."""
+        return (
+            max(abs(center_rc[0] - self.center[0]), abs(center_rc[1] - self.center[1]))
+            <= self.reach - 1
+        )
+
+    def surface(self, center_rc: tuple[int, int]) -> np.ndarray:
+        """(3, 3) correlation at ``center_rc + {-1, 0, 1}^2``, indexed ``[dr + 1, dc + 1]``."""
+        i0 = center_rc[0] - self.center[0] + self.reach - 1
+        j0 = center_rc[1] - self.center[1] + self.reach - 1
+        for i in range(i0, i0 + 3):
+            for j in range(j0, j0 + 3):
+                if not self.done[i, j]:
+                    self.table[i, j] = self._value(i, j)
+                    self.done[i, j] = True
+        return self.table[i0 : i0 + 3, j0 : j0 + 3].copy()
+
+    def _ref_window(self, i: int, j: int, image: np.ndarray) -> np.ndarray:
+        k = 2 * self.reach
+        h, w = self.t.shape
+        return image[k - i : k - i + h, k - j : k - j + w]
+
+    def _value(self, i: int, j: int) -> float:
+        win = self._ref_window(i, j, self.region)
+        if self.wt is None:
+            self.multiply_adds += self.n
+            return float(np.einsum("ij,ij->", win, self.t)) / self.denominator[i, j]
+        if self.w_region is None:
+            ww, wtt = self.wt, self.twt
+        else:
+            ww = self.wt * self._ref_window(i, j, self.w_region)
+            wtt = ww * self.t
+        sw = float(np.einsum("ij->", ww))
+        if sw <= 0:
+            return np.nan
+        wr = ww * win
+        sa, sb = float(np.einsum("ij->", wr)), float(np.einsum("ij->", wtt))
+        saa = float(np.einsum("ij,ij->", wr, win))
+        sbb = float(np.einsum("ij,ij->", wtt, self.t))
+        sab = float(np.einsum("ij,ij->", wr, self.t))
+        self.multiply_adds += 8 * self.n
+        va, vb = saa - sa * sa / sw, sbb - sb * sb / sw
+        if va <= (FLAT_STD**2) * sw or vb <= (FLAT_STD**2) * sw:
+            return np.nan
+        return (sab - sa * sb / sw) / np.sqrt(va * vb)
+
+
+def _subpixel(surface: np.ndarray) -> np.ndarray:
+    """Sub-pixel peak offset (rows, cols) in [-0.5, 0.5] from a 3x3 correlation surface, by a
+    parabola through the centre and its two neighbours along each axis."""
+    f = np.nan_to_num(surface, nan=-1.0)
+    d = np.zeros(2)
+    for axis, (lo, mid, hi) in enumerate(
+        ((f[0, 1], f[1, 1], f[2, 1]), (f[1, 0], f[1, 1], f[1, 2]))
+    ):
+        den = lo - 2.0 * mid + hi
+        if den < 0:
+            d[axis] = np.clip(0.5 * (lo - hi) / den, -0.5, 0.5)
+    return d
+
+
+def _climb(
+    ref: np.ndarray,
+    mov: np.ndarray,
+    start_rc: tuple[int, int],
+    w_ref: np.ndarray | None,
+    w_mov: np.ndarray | None,
+    limit_px: float | None,
+) -> tuple[tuple[int, int], np.ndarray, float, int, bool]:
+    """Move the 9-offset search to its best offset until the centre is the peak.
+
+    Returns the integer peak, its (3, 3) correlation surface indexed ``[dr + 1, dc + 1]``, the
+    window coverage, the multiply-adds spent and whether the climb ran out of steps."""
+    center, ops = start_rc, 0
+    win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
+    steps = np.array([-1, 0, 1])
+    for _ in range(MAX_CLIMB_STEPS):
+        if not win.covers(center):
+            ops += win.multiply_adds
+            win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
+        surface = win.surface(center)
+        if limit_px is not None:
+            rows = np.abs(center[0] + steps)[:, None] > limit_px
+            cols = np.abs(center[1] + steps)[None, :] > limit_px
+            surface[rows | cols] = np.nan
+        if np.all(np.isnan(surface)):
+            return center, surface, win.cover, ops + win.multiply_adds, False
+        i, j = divmod(int(np.nanargmax(surface)), 3)
+        if i == 1 and j == 1:
+            return center, surface, win.cover, ops + win.multiply_adds, False
+        center = (center[0] + i - 1, center[1] + j - 1)
+    return center, surface, win.cover, ops + win.multiply_adds, True
+
+
+def _confidence(surface: np.ndarray, cover: float, pinned: bool) -> float:
+    """Peak correlation (clipped to 0..1) times window coverage; 0 when the peak is pinned at
+    the search limit, has no texture, or is not a peak along both axes (aperture problem:
+    an edge or a flat patch correlates equally well along its length)."""
+    f = surface
+    if pinned or not np.all(np.isfinite(f[:, 1])) or not np.all(np.isfinite(f[1, :])):
+        return 0.0
+    d_rr = f[0, 1] - 2 * f[1, 1] + f[2, 1]
+    d_cc = f[1, 0] - 2 * f[1, 1] + f[1, 2]
+    if np.all(np.isfinite(f)):
+        d_rc = 0.25 * (f[2, 2] - f[2, 0] - f[0, 2] + f[0, 0])
+    else:
+        d_rc = 0.0
+    if not (d_rr < 0 and d_cc < 0 and d_rr * d_cc - d_rc * d_rc > 0):
+        return 0.0
+    return float(np.clip(f[1, 1], 0.0, 1.0) * np.clip(cover, 0.0, 1.0))
+
+
+def _register_translation(
+    ref_pyr: list[np.ndarray],
+    mov_pyr: list[np.ndarray],
+    wref_pyr: list[np.ndarray] | None,
+    wmov_pyr: list[np.ndarray] | None,
+    max_shift_px: float | None,
+    initial_rc: tuple[float, float] = (0.0, 0.0),
+) -> Match:
+    levels = len(ref_pyr)
+    top = levels - 1
+    center = (round(initial_rc[0] / 2**top), round(initial_rc[1] / 2**top))
+    ops = 0
+    for lev in range(top, -1, -1):
+        limit = None if max_shift_px is None else max_shift_px / 2**lev
+        wr = None if wref_pyr is None else wref_pyr[lev]
+        wm = None if wmov_pyr is None else wmov_pyr[lev]
+        center, surface, cover, n, pinned = _climb(
+            ref_pyr[lev], mov_pyr[lev], center, wr, wm, limit
+        )
+        ops += n
+        if lev > 0:
+            # Start the finer level from the sub-pixel peak, so it rarely needs to climb.
+            fine = 2.0 * (np.array(center, dtype=np.float64) + _subpixel(surface))
+            center = (round(fine[0]), round(fine[1]))
+    peak = float(surface[1, 1]) if np.isfinite(surface[1, 1]) else -1.0
+    if limit is not None and max(abs(center[0]), abs(center[1])) >= limit:
+        pinned = True
+    shift = np.array(center, dtype=np.float64) + _subpixel(surface)
+    return Match(
+        shift_rc=shift,
+        peak=peak,
+        confidence=_confidence(surface, cover, pinned),
+        multiply_adds=int(ops),
+        levels_used=levels,
+        surface=surface,
+    )
+
+
+def rotate_image(image: np.ndarray, angle_rad: float, border: float = 0.0) -> np.ndarray:
+    """Rotate an (H, W) image about its centre by ``angle_rad`` counter-clockwise in the
+    (x right, y up) sense; bilinear; pixels from outside take ``border``."""
+    import cv2
+
+    h, w = image.shape
+    cy, cx = (h - 1) / 2.0, (w - 1) / 2.0
+    # Output pixel (col x, row y) samples input at R(-a) about the centre, with y pointing down
+    # in the array: a counter-clockwise turn (y up) is clockwise in (col, row).
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    M = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy]])
+    return cv2.warpAffine(
+        image.astype(np.float32),
+        M,
+        (w, h),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=border,
+    )
+
+
+def register(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    *,
+    levels: int = 4,
+    max_shift_px: float | None = None,
+    valid_reference: np.ndarray | None = None,
+    valid_moving: np.ndarray | None = None,
+    rotations_rad: Sequence[float] | None = None,
+    initial_shift_rc: tuple[float, float] = (0.0, 0.0),
+) -> Match:
+    """Coarse-to-fine correlation of two images (4.5.5): the offset, peak and confidence.
+
+    reference, moving: (H, W) numeric images of the same attribute (shapes may differ).
+    levels:        pyramid levels to use (fewer when the image is too small: the coarsest
+                   level keeps >= 8 px per side). Each level adds reach: with one 9-offset step
+                   per level the search covers +-(2^levels - 1) px, and each level climbs
+                   further while its peak is off-centre.
+    max_shift_px:  refuse offsets beyond this (Chebyshev norm, pixels); None for no limit.
+    valid_reference, valid_moving: optional (H, W) masks or [0, 1] weights (attention windows).
+    rotations_rad: optional candidate rotations of moving against reference; each is undone
+                   about the image centre, the best peak wins and a parabola through its
+                   neighbours refines the angle.
+    initial_shift_rc: a predicted offset to start from (e.g. the previous cycle's flow).
+    Returns a :class:`Match`; ``moving[r, c] ~= reference[r - shift_r, c - shift_c]``.
+    """
+    wref = _as_weight(valid_reference, np.shape(reference), "valid_reference")
+    wmov = _as_weight(valid_moving, np.shape(moving), "valid_moving")
+    ref = _centred(_as_image(reference, "reference"), wref)
+    mov = _centred(_as_image(moving, "moving"), wmov)
+    if levels < 1:
+        raise PyramidError(f"levels must be >= 1, got {levels}")
+    if max_shift_px is not None and max_shift_px < 0:
+        raise PyramidError(f"max_shift_px must be >= 0, got {max_shift_px}")
+    n = max(1, min(levels, max_levels(ref.shape), max_levels(mov.shape)))
+    ref_pyr, wref_pyr = _weighted_pyramids(ref, wref, n)
+    if rotations_rad is None or len(rotations_rad) == 0:
+        mov_pyr, wmov_pyr = _weighted_pyramids(mov, wmov, n)
+        return _register_translation(
+            ref_pyr, mov_pyr, wref_pyr, wmov_pyr, max_shift_px, initial_shift_rc
+        )
+    return _register_rotation(
+        ref_pyr, wref_pyr, mov, wmov, n, list(rotations_rad), max_shift_px, initial_shift_rc
+    )
+
+
+def _register_rotation(
+    ref_pyr: list[np.ndarray],
+    wref_pyr: list[np.ndarray] | None,
+    mov: np.ndarray,
+    wmov: np.ndarray | None,
+    levels: int,
+    angles: list[float],
+    max_shift_px: float | None,
+    initial_rc: tuple[float, float],
+) -> Match:
+    """Try each candidate rotation: undo it on ``moving`` (and its mask), register the
+    translation, keep the best peak; a parabola over neighbouring angles refines the angle."""
+    angles = sorted(float(a) for a in angles)
+    w = np.ones(mov.shape, np.float32) if wmov is None else wmov
+    results = []
+    for a in angles:
+        # moving = T(shift) R(a) reference; rotating moving by -a leaves a pure translation
+        # R(-a) shift, which the translation search finds.
+        mov_a = rotate_image(mov, -a)
+        w_a = rotate_image(w, -a) > 0.999
+        mov_pyr, wmov_pyr = _weighted_pyramids(mov_a, w_a.astype(np.float32), levels)
+        m = _register_translation(
+            ref_pyr, mov_pyr, wref_pyr, wmov_pyr, max_shift_px, tuple(initial_rc)
+        )
+        results.append(m)
+    peaks = np.array([m.peak for m in results])
+    k = int(np.argmax(peaks))
+    angle = angles[k]
+    if 0 < k < len(angles) - 1:
+        lo, mid, hi = peaks[k - 1], peaks[k], peaks[k + 1]
+        den = lo - 2 * mid + hi
+        step = 0.5 * (angles[k + 1] - angles[k - 1])
+        if den < 0:
+            angle += float(np.clip(0.5 * (lo - hi) / den, -0.5, 0.5)) * step
+    best = results[k]
+    # The translation found is R(-a) shift; rotate it back by +a in (x, y) = (col, -row).
+    c, s = np.cos(angle), np.sin(angle)
+    x, y = best.shift_rc[1], -best.shift_rc[0]
+    shift = np.array([-(s * x + c * y), c * x - s * y])
+    return Match(
+        shift_rc=shift,
+        peak=best.peak,
+        confidence=best.confidence,
+        rotation_rad=angle,
+        multiply_adds=sum(m.multiply_adds for m in results),
+        levels_used=best.levels_used,
+        surface=best.surface,
+    )
+
+
+def exhaustive_multiply_adds(shape: tuple[int, int], max_shift_px: int) -> int:
+    """Multiply-adds of exhaustive normalised correlation of two (H, W) images over every
+    offset within +-max_shift_px at full size, counted as :func:`register` counts its own: one
+    per window pixel per offset for the cross sum, plus the squares for the window variances
+    (window sums taken from summed-area tables, which need adds only)."""
+    n_off = (2 * max_shift_px + 1) ** 2
+    n_pix = (shape[0] - 2 * max_shift_px) * (shape[1] - 2 * max_shift_px)
+    return n_off * n_pix + shape[0] * shape[1] + n_pix
