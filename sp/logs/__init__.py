@@ -1,5 +1,18 @@
-"""Sensor logs: the frame data model (:mod:`sp.logs.types`), readers and writers."""
+"""Sensor logs: the frame data model (:mod:`sp.logs.types`), readers and writers.
 
+``open_log(path)`` reads any supported log as time-ordered frames (:mod:`sp.logs.source`);
+``McapLogWriter`` writes frames as an MCAP file of ROS 2 messages (:mod:`sp.logs.mcap_log`).
+"""
+
+from sp.logs.mcap_log import Compression, McapLogSource, McapLogWriter, McapWriterConfig
+from sp.logs.source import (
+    SUPPORTED_FORMATS,
+    LogInfo,
+    LogSource,
+    TopicInfo,
+    format_log_info,
+    open_log,
+)
 from sp.logs.types import (
     CameraFrame,
     Frame,
@@ -14,14 +27,24 @@ from sp.logs.types import (
 )
 
 __all__ = [
+    "SUPPORTED_FORMATS",
     "CameraFrame",
+    "Compression",
     "Frame",
     "GroundTruthPose",
     "ImuFrame",
     "LadarScan",
     "LogError",
+    "LogInfo",
+    "LogSource",
+    "McapLogSource",
+    "McapLogWriter",
+    "McapWriterConfig",
     "ObjectBoxes",
     "OdometryFrame",
     "ReadStats",
+    "TopicInfo",
     "TransformFrame",
+    "format_log_info",
+    "open_log",
 ]

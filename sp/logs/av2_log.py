@@ -1,0 +1,222 @@
+"""Argoverse 2 sensor logs (the folder of one log: ``sensors/lidar/<t_ns>.feather`` ...).
+
+* ``sensors/lidar/<t_ns>.feather`` (x, y, z float16 in the ego-vehicle frame, intensity uint8,
+  laser_number uint8, offset_ns int32) -> :class:`LadarScan` on ``/ladar/points`` in frame
+  ``base_link`` (the ego vehicle), stamped with the file's ``t_ns``, ``ring`` =
+  laser_number, ``t_offset_ns`` = offset_ns, intensity 0..255 as float32.
+* ``city_SE3_egovehicle.feather`` -> :class:`GroundTruthPose` ``world`` (the AV2 city frame)
+  -> ``base_link`` on ``/ground_truth/pose``.
+* ``annotations.feather`` (cuboids in the ego frame at their timestamp) ->
+  :class:`ObjectBoxes` on ``/ground_truth/objects`` in ``base_link``: ids are the track
+  UUIDs numbered 0, 1, ... in order of first appearance (stable over the log), classes are
+  AV2 category names (``REGULAR_VEHICLE``, ``PEDESTRIAN``, ...), sizes are (length, width,
+  height), yaw from the cuboid quaternion. AV2 gives no velocities: they are the central
+  differences of each track's city-frame centres over time, rotated into the ego frame
+  (m/s; NaN for a track seen once).
+
+Reading needs only pyarrow (no pandas).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from maps.frames import BODY, WORLD, interpolate_pose, quat_to_matrix
+from sp.logs.source import LogSource, TopicInfo
+from sp.logs.types import Frame, GroundTruthPose, LadarScan, LogError, ObjectBoxes
+
+LADAR_TOPIC = "/ladar/points"
+POSE_TOPIC = "/ground_truth/pose"
+BOXES_TOPIC = "/ground_truth/objects"
+
+
+def _read_feather(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
+    import pyarrow.feather as feather
+
+    try:
+        table = feather.read_table(path, columns=columns)
+    except Exception as exc:  # pyarrow raises several kinds for a bad file
+        raise LogError(f"{path}: cannot read as Feather with columns {columns}: {exc}") from exc
+    return {c: table.column(c).to_numpy() for c in columns}
+
+
+def _quat_wxyz_to_matrices(qw: np.ndarray, qx: np.ndarray, qy: np.ndarray, qz: np.ndarray):
+    return np.stack([quat_to_matrix(np.array(q)) for q in zip(qx, qy, qz, qw, strict=True)])
+
+
+class Av2LogSource(LogSource):
+    """One Argoverse 2 sensor log folder."""
+
+    format_name = "Argoverse 2 sensor log"
+
+    @classmethod
+    def accepts(cls, path: Path) -> bool:
+        return path.is_dir() and any((path / "sensors" / "lidar").glob("*.feather"))
+
+    def __init__(self, path: str | Path, *, skip_corrupt: bool = False) -> None:
+        super().__init__(path, skip_corrupt=skip_corrupt)
+        self.sweep_files = sorted(
+            (self.path / "sensors" / "lidar").glob("*.feather"), key=lambda p: int(p.stem)
+        )
+        try:
+            self.sweep_t_ns = np.array([int(p.stem) for p in self.sweep_files], dtype=np.int64)
+        except ValueError as exc:
+            raise LogError(f"{self.path}: lidar files must be named <t_ns>.feather") from exc
+        self._poses: tuple[np.ndarray, np.ndarray] | None = None
+        self._boxes: list[ObjectBoxes] | None = None
+
+    # -------------------------------------------------------------- ground truth tables
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(t_ns (P,) int64, T_world_body (P, 4, 4)) from city_SE3_egovehicle.feather."""
+        if self._poses is None:
+            path = self.path / "city_SE3_egovehicle.feather"
+            if not path.is_file():
+                self._poses = (np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+                return self._poses
+            cols = ["timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m"]
+            c = _read_feather(path, cols)
+            order = np.argsort(c["timestamp_ns"], kind="stable")
+            T = np.tile(np.eye(4), (order.size, 1, 1))
+            T[:, :3, :3] = _quat_wxyz_to_matrices(c["qw"], c["qx"], c["qy"], c["qz"])[order]
+            T[:, :3, 3] = np.stack([c["tx_m"], c["ty_m"], c["tz_m"]], axis=1)[order]
+            self._poses = (c["timestamp_ns"][order].astype(np.int64), T)
+        return self._poses
+
+    def pose_at(self, t_ns: int) -> np.ndarray:
+        """T_world_body at ``t_ns``, interpolated between the nearest poses (clamped at ends)."""
+        times, T = self.poses()
+        if times.size == 0:
+            raise LogError(f"{self.path}: no city_SE3_egovehicle.feather poses")
+        j = int(np.searchsorted(times, t_ns))
+        if j < times.size and times[j] == t_ns:
+            return T[j]
+        if j == 0 or j == times.size:
+            return T[min(j, times.size - 1)]
+        alpha = (t_ns - times[j - 1]) / (times[j] - times[j - 1])
+        return interpolate_pose(T[j - 1], T[j], alpha)
+
+    def boxes(self) -> list[ObjectBoxes]:
+        """Every annotated instant as ObjectBoxes (ego frame), in time order."""
+        if self._boxes is None:
+            self._boxes = self._read_boxes()
+        return self._boxes
+
+    def _read_boxes(self) -> list[ObjectBoxes]:
+        path = self.path / "annotations.feather"
+        if not path.is_file():
+            return []
+        cols = ["timestamp_ns", "track_uuid", "category", "length_m", "width_m", "height_m"]
+        cols += ["qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m"]
+        c = _read_feather(path, cols)
+        t = c["timestamp_ns"].astype(np.int64)
+        order = np.argsort(t, kind="stable")
+        c = {k: v[order] for k, v in c.items()}
+        t = t[order]
+        uuids = c["track_uuid"].astype(str)
+        first: dict[str, int] = {}
+        ids = np.array([first.setdefault(u, len(first)) for u in uuids], dtype=np.int64)
+        centers = np.stack([c["tx_m"], c["ty_m"], c["tz_m"]], axis=1).astype(np.float64)
+        sizes = np.stack([c["length_m"], c["width_m"], c["height_m"]], axis=1).astype(np.float64)
+        qw, qx, qy, qz = (c[k].astype(np.float64) for k in ("qw", "qx", "qy", "qz"))
+        yaws = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        velocities = self._velocities(t, ids, centers)
+        classes = c["category"].astype(str)
+        instants = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
+        bounds = np.r_[instants, t.size]
+        return [
+            ObjectBoxes(
+                t_ns=int(t[a]),
+                frame_id=BODY,
+                ids=ids[a:b],
+                classes=classes[a:b].tolist(),
+                centers=centers[a:b],
+                sizes=sizes[a:b],
+                yaws=yaws[a:b],
+                velocities=velocities[a:b],
+                topic=BOXES_TOPIC,
+            )
+            for a, b in itertools.pairwise(bounds)
+        ]
+
+    def _velocities(self, t: np.ndarray, ids: np.ndarray, centers: np.ndarray) -> np.ndarray:
+        """Per-row velocity (m/s, ego frame): central differences of city-frame centres."""
+        if self.poses()[0].size == 0:
+            return np.full(centers.shape, np.nan)
+        T_world_body = {int(s): self.pose_at(int(s)) for s in np.unique(t)}
+        R = np.stack([T_world_body[int(s)][:3, :3] for s in t])
+        centers_world = np.einsum("nij,nj->ni", R, centers) + np.stack(
+            [T_world_body[int(s)][:3, 3] for s in t]
+        )
+        v_world = np.full(centers.shape, np.nan)
+        for track in np.unique(ids):
+            rows = np.flatnonzero(ids == track)
+            if rows.size >= 2:
+                seconds = (t[rows] - t[rows[0]]) * 1e-9
+                v_world[rows] = np.gradient(centers_world[rows], seconds, axis=0)
+        return np.einsum("nji,nj->ni", R, v_world)  # R^T v: world -> ego axes
+
+    # -------------------------------------------------------------- LogSource
+    def _sweep(self, i: int) -> LadarScan:
+        path = self.sweep_files[i]
+        c = _read_feather(path, ["x", "y", "z", "intensity", "laser_number", "offset_ns"])
+        xyz = np.stack([c["x"], c["y"], c["z"]], axis=1).astype(np.float32)
+        finite = np.isfinite(xyz).all(axis=1)
+        n_bad = int(finite.size - finite.sum())
+        if n_bad:
+            self.stats.dropped_nonfinite_points += n_bad
+        return LadarScan(
+            t_ns=int(self.sweep_t_ns[i]),
+            frame_id=BODY,
+            points_xyz=xyz[finite],
+            intensity=c["intensity"][finite].astype(np.float32),
+            t_offset_ns=c["offset_ns"][finite].astype(np.int64),
+            ring=c["laser_number"][finite].astype(np.uint16),
+            topic=LADAR_TOPIC,
+        )
+
+    def _streams(
+        self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
+    ) -> list[Iterator[tuple[int, int, Frame]]]:
+        def wanted(kind: type, topic: str) -> bool:
+            return (kinds is None or kind in kinds) and (topics is None or topic in topics)
+
+        streams = []
+        if wanted(LadarScan, LADAR_TOPIC):
+            streams.append((int(t), 0, self._sweep(i)) for i, t in enumerate(self.sweep_t_ns))
+        if wanted(GroundTruthPose, POSE_TOPIC):
+            times, T = self.poses()
+            streams.append(
+                (int(s), 1, GroundTruthPose(int(s), WORLD, BODY, T[k], topic=POSE_TOPIC))
+                for k, s in enumerate(times)
+            )
+        if wanted(ObjectBoxes, BOXES_TOPIC):
+            streams.append((b.t_ns, 2, b) for b in self.boxes())
+        return streams
+
+    def _frames(
+        self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
+    ) -> Iterator[Frame]:
+        for _, _, frame in heapq.merge(*self._streams(kinds, topics), key=lambda x: x[:2]):
+            yield frame
+
+    def _topics(self) -> list[TopicInfo]:
+        out = []
+        if self.sweep_t_ns.size:
+            t = self.sweep_t_ns
+            out.append(TopicInfo(LADAR_TOPIC, "LadarScan", t.size, int(t.min()), int(t.max())))
+        times = self.poses()[0]
+        if times.size:
+            out.append(
+                TopicInfo(POSE_TOPIC, "GroundTruthPose", times.size, int(times[0]), int(times[-1]))
+            )
+        boxes = self.boxes()
+        if boxes:
+            out.append(
+                TopicInfo(BOXES_TOPIC, "ObjectBoxes", len(boxes), boxes[0].t_ns, boxes[-1].t_ns)
+            )
+        return out

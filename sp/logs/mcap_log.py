@@ -1,0 +1,397 @@
+"""MCAP logs of ROS 2 messages: :class:`McapLogWriter` writes frames, :class:`McapLogSource`
+reads them back (and any ROS 2 MCAP with ``cdr`` messages).
+
+Files are standard MCAP (profile ``ros2``): schemas in ``ros2msg`` encoding with the full
+ROS 2 message definitions, messages in ``cdr`` encoding, chunked with CRCs, fully indexed, so
+``ros2 bag``, Foxglove, ``rosbags`` and the ``mcap`` library read them. How each frame maps to
+messages and topics (and why box velocities travel on ``<topic>/velocities``) is in
+:mod:`sp.logs.ros_codec`. Each channel's metadata says the frame kind it carries
+(``frame_kind``), so ground-truth poses and odometry, both nav_msgs/Odometry, stay apart.
+
+Log time = publish time = the frame's ``t_ns`` (which must be >= 0); header stamps = ``t_ns``.
+
+Chunk compression defaults to LZ4: point clouds barely shrink under zstd, which costs several
+times the write time (see ``bench/bench_logs.py``); choose with :class:`McapWriterConfig`.
+
+Reading walks the records itself (not the summary), so that a log cut short or with damaged
+chunks can still be read with ``skip_corrupt=True``; chunks are merged in log-time order
+assuming their start times do not decrease through the file (true for ours and for rosbag2
+recordings; otherwise the few out-of-order messages show up as backwards timestamps).
+"""
+
+from __future__ import annotations
+
+import enum
+import heapq
+import io
+import os
+import struct
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+from sp.logs.ros_codec import (
+    KIND_KEY,
+    FrameAssembler,
+    encode_frame,
+    frame_topic,
+    role_of,
+    ros2msg_schema,
+    typestore,
+)
+from sp.logs.source import LogSource, TopicInfo, topic_info
+from sp.logs.types import Frame, LogError
+
+MAGIC = b"\x89MCAP0\r\n"
+_FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
+
+
+class Compression(enum.Enum):
+    """Chunk compression of a written MCAP file."""
+
+    NONE = "none"
+    LZ4 = "lz4"
+    ZSTD = "zstd"
+
+
+_MCAP_COMPRESSION = {
+    Compression.NONE: CompressionType.NONE,
+    Compression.LZ4: CompressionType.LZ4,
+    Compression.ZSTD: CompressionType.ZSTD,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class McapWriterConfig:
+    """How :class:`McapLogWriter` lays out the file."""
+
+    compression: Compression = Compression.LZ4
+    chunk_size_bytes: int = 4 * 1024 * 1024  # uncompressed bytes per chunk
+    library: str = "rcs-worldmodel sp.logs"
+
+
+class McapLogWriter:
+    """Writes sensor frames to an MCAP file of ROS 2 messages, atomically.
+
+    Writes go to ``path + ".tmp"``; :meth:`close` (or leaving the ``with`` block normally)
+    finishes the file and renames it to ``path``. Leaving the block by an exception removes the
+    temporary file, so ``path`` is either a complete log or absent.
+
+    >>> with McapLogWriter("run.mcap") as w:       # doctest: +SKIP
+    ...     w.write(scan)                          # any sp.logs.types frame
+    ...     w.attach("scenario.yaml", text, "application/yaml")
+    ...     w.add_metadata("scenario", {"seed": "7"})
+    """
+
+    def __init__(self, path: str | Path, config: McapWriterConfig | None = None) -> None:
+        self.path = Path(path)
+        self.config = config or McapWriterConfig()
+        self._tmp = self.path.with_name(self.path.name + ".tmp")
+        try:
+            self._file = open(self._tmp, "wb")
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot write: {exc}") from exc
+        self._writer = Writer(
+            self._file,
+            chunk_size=self.config.chunk_size_bytes,
+            compression=_MCAP_COMPRESSION[self.config.compression],
+        )
+        self._writer.start(profile="ros2", library=self.config.library)
+        self._schema_ids: dict[str, int] = {}
+        self._channel_ids: dict[tuple[str, str], int] = {}
+        self._sequence = 0
+        self._open = True
+        self.messages_written = 0
+        self.payload_bytes = 0  # serialised message bytes written (before chunk compression)
+
+    def __enter__(self) -> McapLogWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    def _channel_id(self, topic: str, msgtype: str, kind: str) -> int:
+        key = (topic, msgtype)
+        cid = self._channel_ids.get(key)
+        if cid is None:
+            sid = self._schema_ids.get(msgtype)
+            if sid is None:
+                sid = self._writer.register_schema(msgtype, "ros2msg", ros2msg_schema(msgtype))
+                self._schema_ids[msgtype] = sid
+            cid = self._writer.register_channel(topic, "cdr", sid, metadata={KIND_KEY: kind})
+            self._channel_ids[key] = cid
+        return cid
+
+    def write(self, frame: Frame) -> None:
+        """Write one frame (any :mod:`sp.logs.types` frame) at log time ``frame.t_ns``."""
+        self._check_open()
+        t_ns = int(frame.t_ns)
+        if t_ns < 0:
+            raise LogError(f"{self.path}: {type(frame).__name__} t_ns={t_ns} < 0 (MCAP times)")
+        store = typestore()
+        for enc in encode_frame(frame):
+            data = store.serialize_cdr(enc.message, enc.msgtype)
+            cid = self._channel_id(enc.topic, enc.msgtype, enc.kind)
+            self._writer.add_message(cid, t_ns, data, t_ns, self._sequence)
+            self._sequence += 1
+            self.messages_written += 1
+            self.payload_bytes += len(data)
+
+    def attach(self, name: str, data: bytes, media_type: str, t_ns: int = 0) -> None:
+        """Attach a file (e.g. the scenario that made the log) to the log."""
+        self._check_open()
+        self._writer.add_attachment(int(t_ns), int(t_ns), name, media_type, bytes(data))
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Add a named record of string key/value pairs."""
+        self._check_open()
+        bad = {k: v for k, v in data.items() if not (isinstance(k, str) and isinstance(v, str))}
+        if bad:
+            raise LogError(f"{self.path}: metadata {name!r} has non-string entries {bad}")
+        self._writer.add_metadata(name, dict(data))
+
+    def close(self) -> None:
+        """Finish the file (summary, indexes) and rename it into place."""
+        if not self._open:
+            return
+        self._open = False
+        try:
+            self._writer.finish()
+            self._file.close()
+            os.replace(self._tmp, self.path)
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot finish the log: {exc}") from exc
+
+    def abort(self) -> None:
+        """Drop the unfinished file."""
+        if self._open:
+            self._open = False
+            self._file.close()
+            self._tmp.unlink(missing_ok=True)
+
+    def _check_open(self) -> None:
+        if not self._open:
+            raise LogError(f"{self.path}: the writer is closed")
+
+
+# ------------------------------------------------------------------------------ reading
+
+
+@dataclass(slots=True)
+class _ChunkMessages:
+    """The messages of one chunk (or one loose message), with the chunk's start time."""
+
+    start_t_ns: int
+    messages: list[Message]
+
+
+class McapLogSource(LogSource):
+    """An MCAP file of ROS 2 ``cdr`` messages, read as sensor frames."""
+
+    format_name = "MCAP (ROS 2 messages, cdr)"
+
+    @classmethod
+    def accepts(cls, path: Path) -> bool:
+        if not path.is_file():
+            return False
+        if path.suffix == ".mcap":
+            return True
+        with open(path, "rb") as f:
+            return f.read(len(MAGIC)) == MAGIC
+
+    def __init__(self, path: str | Path, *, skip_corrupt: bool = False) -> None:
+        super().__init__(path, skip_corrupt=skip_corrupt)
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._store: Any = None
+        self._registered: set[str] = set()
+        try:
+            size = self.path.stat().st_size
+            with open(self.path, "rb") as f:
+                head = f.read(len(MAGIC))
+                f.seek(max(size - len(MAGIC), 0))
+                tail = f.read(len(MAGIC))
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot read: {exc}") from exc
+        if head != MAGIC:
+            raise LogError(f"{self.path}: not an MCAP file (starts with {head!r})")
+        self._complete = size >= 2 * len(MAGIC) + _FOOTER_SIZE and tail == MAGIC
+        if not self._complete:
+            self.fail(f"ends without the MCAP footer after {size} bytes: truncated")
+
+    # -------------------------------------------------------------- records
+    def _records(self, fail: Callable[[str], None]) -> Iterator[tuple[int, int, bytes]]:
+        """(byte offset, opcode, body) of each top-level record up to the footer."""
+        with open(self.path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            f.seek(len(MAGIC))
+            while True:
+                offset = f.tell()
+                head = f.read(9)
+                if len(head) < 9:
+                    if self._complete:  # already reported at open when incomplete
+                        fail(f"ends at byte {offset} before the footer record")
+                    return
+                opcode, length = struct.unpack("<BQ", head)
+                if length > size - offset - 9:
+                    fail(
+                        f"record at byte {offset} (opcode 0x{opcode:02x}) claims {length} "
+                        f"bytes but {size - offset - 9} remain: truncated or corrupt"
+                    )
+                    return
+                yield offset, opcode, f.read(length)
+                if opcode == Opcode.FOOTER:
+                    return
+
+    def _scan(
+        self, fail: Callable[[str], None]
+    ) -> Iterator[_ChunkMessages | Attachment | Metadata]:
+        """Chunks (as their messages), loose messages, attachments and metadata, in file order.
+
+        Schemas and channels are registered on the way.
+        """
+        for offset, opcode, body in self._records(fail):
+            stream = ReadDataStream(io.BytesIO(body))
+            try:
+                if opcode == Opcode.CHUNK:
+                    chunk = Chunk.read(stream)
+                    records = breakup_chunk(chunk, validate_crc=True)
+                    messages = [r for r in records if self._register(r)]
+                    yield _ChunkMessages(chunk.message_start_time, messages)
+                elif opcode == Opcode.MESSAGE:
+                    message = Message.read(stream, len(body))
+                    yield _ChunkMessages(message.log_time, [message])
+                elif opcode == Opcode.SCHEMA:
+                    self._register(Schema.read(stream))
+                elif opcode == Opcode.CHANNEL:
+                    self._register(Channel.read(stream))
+                elif opcode == Opcode.ATTACHMENT:
+                    yield Attachment.read(stream)
+                elif opcode == Opcode.METADATA:
+                    yield Metadata.read(stream)
+            except Exception as exc:  # damaged bytes surface as many library errors
+                name = Opcode(opcode).name if opcode in Opcode._value2member_map_ else opcode
+                fail(f"record {name} at byte {offset} is corrupt: {exc!r}")
+
+    def _register(self, record: object) -> bool:
+        """Keep schemas and channels; True for a message record."""
+        if isinstance(record, Schema):
+            self._schemas[record.id] = record
+        elif isinstance(record, Channel):
+            self._channels[record.id] = record
+        return isinstance(record, Message)
+
+    def _quiet_fail(self, problem: str) -> None:
+        if not self.skip_corrupt:
+            self.fail(problem)
+
+    def _messages(self) -> Iterator[Message]:
+        """Messages in log-time order (ties in file order), merging chunks as they come."""
+        heap: list[tuple[int, int, Message]] = []
+        seq = 0
+        for item in self._scan(self.fail):
+            if not isinstance(item, _ChunkMessages):
+                continue
+            while heap and heap[0][0] <= item.start_t_ns:
+                yield heapq.heappop(heap)[2]
+            for message in item.messages:
+                heapq.heappush(heap, (message.log_time, seq, message))
+                seq += 1
+        while heap:
+            yield heapq.heappop(heap)[2]
+
+    # -------------------------------------------------------------- decoding
+    def _msgtype(self, channel: Channel) -> str:
+        schema = self._schemas.get(channel.schema_id)
+        return schema.name if schema is not None else ""
+
+    def _deserialize(self, channel: Channel, message: Message) -> Any:
+        schema = self._schemas.get(channel.schema_id)
+        if schema is None or channel.message_encoding != "cdr":
+            raise ValueError(
+                f"{channel.topic}: message encoding {channel.message_encoding!r} "
+                f"with schema {schema.name if schema else None!r} is not ROS 2 cdr"
+            )
+        if schema.name not in self._registered:
+            self._register_schema(schema)
+        return self._store.deserialize_cdr(message.data, schema.name)
+
+    def _register_schema(self, schema: Schema) -> None:
+        from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+        if self._store is None:
+            self._store = get_typestore(Stores.EMPTY)
+        text = schema.data.decode()
+        if schema.encoding == "ros2msg":
+            types = get_types_from_msg(text, schema.name)
+        elif schema.encoding == "ros2idl":
+            types = get_types_from_idl(text)
+        else:
+            raise ValueError(f"schema {schema.name!r} has encoding {schema.encoding!r}")
+        self._store.register(types)
+        self._registered.add(schema.name)
+
+    def _frames(
+        self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
+    ) -> Iterator[Frame]:
+        assembler = FrameAssembler(self.stats, kinds, on_error=self.fail)
+        roles: dict[int, Any] = {}
+        for message in self._messages():
+            channel = self._channels.get(message.channel_id)
+            if channel is None:
+                self.fail(f"message at log time {message.log_time} has unknown channel")
+                continue
+            if channel.id not in roles:
+                role = role_of(
+                    channel.topic, self._msgtype(channel), channel.metadata.get(KIND_KEY)
+                )
+                wanted = assembler.wants(role) and (
+                    topics is None or frame_topic(channel.topic, role) in topics
+                )
+                roles[channel.id] = role if wanted else None
+            role = roles[channel.id]
+            if role is None:
+                continue
+            try:
+                msg = self._deserialize(channel, message)
+            except Exception as exc:  # rosbags raises several types for bad bytes
+                self.fail(
+                    f"{channel.topic} message at log time {message.log_time} cannot be "
+                    f"decoded as {self._msgtype(channel)}: {exc}"
+                )
+                continue
+            yield from assembler.push(channel.topic, role, msg, message.log_time)
+        yield from assembler.flush()
+
+    # -------------------------------------------------------------- the rest of the interface
+    def _topics(self) -> list[TopicInfo]:
+        times: dict[int, list[int]] = {}
+        for item in self._scan(self._quiet_fail):
+            if isinstance(item, _ChunkMessages):
+                for m in item.messages:
+                    times.setdefault(m.channel_id, []).append(m.log_time)
+        by_topic: dict[tuple[str, str], list[int]] = {}
+        for cid, channel in self._channels.items():
+            key = (channel.topic, self._msgtype(channel))
+            by_topic.setdefault(key, []).extend(times.get(cid, []))
+        return [topic_info(topic, msgtype, t) for (topic, msgtype), t in by_topic.items()]
+
+    def attachments(self) -> dict[str, bytes]:
+        return {a.name: a.data for a in self._scan(self._quiet_fail) if isinstance(a, Attachment)}
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        return {
+            m.name: dict(m.metadata)
+            for m in self._scan(self._quiet_fail)
+            if isinstance(m, Metadata)
+        }
