@@ -45,8 +45,8 @@ def _run(level: MapLevel, script, keep: bool) -> None:
             written[cell] = counter
             left.discard(cell)
         else:
-            target = np.asarray(arg, float) if kind == "move" else level.center_xy + RES * np.asarray(arg)
-            level.move_to(target)
+            step = RES * np.asarray(arg, float)
+            level.move_to(np.asarray(arg, float) if kind == "move" else level.center_xy + step)
         lo = level.origin_cell
         for cell, value in list(written.items()):
             inside = all(lo[k] <= cell[k] < lo[k] + SIZE for k in (0, 1))
@@ -153,11 +153,12 @@ def test_bad_input_is_refused_with_what_is_valid() -> None:
     with pytest.raises(LevelError, match="resolution_m must be > 0"):
         MapLevel(LevelConfig("t", -1.0))
     level = MapLevel(LevelConfig("t", 1.0, 8))
-    with pytest.raises(LevelError, match="valid layers: .*elevation"):
+    with pytest.raises(LevelError, match=r"valid layers: .*elevation"):
         level.window("elevations")
     with pytest.raises(LevelError, match=r"needs shape \(8, 8\)"):
         level.set_window("elevation", np.zeros((7, 8)))
     with pytest.raises(LevelError, match=r"must be \(N, 2\)"):
         level.read("elevation", np.zeros(3))
     with pytest.raises(LevelError, match="specified twice"):
-        MapLevel(LevelConfig("t", 1.0, 8, layers=(LayerSpec("a", "f4", 0), LayerSpec("a", "f4", 0))))
+        twice = (LayerSpec("a", "f4", 0), LayerSpec("a", "f4", 0))
+        MapLevel(LevelConfig("t", 1.0, 8, layers=twice))

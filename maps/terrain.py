@@ -1,0 +1,58 @@
+"""Terrain layers derived from the elevation of neighbouring cells: slope, step height,
+traversability (reference 001, 4.4.7: map pixels may hold "terrain roughness, slope, and
+traversability").
+
+Computed in window order (so the toroidal seam never makes two far cells neighbours) and
+written back. Cells with no elevation, or whose neighbours have none, stay NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from maps.level import MapLevel
+
+TERRAIN_LAYERS = ("elevation", "roughness", "occupancy", "slope", "step_height", "traversability")
+
+
+@dataclass(frozen=True)
+class TerrainConfig:
+    """Limits at which a cell becomes impassable: slope (rad), step (m), roughness (m)."""
+
+    max_slope_rad: float = 0.5
+    max_step_m: float = 0.3
+    max_roughness_m: float = 0.15
+    occupied_log_odds: float = 1.0  # at or above this occupancy a cell is impassable
+
+
+def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None:
+    """Recompute slope, step_height and traversability over the whole window of ``level``."""
+    config = config or TerrainConfig()
+    level.require(*TERRAIN_LAYERS)
+    e = level.window("elevation").astype(np.float64)
+    res = level.resolution_m
+    pad = np.pad(e, 1, constant_values=np.nan)
+    gx = (pad[1:-1, 2:] - pad[1:-1, :-2]) / (2.0 * res)
+    gy = (pad[2:, 1:-1] - pad[:-2, 1:-1]) / (2.0 * res)
+    slope = np.arctan(np.hypot(gx, gy))
+    step = np.full(e.shape, np.nan)
+    with np.errstate(invalid="ignore"):
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr == 0 and dc == 0:
+                    continue
+                nb = pad[1 + dr : 1 + dr + e.shape[0], 1 + dc : 1 + dc + e.shape[1]]
+                step = np.fmax(step, np.abs(nb - e))
+    rough = level.window("roughness").astype(np.float64)
+    badness = np.fmax(
+        np.fmax(slope / config.max_slope_rad, step / config.max_step_m),
+        rough / config.max_roughness_m,
+    )
+    trav = np.clip(1.0 - badness, 0.0, 1.0)
+    trav[level.window("occupancy") >= config.occupied_log_odds] = 0.0
+    trav[~np.isfinite(e)] = np.nan
+    level.set_window("slope", slope.astype(np.float32))
+    level.set_window("step_height", step.astype(np.float32))
+    level.set_window("traversability", trav.astype(np.float32))
