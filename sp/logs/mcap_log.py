@@ -53,6 +53,13 @@ MAGIC = b"\x89MCAP0\r\n"
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
 
 
+def _opcode_name(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name
+    except ValueError:
+        return f"0x{opcode:02x}"
+
+
 class Compression(enum.Enum):
     """Chunk compression of a written MCAP file."""
 
@@ -227,7 +234,10 @@ class McapLogSource(LogSource):
             raise LogError(f"{self.path}: not an MCAP file (starts with {head!r})")
         self._complete = size >= 2 * len(MAGIC) + _FOOTER_SIZE and tail == MAGIC
         if not self._complete:
-            self.fail(f"ends without the MCAP footer after {size} bytes: truncated")
+            problem = f"ends without the MCAP footer after {size} bytes: truncated"
+            if not skip_corrupt:
+                self.fail(problem)
+            self.stats.note(f"{self.path.name}: {problem}; reading what is there")
 
     # -------------------------------------------------------------- records
     def _records(self, fail: Callable[[str], None]) -> Iterator[tuple[int, int, bytes]]:
@@ -239,13 +249,12 @@ class McapLogSource(LogSource):
                 offset = f.tell()
                 head = f.read(9)
                 if len(head) < 9:
-                    if self._complete:  # already reported at open when incomplete
-                        fail(f"ends at byte {offset} before the footer record")
+                    fail(f"ends at byte {offset} before the footer record: truncated")
                     return
                 opcode, length = struct.unpack("<BQ", head)
                 if length > size - offset - 9:
                     fail(
-                        f"record at byte {offset} (opcode 0x{opcode:02x}) claims {length} "
+                        f"record {_opcode_name(opcode)} at byte {offset} claims {length} "
                         f"bytes but {size - offset - 9} remain: truncated or corrupt"
                     )
                     return
@@ -280,8 +289,8 @@ class McapLogSource(LogSource):
                 elif opcode == Opcode.METADATA:
                     yield Metadata.read(stream)
             except Exception as exc:  # damaged bytes surface as many library errors
-                name = Opcode(opcode).name if opcode in Opcode._value2member_map_ else opcode
-                fail(f"record {name} at byte {offset} is corrupt: {exc!r}")
+                what = f"{type(exc).__name__}: {exc}"
+                fail(f"record {_opcode_name(opcode)} at byte {offset} is corrupt: {what}")
 
     def _register(self, record: object) -> bool:
         """Keep schemas and channels; True for a message record."""

@@ -1,0 +1,150 @@
+"""Bad input: truncated and damaged logs, non-finite points, times going backwards, missing
+topics and paths that are no log. Every failure is a LogError naming the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.writer import CompressionType, Writer
+
+from sp.logs import (
+    Compression,
+    LadarScan,
+    LogError,
+    McapLogWriter,
+    McapWriterConfig,
+    OdometryFrame,
+    open_log,
+)
+from sp.logs.ros_codec import encode_frame, ros2msg_schema, typestore
+
+N_SCANS = 40
+
+
+def _scan(k: int, rng: np.random.Generator, n: int = 1000) -> LadarScan:
+    return LadarScan(
+        t_ns=(k + 1) * 100_000_000,
+        frame_id="ladar",
+        points_xyz=rng.normal(0, 10, (n, 3)).astype(np.float32),
+        intensity=rng.random(n).astype(np.float32),
+        t_offset_ns=np.sort(rng.integers(0, 100_000_000, n)),
+        ring=rng.integers(0, 16, n).astype(np.uint16),
+    )
+
+
+@pytest.fixture(scope="module")
+def good_log(tmp_path_factory) -> Path:
+    """40 scans of 1000 points (16 kB each) in chunks of ~64 kB, uncompressed."""
+    rng = np.random.default_rng(11)
+    path = tmp_path_factory.mktemp("corrupt") / "good.mcap"
+    config = McapWriterConfig(compression=Compression.NONE, chunk_size_bytes=64 * 1024)
+    with McapLogWriter(path, config) as w:
+        for k in range(N_SCANS):
+            w.write(_scan(k, rng))
+    return path
+
+
+def _copy(src: Path, dst: Path, edit) -> Path:
+    data = bytearray(src.read_bytes())
+    dst.write_bytes(bytes(edit(data)))
+    return dst
+
+
+def test_truncated_log_is_named_and_skippable(good_log, tmp_path) -> None:
+    cut = _copy(good_log, tmp_path / "cut.mcap", lambda d: d[: len(d) // 2])
+    with pytest.raises(LogError, match=r"cut\.mcap.*truncated"):
+        list(open_log(cut).frames())
+    src = open_log(cut, skip_corrupt=True)
+    scans = list(src.frames())
+    assert 0 < len(scans) < N_SCANS
+    assert src.stats.skipped_records >= 1
+    assert any("truncated" in m for m in src.stats.messages)
+    assert [s.t_ns for s in scans] == [(k + 1) * 100_000_000 for k in range(len(scans))]
+
+
+def test_flipped_bytes_are_named_and_skippable(good_log, tmp_path) -> None:
+    def flip(d: bytearray) -> bytearray:
+        middle = len(d) // 2
+        for i in range(middle, middle + 64):
+            d[i] ^= 0xFF
+        return d
+
+    bad = _copy(good_log, tmp_path / "flipped.mcap", flip)
+    with pytest.raises(LogError, match=r"flipped\.mcap.*corrupt"):
+        list(open_log(bad).frames())
+    src = open_log(bad, skip_corrupt=True)
+    scans = list(src.frames())
+    assert src.stats.skipped_records >= 1
+    assert 0 < len(scans) < N_SCANS
+    assert len({s.t_ns for s in scans}) == len(scans)
+
+
+def test_nonfinite_points_are_dropped_and_counted(tmp_path) -> None:
+    rng = np.random.default_rng(5)
+    scan = _scan(0, rng, n=500)
+    bad = rng.choice(500, 37, replace=False)
+    scan.points_xyz[bad[:20], rng.integers(0, 3, 20)] = np.nan
+    scan.points_xyz[bad[20:], 0] = np.inf
+    path = tmp_path / "nan.mcap"
+    with McapLogWriter(path) as w:
+        w.write(scan)
+    src = open_log(path)
+    (back,) = list(src.frames())
+    keep = np.ones(500, bool)
+    keep[bad] = False
+    assert src.stats.dropped_nonfinite_points == 37
+    np.testing.assert_array_equal(back.points_xyz, scan.points_xyz[keep])
+    np.testing.assert_array_equal(back.ring, scan.ring[keep])
+    np.testing.assert_array_equal(back.t_offset_ns, scan.t_offset_ns[keep])
+
+
+def test_backwards_header_stamps_are_reported(tmp_path) -> None:
+    """A log whose odometry stamps jump back twice while the log times advance."""
+    stamps = [10, 20, 30, 25, 40, 35, 50]
+    path = tmp_path / "jumps.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.NONE)
+        w.start(profile="ros2")
+        sid = w.register_schema(
+            "nav_msgs/msg/Odometry", "ros2msg", ros2msg_schema("nav_msgs/msg/Odometry")
+        )
+        cid = w.register_channel("/odom", "cdr", sid)
+        for k, stamp in enumerate(stamps):
+            frame = OdometryFrame(stamp * 10**6, "odom", "base_link", np.eye(4))
+            (enc,) = encode_frame(frame)
+            data = typestore().serialize_cdr(enc.message, enc.msgtype)
+            w.add_message(cid, (k + 1) * 10**7, data, (k + 1) * 10**7)
+        w.finish()
+    src = open_log(path)
+    times = [f.t_ns // 10**6 for f in src.frames()]
+    assert times == stamps
+    assert src.stats.backwards_timestamps == 2
+    assert len(src.stats.messages) == 2 and "/odom" in src.stats.messages[0]
+
+
+def test_missing_topics_are_named(good_log) -> None:
+    src = open_log(good_log)
+    src.require_topics(["/ladar/points"])
+    with pytest.raises(LogError, match=r"good\.mcap: missing topics \['/camera', '/odom'\]"):
+        src.require_topics(["/ladar/points", "/camera", "/odom"])
+
+
+def test_unsupported_paths_list_the_formats(tmp_path) -> None:
+    text = tmp_path / "notes.txt"
+    text.write_text("not a log")
+    with pytest.raises(
+        LogError, match=r"notes\.txt: not a supported log(.|\n)*KITTI(.|\n)*7-Scenes"
+    ):
+        open_log(text)
+    with pytest.raises(LogError, match="no such file"):
+        open_log(tmp_path / "absent.mcap")
+    fake = tmp_path / "fake.mcap"
+    fake.write_bytes(b"PK\x03\x04 a zip file, not an MCAP")
+    with pytest.raises(LogError, match=r"fake\.mcap: not an MCAP file"):
+        open_log(fake)
+    empty_dir = tmp_path / "empty"
+    empty_dir.mkdir()
+    with pytest.raises(LogError, match="Supported formats"):
+        open_log(empty_dir)
