@@ -1,0 +1,111 @@
+"""The simulated world against its own analytic truth: terrain, route, agents, boxes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fixtures.scenario import load_scenario
+from fixtures.world import World
+from maps.frames import NS_PER_S, check_pose, yaw_of
+
+
+@pytest.fixture(scope="module")
+def world() -> World:
+    return World(load_scenario("default"))
+
+
+def test_same_seed_same_world_other_seed_other_world(world: World) -> None:
+    again = World(load_scenario("default"))
+    other = World(load_scenario("default").with_seed(8))
+    centers = np.array([o.center for o in world.statics])
+    assert np.array_equal(centers, np.array([o.center for o in again.statics]))
+    assert np.array_equal(world.terrain_raster().heights, again.terrain_raster().heights)
+    assert not np.allclose(centers[:, :2], np.array([o.center for o in other.statics])[:, :2])
+    assert not np.allclose(world.terrain_raster().heights, other.terrain_raster().heights)
+
+
+def test_terrain_raster_is_the_height_function(world: World) -> None:
+    r = world.terrain_raster()
+    assert r.heights.dtype == np.float32 and r.shape == (401, 401)
+    rows, cols = np.array([0, 7, 200, 400]), np.array([3, 100, 250, 400])
+    x, y = r.origin_x + cols * r.resolution_m, r.origin_y + rows * r.resolution_m
+    assert np.allclose(r.heights[rows, cols], world.height(x, y), atol=1e-5)
+    assert np.ptp(r.heights) > 2.0  # rolling, not flat
+
+
+def test_vertical_rays_hit_the_terrain_at_its_height(world: World) -> None:
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-150, 150, (500, 2))
+    # keep off objects: compare only rays that hit the terrain (object id 0)
+    origins = np.column_stack([xy, np.full(len(xy), 50.0)])
+    dirs = np.broadcast_to([0.0, 0.0, -1.0], (len(xy), 1, 3))
+    hits = world.cast_rays(origins, dirs, np.zeros(len(xy), dtype=np.int64))
+    terrain = hits.object_id[:, 0] == 0
+    assert terrain.mean() > 0.8
+    z_hit = 50.0 - hits.range_m[terrain, 0]
+    # the mesh is the height field sampled every metre: linear between samples
+    assert np.max(np.abs(z_hit - world.height(xy[terrain, 0], xy[terrain, 1]))) < 0.02
+
+
+def test_route_stays_on_the_terrain_with_the_slope_attitude(world: World) -> None:
+    t_ns = np.arange(0, 60 * NS_PER_S, NS_PER_S // 4)
+    T = world.T_world_body(t_ns)
+    for k in (0, 17, 239):
+        check_pose(T[k], "T_world_body")
+    x, y = T[:, 0, 3], T[:, 1, 3]
+    assert np.allclose(T[:, 2, 3], world.height(x, y), atol=1e-9)
+    # body z is the terrain normal; pitch/roll are real (not all level)
+    assert np.allclose(T[:, :3, 2], world.terrain.normal(x, y), atol=1e-9)
+    assert np.max(np.degrees(np.arccos(T[:, 2, 2]))) > 2.0
+
+
+def test_route_speed_and_turns(world: World) -> None:
+    t_ns = np.arange(0, 60 * NS_PER_S, NS_PER_S // 10)
+    p = world.T_world_body(t_ns)[:, :3, 3]
+    speed = np.linalg.norm(np.diff(p, axis=0), axis=1) / 0.1
+    assert 4.9 < speed.min() and speed.max() < 10.3  # 5-10 m/s (slope adds a little)
+    yaw = np.unwrap([yaw_of(T) for T in world.T_world_body(t_ns)])
+    assert np.ptp(yaw) > np.radians(90)  # it turns
+    assert np.max(np.abs(np.diff(yaw))) < np.radians(5)  # smoothly (at 0.1 s steps)
+
+
+def test_agents_move_at_their_stated_speeds(world: World) -> None:
+    t_ns = np.linspace(0, 59 * NS_PER_S, 120).astype(np.int64)
+    dt_ns = NS_PER_S // 20
+    a = world.agent_states(t_ns)
+    b = world.agent_states(t_ns + dt_ns)
+    moved = np.linalg.norm((b.centers - a.centers)[:, :, :2], axis=2) / (dt_ns / NS_PER_S)
+    for k, track in enumerate(world.agents):
+        # median: a step that rounds a path corner is a little shorter than the path
+        assert np.median(moved[:, k]) == pytest.approx(track.speed_mps, rel=1e-3)
+        assert np.allclose(np.linalg.norm(a.velocities[:, k], axis=1), track.speed_mps)
+        on_ground = world.height(a.centers[:, k, 0], a.centers[:, k, 1]) + track.size[2] / 2
+        assert np.allclose(a.centers[:, k, 2], on_ground)
+
+
+def test_object_boxes_have_stable_ids_and_truthful_motion(world: World) -> None:
+    b0 = world.object_boxes(0)
+    b1 = world.object_boxes(2 * NS_PER_S)
+    assert len(b0) == len(world.statics) + len(world.agents) == len(set(b0.ids.tolist()))
+    assert np.array_equal(b0.ids, b1.ids) and b0.classes == b1.classes
+    assert {"building", "tree", "bush", "rock", "post", "wall", "vehicle", "person"} <= set(
+        b0.classes
+    )
+    static = np.array([c not in ("vehicle", "person") for c in b0.classes])
+    assert np.array_equal(b0.centers[static], b1.centers[static])
+    assert np.all(b0.velocities[static] == 0)
+    # agents: displacement over 2 s equals velocity * 2 s on straight stretches (most of them)
+    disp = b1.centers[~static, :2] - b0.centers[~static, :2]
+    straight = np.linalg.norm(disp - 2.0 * b0.velocities[~static, :2], axis=1) < 1e-6
+    assert straight.sum() >= len(straight) - 2
+    assert np.all(b0.sizes > 0)
+
+
+def test_convoy_members_keep_their_spacing(world: World) -> None:
+    spec = next(s for s in world.scenario.agents if s.members == 2)
+    members = [a for a in world.agents if a.group == world.scenario.agents.index(spec)]
+    states = world.agent_states(np.array([5 * NS_PER_S]))
+    ids = [a.object_id for a in world.agents]
+    c0, c1 = (states.centers[0, ids.index(m.object_id), :2] for m in members)
+    assert np.linalg.norm(c0 - c1) == pytest.approx(spec.spacing_m, abs=0.05)
