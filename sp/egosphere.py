@@ -1,0 +1,284 @@
+"""Egosphere images: a LADAR sweep as a range image on the sensor egosphere (level 1 of SP).
+
+Reference 001, 4.4.4 (Images: "the signal from each pixel in a LADAR range image may ... list
+several ranges corresponding to multiple returns"), 4.4.6 (Image Field of View: the sensor,
+body and inertial egospheres, "each pixel has a unique azimuth and elevation").
+
+Pixel grid (sensor egosphere, sensor frame x forward, y left, z up):
+
+* row ``i``: the beam (``ring``) when the sensor gives one, else the elevation bin; row 0 is the
+  highest elevation (the image is upright).
+* column ``j``: azimuth bin; azimuth ``atan2(y, x)`` falls from +pi at column 0 to -pi at the
+  last column, so the view ahead (azimuth 0) sits in the middle and left is left.
+* layer ``k``: the k-th nearest return that fell in the pixel (``max_returns`` kept).
+
+Every pixel keeps the index of its point in the sweep and its exact ``xyz``, so back-projection
+returns the original points bit for bit; the pixel's own ray (its bin centre) is available too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from maps.frames import check_pose, se3, transform_points
+from sp.logs.types import LadarScan
+
+
+class EgosphereError(ValueError):
+    """A scan, configuration or transform the egosphere cannot use; names the value."""
+
+
+@dataclass(frozen=True)
+class EgosphereConfig:
+    """Geometry of a sensor-egosphere image.
+
+    n_rows, n_cols:     image size (beams x azimuth bins).
+    elevation_min_deg, elevation_max_deg: elevation span binned into rows when the scan has no
+                        ``ring`` (or ``use_ring`` is False); points outside it are dropped.
+    use_ring:           take the row from the scan's beam index when present.
+    ring_zero_at_bottom: beam 0 is the lowest beam (Velodyne, the simulator); else the highest.
+    max_returns:        returns kept per pixel, nearest first.
+    min_range_m:        closer points (the vehicle itself) are dropped.
+    """
+
+    n_rows: int = 64
+    n_cols: int = 2048
+    elevation_min_deg: float = -25.0
+    elevation_max_deg: float = 3.0
+    use_ring: bool = True
+    ring_zero_at_bottom: bool = True
+    max_returns: int = 2
+    min_range_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.n_rows < 1 or self.n_cols < 1 or self.max_returns < 1:
+            raise EgosphereError(
+                f"egosphere needs n_rows, n_cols, max_returns >= 1, got "
+                f"{self.n_rows}, {self.n_cols}, {self.max_returns}"
+            )
+        if not self.elevation_max_deg > self.elevation_min_deg:
+            raise EgosphereError(
+                f"elevation_max_deg {self.elevation_max_deg} must exceed "
+                f"elevation_min_deg {self.elevation_min_deg}"
+            )
+
+
+class EgosphereImage:
+    """A range image on the sensor egosphere; arrays are (n_rows, n_cols, max_returns[, 3]).
+
+    range_m:      float32 metres from the sensor origin, NaN where empty.
+    point_index:  int64 index of the point in the sweep, -1 where empty.
+    valid:        bool, ``point_index >= 0``.
+    intensity:    float32 sensor units, NaN where empty.
+    xyz:          float32 metres, sensor frame, NaN where empty.
+    t_offset_ns:  int64 point time minus ``t_ns``, 0 where empty.
+    T_body_sensor: (4, 4) float64 sensor mount, for transforms to the body and beyond.
+
+    Projection computes ``point_index`` and ``range_m``; the other attributes are gathered from
+    the sweep on first use (most consumers need only some of them) and then kept.
+    """
+
+    def __init__(
+        self,
+        scan: LadarScan,
+        config: EgosphereConfig,
+        point_index: np.ndarray,
+        range_m: np.ndarray,
+        T_body_sensor: np.ndarray,
+        n_dropped: int,
+        n_overflow: int = 0,
+    ) -> None:
+        self.t_ns = int(scan.t_ns)
+        self.frame_id = scan.frame_id
+        self.config = config
+        self.point_index = point_index
+        self.range_m = range_m
+        self.T_body_sensor = T_body_sensor
+        self.n_dropped = n_dropped  # points outside the elevation span or nearer than min_range
+        self.n_overflow = n_overflow  # points beyond max_returns in their pixel (not kept)
+        self._scan = scan
+        self._cache: dict[str, np.ndarray] = {}
+
+    def _gather(self, name: str, values: np.ndarray, empty: float | int) -> np.ndarray:
+        if name not in self._cache:
+            v = np.asarray(values)
+            out = np.full(self.point_index.shape + v.shape[1:], empty, dtype=v.dtype)
+            at = self.valid
+            out[at] = v[self.point_index[at]]
+            self._cache[name] = out
+        return self._cache[name]
+
+    @property
+    def valid(self) -> np.ndarray:
+        if "valid" not in self._cache:
+            self._cache["valid"] = self.point_index >= 0
+        return self._cache["valid"]
+
+    @property
+    def intensity(self) -> np.ndarray:
+        return self._gather("intensity", self._scan.intensity.astype(np.float32), np.nan)
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self._gather("xyz", self._scan.points_xyz.astype(np.float32), np.nan)
+
+    @property
+    def t_offset_ns(self) -> np.ndarray:
+        return self._gather("t_offset_ns", self._scan.t_offset_ns.astype(np.int64), 0)
+
+    @property
+    def range_first(self) -> np.ndarray:
+        """(n_rows, n_cols) float32 nearest range per pixel, NaN where empty."""
+        return self.range_m[..., 0]
+
+    @property
+    def valid_first(self) -> np.ndarray:
+        """(n_rows, n_cols) bool: the pixel has at least one return."""
+        return self.valid[..., 0]
+
+    def back_project(self, T_target_sensor: np.ndarray | None = None) -> np.ndarray:
+        """All returns as (M, 3) float32 points (in ``T_target_sensor``'s target frame if given),
+        in sweep order, i.e. exactly the points that went in (minus the dropped ones)."""
+        index = np.sort(self.point_index[self.valid])
+        pts = np.asarray(self._scan.points_xyz, dtype=np.float32)[index]
+        if T_target_sensor is None:
+            return pts
+        return transform_points(check_pose(T_target_sensor, "T_target_sensor"), pts)
+
+    def pixel_rays(self) -> np.ndarray:
+        """(n_rows, n_cols, 3) float64 unit rays through each pixel's bin centre, sensor frame
+        (rows binned by elevation span; for ring rows this is the nominal beam direction)."""
+        el, az = pixel_angles(self.config)
+        E, A = np.meshgrid(el, az, indexing="ij")
+        return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1)
+
+
+def pixel_angles(config: EgosphereConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation (n_rows,) and azimuth (n_cols,) of the bin centres, radians."""
+    el_lo, el_hi = np.deg2rad(config.elevation_min_deg), np.deg2rad(config.elevation_max_deg)
+    el = el_hi - (np.arange(config.n_rows) + 0.5) * (el_hi - el_lo) / config.n_rows
+    az = np.pi - (np.arange(config.n_cols) + 0.5) * (2 * np.pi / config.n_cols)
+    return el, az
+
+
+def spherical(points_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range, azimuth ``atan2(y, x)`` and elevation ``atan2(z, hypot(x, y))`` of (N, 3)
+    points, each (N,) float32 (metres, radians)."""
+    x, y, z = points_xyz[:, 0], points_xyz[:, 1], points_xyz[:, 2]
+    horiz2 = x * x + y * y
+    rng = np.sqrt(horiz2 + z * z)
+    return rng, np.arctan2(y, x), np.arctan2(z, np.sqrt(horiz2))
+
+
+def _pixel_of(
+    scan: LadarScan,
+    config: EgosphereConfig,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    horiz2: np.ndarray,
+    rng: np.ndarray,
+) -> np.ndarray:
+    """Flat pixel index (N,) int64 of every point; -1 for points that are dropped."""
+    col = ((np.pi - np.arctan2(y, x)) * (config.n_cols / (2 * np.pi))).astype(np.int64)
+    np.clip(col, 0, config.n_cols - 1, out=col)
+    if config.use_ring and scan.ring is not None:
+        ring = scan.ring.astype(np.int64)
+        row = config.n_rows - 1 - ring if config.ring_zero_at_bottom else ring
+        ok = (row >= 0) & (row < config.n_rows)
+    else:
+        el_hi = np.deg2rad(config.elevation_max_deg)
+        scale = config.n_rows / (el_hi - np.deg2rad(config.elevation_min_deg))
+        row_f = (el_hi - np.arctan2(z, np.sqrt(horiz2))) * scale
+        ok = (row_f >= 0) & (row_f < config.n_rows)
+        row = row_f.astype(np.int64)
+    ok &= rng >= config.min_range_m
+    pix = row * config.n_cols + col
+    pix[~ok] = -1
+    return pix
+
+
+def check_scan(scan: LadarScan) -> None:
+    """Refuse a scan whose arrays do not match :class:`~sp.logs.types.LadarScan`."""
+    pts = np.asarray(scan.points_xyz)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise EgosphereError(f"scan at t_ns={scan.t_ns}: points_xyz shape {pts.shape}, not (N, 3)")
+    n = pts.shape[0]
+    for name in ("intensity", "t_offset_ns"):
+        a = np.asarray(getattr(scan, name))
+        if a.shape != (n,):
+            raise EgosphereError(f"scan at t_ns={scan.t_ns}: {name} shape {a.shape}, not ({n},)")
+    if scan.ring is not None and np.asarray(scan.ring).shape != (n,):
+        raise EgosphereError(f"scan at t_ns={scan.t_ns}: ring shape {scan.ring.shape}, not ({n},)")
+
+
+def to_egosphere(
+    scan: LadarScan,
+    config: EgosphereConfig | None = None,
+    T_body_sensor: np.ndarray | None = None,
+) -> EgosphereImage:
+    """Project a LADAR sweep to its sensor-egosphere image (nearest ``max_returns`` per pixel).
+
+    An empty scan gives an all-empty image (callers skip it by ``valid.any()``); a malformed
+    one raises :class:`EgosphereError`.
+    """
+    cfg = config or EgosphereConfig()
+    check_scan(scan)
+    x, y, z = np.ascontiguousarray(np.asarray(scan.points_xyz, dtype=np.float32).T)
+    horiz2 = x * x + y * y
+    rng = np.sqrt(horiz2 + z * z)
+    pix = _pixel_of(scan, cfg, x, y, z, horiz2, rng)
+    n_pix, K = cfg.n_rows * cfg.n_cols, cfg.max_returns
+    # Layer k holds, per pixel, the sweep index and range of its k-th nearest return.
+    index = np.full((K, n_pix), -1, dtype=np.int64)
+    range_m = np.full((K, n_pix), np.nan, dtype=np.float32)
+    remaining = np.flatnonzero(pix >= 0)
+    n_dropped = int(pix.size - remaining.size)
+    p, r = pix[remaining], rng[remaining]
+    for k in range(K):
+        if remaining.size == 0:
+            break
+        nearest = np.full(n_pix, np.inf, dtype=np.float32)
+        np.minimum.at(nearest, p, r)
+        first = r == nearest[p]
+        index[k, p[first]] = remaining[first]  # ties at equal range: one of them wins
+        range_m[k, p[first]] = r[first]
+        lost = index[k, p] != remaining
+        remaining, p, r = remaining[lost], p[lost], r[lost]
+    n_overflow = int(remaining.size)
+    shape = (cfg.n_rows, cfg.n_cols, K)
+    index = np.moveaxis(index.reshape(K, cfg.n_rows, cfg.n_cols), 0, -1)
+    range_m = np.moveaxis(range_m.reshape(K, cfg.n_rows, cfg.n_cols), 0, -1)
+    assert index.shape == shape
+    T = np.eye(4) if T_body_sensor is None else check_pose(T_body_sensor, "T_body_sensor")
+    return EgosphereImage(scan, cfg, index, range_m, T, n_dropped, n_overflow)
+
+
+def T_inertial_body(T_world_body: np.ndarray) -> np.ndarray:
+    """Body pose in the inertial egosphere frame (4.4.6): centred on the body, axes parallel to
+    the world's (gravity defines the poles, world x the zero azimuth), so only rotation."""
+    return se3(check_pose(T_world_body, "T_world_body")[:3, :3])
+
+
+def T_world_inertial(T_world_body: np.ndarray) -> np.ndarray:
+    """The inertial egosphere's pose in the world: a translation to the body origin."""
+    return se3(t=check_pose(T_world_body, "T_world_body")[:3, 3])
+
+
+def egosphere_points(
+    image: EgosphereImage, T_world_body: np.ndarray, frame: str = "world"
+) -> np.ndarray:
+    """Back-projected returns (M, 3) float32 in ``frame``: "sensor", "body", "inertial" or
+    "world" (the inertial egosphere is the body origin with world-aligned axes)."""
+    T_body_sensor = image.T_body_sensor
+    if frame == "sensor":
+        return image.back_project()
+    if frame == "body":
+        return image.back_project(T_body_sensor)
+    if frame == "inertial":
+        return image.back_project(T_inertial_body(T_world_body) @ T_body_sensor)
+    if frame == "world":
+        return image.back_project(check_pose(T_world_body, "T_world_body") @ T_body_sensor)
+    raise EgosphereError(f"unknown frame {frame!r}: use sensor, body, inertial or world")
