@@ -1,0 +1,194 @@
+"""The class library: generic and specific prototypes with an ``is_a`` taxonomy (reference
+001, section 4.4.3, classes of entities; prototype frames, Figure 20).
+
+A prototype is a named attribute vector with a weight per attribute, at one SP level, with a
+class value used by value judgment. Geometric classes (point, list, surface, object, group)
+are the roots; generic classes hang below them; a specific class has exactly one member and
+is founded from a confirmed entity that matched no generic class well.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from enum import StrEnum
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from kd_store.errors import KDError
+from kd_store.frames import VALUE_FIELDS, EntityFrame, Level, Status, Value
+
+
+class ClassKind(StrEnum):
+    GEOMETRIC = "geometric"
+    GENERIC = "generic"
+    SPECIFIC = "specific"
+
+
+GEOMETRIC_ROOT: dict[int, str] = {1: "point", 2: "list", 3: "surface", 4: "object", 5: "group"}
+
+
+@dataclass(frozen=True, slots=True)
+class ClassPrototype:
+    """One class: ``attributes`` name -> prototype value, ``weights`` name -> weight >= 0."""
+
+    name: str
+    kind: ClassKind
+    level: Level
+    is_a: str | None = None
+    attributes: Mapping[str, float] = field(default_factory=dict)
+    weights: Mapping[str, float] = field(default_factory=dict)
+    value: Value = field(default_factory=Value)
+
+
+class ClassLibrary:
+    """Prototypes by name with the ``is_a`` taxonomy; insertion order is kept."""
+
+    def __init__(self, prototypes: list[ClassPrototype] | None = None) -> None:
+        self._by_name: dict[str, ClassPrototype] = {}
+        self.dirty: set[str] = set()
+        for p in prototypes or []:
+            self.add(p)
+        self.dirty.clear()
+
+    @classmethod
+    def default(cls) -> ClassLibrary:
+        """The library shipped in ``kd_store/classes.yaml``."""
+        text = resources.files("kd_store").joinpath("classes.yaml").read_text()
+        return cls.from_yaml(text, "kd_store/classes.yaml")
+
+    @classmethod
+    def from_yaml(cls, text: str, source: str | Path = "<yaml>") -> ClassLibrary:
+        """Parse the ``classes.yaml`` layout (see that file)."""
+        try:
+            doc = yaml.safe_load(text)
+            rows = doc["classes"]
+        except (yaml.YAMLError, KeyError, TypeError) as e:
+            raise KDError(f"class library {source}: not a classes document ({e})") from None
+        protos = []
+        for row in rows:
+            attrs = row.get("attributes") or {}
+            try:
+                protos.append(
+                    ClassPrototype(
+                        name=str(row["name"]),
+                        kind=ClassKind(row["kind"]),
+                        level=Level(int(row["level"])),
+                        is_a=row.get("is_a"),
+                        attributes={k: float(v[0]) for k, v in attrs.items()},
+                        weights={k: float(v[1]) for k, v in attrs.items()},
+                        value=Value(**{k: float(v) for k, v in (row.get("value") or {}).items()}),
+                    )
+                )
+            except (KeyError, ValueError, TypeError, IndexError) as e:
+                raise KDError(f"class library {source}: bad class {row!r} ({e})") from None
+        return cls(protos)
+
+    # ------------------------------------------------------------------ reading
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._by_name
+
+    def __iter__(self) -> Iterator[ClassPrototype]:
+        return iter(self._by_name.values())
+
+    def __len__(self) -> int:
+        return len(self._by_name)
+
+    def get(self, name: str) -> ClassPrototype:
+        try:
+            return self._by_name[name]
+        except KeyError:
+            raise KDError(f"class {name!r} is not in the class library") from None
+
+    def lineage(self, name: str) -> list[str]:
+        """``name`` and its ``is_a`` ancestors, most specific first."""
+        out = [self.get(name).name]
+        while (parent := self._by_name[out[-1]].is_a) is not None:
+            out.append(parent)
+        return out
+
+    def descendants(self, name: str) -> set[str]:
+        """``name`` and every class whose lineage contains it."""
+        self.get(name)
+        return {c for c in self._by_name if name in self.lineage(c)}
+
+    def match(self, attributes: Mapping[str, float], level: int) -> list[tuple[str, float]]:
+        """Generic and specific classes of ``level`` ranked by weighted normalised dot product
+        (4.5, classification) between ``attributes`` and each prototype, best first.
+
+        Each shared attribute i contributes ``w_i a_i p_i``; the score is that sum over
+        ``sqrt(sum w_i a_i^2) sqrt(sum w_i p_i^2)``, in [-1, 1]. Attributes missing on either
+        side are left out; classes sharing none are left out."""
+        out = []
+        for p in self._by_name.values():
+            if p.level != level or p.kind == ClassKind.GEOMETRIC:
+                continue
+            keys = [k for k in p.attributes if k in attributes and math.isfinite(attributes[k])]
+            if not keys:
+                continue
+            w = np.array([p.weights[k] for k in keys])
+            a = np.array([attributes[k] for k in keys])
+            q = np.array([p.attributes[k] for k in keys])
+            den = math.sqrt(float(w @ (a * a))) * math.sqrt(float(w @ (q * q)))
+            out.append((p.name, float(w @ (a * q)) / den if den > 0 else 0.0))
+        return sorted(out, key=lambda x: -x[1])
+
+    # ------------------------------------------------------------------ writing
+
+    def add(self, p: ClassPrototype) -> None:
+        """Add or replace a prototype; its ``is_a`` must exist and not make a cycle."""
+        where = f"class {p.name!r}"
+        if p.is_a is not None:
+            if p.is_a not in self._by_name:
+                raise KDError(f"{where}: is_a {p.is_a!r} is not in the class library")
+            if p.name in self.lineage(p.is_a):
+                raise KDError(f"{where}: is_a {p.is_a!r} would make an is_a cycle")
+        if set(p.weights) != set(p.attributes):
+            raise KDError(
+                f"{where}: weights {sorted(p.weights)} != attributes {sorted(p.attributes)}"
+            )
+        for k, v in (*p.attributes.items(), *p.weights.items()):
+            if not math.isfinite(v):
+                raise KDError(f"{where}: attribute {k!r} has a non-finite value or weight {v!r}")
+        if any(w < 0 for w in p.weights.values()):
+            raise KDError(f"{where}: negative weight in {dict(p.weights)}")
+        for k in VALUE_FIELDS:
+            if not math.isfinite(getattr(p.value, k)):
+                raise KDError(f"{where}: value {k} is not finite")
+        self._by_name[p.name] = p
+        self.dirty.add(p.name)
+
+    def found_specific(self, entity: EntityFrame) -> ClassPrototype:
+        """Found a specific class for a confirmed entity (4.4.3, specific entity classes): its
+        prototype is the entity's estimated attributes (weight 1 each), ``is_a`` its most
+        specific class or the geometric root of its level. Returns the new prototype; the
+        caller points the entity at it."""
+        if entity.status != Status.CONFIRMED:
+            raise KDError(
+                f"entity {entity.id} ({entity.name!r}): status {entity.status.value!r}; only a "
+                "confirmed entity can found a specific class"
+            )
+        parent = entity.most_specific_class or GEOMETRIC_ROOT[int(entity.level)]
+        if parent not in self._by_name:
+            raise KDError(f"entity {entity.id}: class {parent!r} is not in the class library")
+        attrs = {
+            k: float(a.estimated)
+            for k, a in entity.attributes.items()
+            if math.isfinite(a.estimated)
+        }
+        proto = ClassPrototype(
+            name=f"{entity.name}#{entity.id}",
+            kind=ClassKind.SPECIFIC,
+            level=Level(entity.level),
+            is_a=parent,
+            attributes=attrs,
+            weights=dict.fromkeys(attrs, 1.0),
+            value=entity.value,
+        )
+        self.add(proto)
+        return proto

@@ -1,0 +1,11 @@
+"""The one exception type of the knowledge database."""
+
+from __future__ import annotations
+
+
+class KDError(ValueError):
+    """Input the KD refuses, or a KD file it cannot use.
+
+    The message always names the offending value and the frame (entity, event, relation,
+    class or file) it came from. When a KD method raises it, nothing of that call was kept.
+    """

@@ -1,0 +1,402 @@
+"""Entity and event frames: what the KD knows about one thing or one happening.
+
+Follows the reference model, section 4.4.2 (entity frame, Figure 18) and 4.4.8 (event frame,
+Figure 27) of ``001_8aa68a06538d844c.txt``. Frames are frozen: change them through the
+:class:`~kd_store.store.KnowledgeDatabase`, which validates every change and keeps its
+indexes in step. Pointers between frames (parent, parts, situational, temporal, causal,
+involves) live in the KD's relation graph, not in the frames, so the two directions of a
+pointer can never disagree (see :mod:`kd_store.relations`).
+
+Units: metres, radians, seconds as int64 nanoseconds (``t_ns``); quaternions (x, y, z, w).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import IntEnum, StrEnum
+
+import numpy as np
+
+from kd_store.errors import KDError
+
+#: Order of the 6x6 state covariance: position then velocity.
+COVARIANCE_ORDER = ("x", "y", "z", "vx", "vy", "vz")
+#: Indices of the 21 upper-triangle entries (row-major) stored on disk as ``cov_pv``.
+TRIU_6 = np.triu_indices(6)
+
+
+class Level(IntEnum):
+    """Sensory-processing level of an entity (4.4.3, geometrical entity classes)."""
+
+    POINT = 1
+    LIST = 2
+    SURFACE = 3
+    OBJECT = 4
+    GROUP = 5
+
+
+class Status(StrEnum):
+    """Where a grouping hypothesis stands (4.5, hypothesize and test)."""
+
+    HYPOTHESIZED = "hypothesized"
+    CONFIRMED = "confirmed"
+    DENIED = "denied"
+    GONE = "gone"
+
+
+STATUS_CODES: dict[str, int] = {s.value: i for i, s in enumerate(Status)}
+
+
+_P, _Q, _V, _C, _R = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 46), slice(46, 49)
+_IDENTITY_Q = (0.0, 0.0, 0.0, 1.0)
+
+
+class State:
+    """Dynamic state of an entity at one time, in the coordinate frame ``frame``. Immutable.
+
+    position_xyz:        (3,) float64, metres.
+    orientation_xyzw:    (4,) float64 unit quaternion, rotation of the entity in ``frame``.
+    velocity_xyz:        (3,) float64, m/s, expressed in ``frame``.
+    covariance:          (6, 6) float64 over (x, y, z, vx, vy, vz): m^2, m^2/s, m^2/s^2;
+                         symmetric positive semidefinite.
+    orientation_var_rpy: (3,) float64 rad^2, variances of roll, pitch, yaw.
+
+    The arrays are read-only views of one (49,) vector, so a state costs about 560 bytes.
+    """
+
+    __slots__ = ("_v", "frame", "t_ns")
+
+    def __init__(
+        self,
+        t_ns: int,
+        frame: str,
+        position_xyz: object,
+        orientation_xyzw: object = _IDENTITY_Q,
+        velocity_xyz: object = (0.0, 0.0, 0.0),
+        covariance: object | None = None,
+        orientation_var_rpy: object = (0.0, 0.0, 0.0),
+    ) -> None:
+        v = np.zeros(49)
+        try:
+            v[_P] = np.asarray(position_xyz, dtype=np.float64).reshape(3)
+            v[_Q] = np.asarray(orientation_xyzw, dtype=np.float64).reshape(4)
+            v[_V] = np.asarray(velocity_xyz, dtype=np.float64).reshape(3)
+            if covariance is not None:
+                v[_C] = np.asarray(covariance, dtype=np.float64).reshape(36)
+            v[_R] = np.asarray(orientation_var_rpy, dtype=np.float64).reshape(3)
+        except (ValueError, TypeError) as e:
+            raise KDError(f"state at t_ns={t_ns} in {frame!r}: wrong shape or type ({e})") from None
+        self._init(int(t_ns), str(frame), v)
+
+    def _init(self, t_ns: int, frame: str, v: np.ndarray) -> None:
+        v.flags.writeable = False
+        self.t_ns, self.frame, self._v = t_ns, frame, v
+
+    @classmethod
+    def from_vector(cls, t_ns: int, frame: str, v: np.ndarray) -> State:
+        """From the (49,) layout: position, quaternion, velocity, covariance (36), var_rpy."""
+        s = cls.__new__(cls)
+        s._init(t_ns, frame, v)
+        return s
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if hasattr(self, "_v"):
+            raise AttributeError(f"State is immutable (tried to set {name})")
+        object.__setattr__(self, name, value)
+
+    @property
+    def position_xyz(self) -> np.ndarray:
+        return self._v[_P]
+
+    @property
+    def orientation_xyzw(self) -> np.ndarray:
+        return self._v[_Q]
+
+    @property
+    def velocity_xyz(self) -> np.ndarray:
+        return self._v[_V]
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self._v[_C].reshape(6, 6)
+
+    @property
+    def orientation_var_rpy(self) -> np.ndarray:
+        return self._v[_R]
+
+    @property
+    def vector(self) -> np.ndarray:
+        """The read-only (49,) vector behind the fields."""
+        return self._v
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, State):
+            return NotImplemented
+        return (
+            self.t_ns == other.t_ns
+            and self.frame == other.frame
+            and bool(np.array_equal(self._v, other._v))
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return (
+            f"State(t_ns={self.t_ns}, frame={self.frame!r}, "
+            f"position_xyz={self.position_xyz.tolist()}, "
+            f"orientation_xyzw={self.orientation_xyzw.tolist()}, "
+            f"velocity_xyz={self.velocity_xyz.tolist()}, "
+            f"cov_diag={np.diag(self.covariance).tolist()}, "
+            f"orientation_var_rpy={self.orientation_var_rpy.tolist()})"
+        )
+
+
+make_state = State  # the constructor takes array-likes
+
+
+@dataclass(frozen=True, slots=True)
+class Attribute:
+    """One named attribute held three ways (4.4.2): observed from sensors, estimated by the
+    filter, predicted by the world model, each with its variance. NaN means not available."""
+
+    observed: float = math.nan
+    observed_var: float = math.nan
+    estimated: float = math.nan
+    estimated_var: float = math.nan
+    predicted: float = math.nan
+    predicted_var: float = math.nan
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Attribute):
+            return NotImplemented
+        a = np.array(_attribute_tuple(self))
+        b = np.array(_attribute_tuple(other))
+        return bool(np.array_equal(a, b, equal_nan=True))
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+ATTRIBUTE_FIELDS = (
+    "observed",
+    "observed_var",
+    "estimated",
+    "estimated_var",
+    "predicted",
+    "predicted_var",
+)
+
+
+def _attribute_tuple(a: Attribute) -> tuple[float, ...]:
+    return tuple(getattr(a, k) for k in ATTRIBUTE_FIELDS)
+
+
+@dataclass(frozen=True, slots=True)
+class Value:
+    """Worth of an entity or event to value judgment (4.4.2, 4.3): dimensionless utilities."""
+
+    worth_preserve: float = 0.0
+    worth_acquire: float = 0.0
+    worth_defend: float = 0.0
+    worth_defeat: float = 0.0
+    cost: float = 0.0
+    risk: float = 0.0
+
+    @property
+    def max_worth(self) -> float:
+        return max(self.worth_preserve, self.worth_acquire, self.worth_defend, self.worth_defeat)
+
+
+VALUE_FIELDS = ("worth_preserve", "worth_acquire", "worth_defend", "worth_defeat", "cost", "risk")
+
+
+@dataclass(frozen=True, slots=True)
+class EntityFrame:
+    """What the KD knows about one entity (reference 4.4.2, Figure 18).
+
+    id:               frame address in the KD (int64, shared id space with events).
+    name:             entity name; ``name_uncertainty`` in [0, 1] says how unsure it is.
+    level:            SP level 1 point ... 5 group.
+    status:           hypothesized / confirmed / denied / gone, with ``confidence`` in [0, 1].
+    attributes:       name -> :class:`Attribute` (observed, estimated, predicted + variances).
+    state:            latest estimated :class:`State`, or None before the first observation.
+                      Past states are the short-term memory queue (``KnowledgeDatabase.history``).
+    expectations:     short-term expectation queue: predicted future states, in time order.
+    generic_classes:  class pointers, general to specific (e.g. ``("vegetation", "tree")``).
+    specific_class:   pointer to the specific class of this one entity, or None.
+    value:            worth to preserve/acquire/defend/defeat, cost and risk.
+    images:           names of the entity images it appears in; their pixels hold ``id``.
+    map_cells:        (map level, column, row) of map cells it occupies.
+    created_ns:       time the frame was made.
+    noteworthy:       flagged by SP/WM/VJ for long-term memory (4.4.11).
+    """
+
+    id: int
+    name: str
+    level: Level
+    status: Status = Status.HYPOTHESIZED
+    confidence: float = 0.0
+    name_uncertainty: float = 1.0
+    attributes: Mapping[str, Attribute] = field(default_factory=dict)
+    state: State | None = None
+    expectations: tuple[State, ...] = ()
+    generic_classes: tuple[str, ...] = ()
+    specific_class: str | None = None
+    value: Value = field(default_factory=Value)
+    images: tuple[str, ...] = ()
+    map_cells: tuple[tuple[int, int, int], ...] = ()
+    created_ns: int = 0
+    noteworthy: bool = False
+
+    @property
+    def most_specific_class(self) -> str | None:
+        """The specific class, else the last generic class, else None."""
+        if self.specific_class is not None:
+            return self.specific_class
+        return self.generic_classes[-1] if self.generic_classes else None
+
+
+@dataclass(frozen=True, slots=True)
+class EventFrame:
+    """What the KD knows about one event (reference 4.4.8, Figure 27).
+
+    id:              frame address (int64, shared id space with entities).
+    class_name:      generic event class (e.g. ``"obstacle_avoided"``).
+    t_start_ns:      start time; ``t_end_ns`` is the end, or None while the event goes on.
+    attributes:      name -> float (amplitude, duration, ...), units in the name.
+    level:           grouping level 1..5 (4.4.9): level-n events group level n-1 sub-events.
+    confidence:      in [0, 1]; ``name_uncertainty`` likewise.
+    value:           cost / benefit of the event to value judgment.
+    Parent, sub-events, entities involved, temporal and causal relations are pointers in the
+    relation graph (belongs_to/has_part, involves, before/after/during/simultaneous_with, causes).
+    """
+
+    id: int
+    name: str
+    class_name: str
+    t_start_ns: int
+    t_end_ns: int | None = None
+    attributes: Mapping[str, float] = field(default_factory=dict)
+    level: int = 1
+    confidence: float = 0.0
+    name_uncertainty: float = 1.0
+    value: Value = field(default_factory=Value)
+    noteworthy: bool = False
+
+    def overlaps(self, t_from_ns: int, t_to_ns: int) -> bool:
+        """True when the event's interval meets the closed interval [t_from_ns, t_to_ns]."""
+        end = self.t_end_ns if self.t_end_ns is not None else np.iinfo(np.int64).max
+        return self.t_start_ns <= t_to_ns and end >= t_from_ns
+
+
+# ---------------------------------------------------------------- validation of one frame
+
+
+def _check_unit(x: float, what: str, where: str) -> None:
+    if not (0.0 <= x <= 1.0):
+        raise KDError(f"{where}: {what} {x!r} is not in [0, 1]")
+
+
+def check_state(s: State, where: str, cov_tol: float = 1e-9, quat_tol: float = 1e-6) -> None:
+    """Refuse a state with wrong shapes, NaN/inf, a non-unit quaternion or a covariance that is
+    not symmetric positive semidefinite. ``where`` names the frame for the message."""
+    shapes = {
+        "position_xyz": (3,),
+        "orientation_xyzw": (4,),
+        "velocity_xyz": (3,),
+        "covariance": (6, 6),
+        "orientation_var_rpy": (3,),
+    }
+    for name, shape in shapes.items():
+        a = getattr(s, name)
+        if not isinstance(a, np.ndarray) or a.shape != shape:
+            raise KDError(f"{where}: state {name} must be a {shape} array, got {a!r}")
+        if not np.all(np.isfinite(a)):
+            raise KDError(f"{where}: state {name} at t_ns={s.t_ns} is not finite: {a.tolist()}")
+    if abs(float(np.linalg.norm(s.orientation_xyzw)) - 1.0) > quat_tol:
+        raise KDError(
+            f"{where}: orientation_xyzw {s.orientation_xyzw.tolist()} at t_ns={s.t_ns} "
+            "is not a unit quaternion"
+        )
+    if np.any(s.orientation_var_rpy < 0):
+        raise KDError(f"{where}: orientation_var_rpy {s.orientation_var_rpy.tolist()} < 0")
+    from kd_store.states import psd_mask  # one PSD test for single states and batches
+
+    C = s.covariance
+    scale = max(1.0, float(np.max(np.abs(C))))
+    if (
+        not np.allclose(C, C.T, rtol=0.0, atol=cov_tol * scale)
+        or not psd_mask(C[TRIU_6][None, :], cov_tol)[0]
+    ):
+        raise KDError(
+            f"{where}: covariance at t_ns={s.t_ns} is not symmetric positive semidefinite: "
+            f"{np.array2string(C, precision=4)}"
+        )
+
+
+def check_attribute(a: Attribute, name: str, where: str) -> None:
+    """Values may be NaN (not available) but not inf; variances NaN or >= 0."""
+    for k in ATTRIBUTE_FIELDS:
+        v = getattr(a, k)
+        if not isinstance(v, float | int) or math.isinf(v):
+            raise KDError(f"{where}: attribute {name!r}.{k} = {v!r} is not a finite float or NaN")
+        if k.endswith("_var") and v < 0:
+            raise KDError(f"{where}: attribute {name!r}.{k} = {v!r} is a negative variance")
+
+
+def check_value(v: Value, where: str) -> None:
+    for k in VALUE_FIELDS:
+        x = getattr(v, k)
+        if not math.isfinite(x):
+            raise KDError(f"{where}: value {k} = {x!r} is not finite")
+
+
+def check_entity(
+    f: EntityFrame, cov_tol: float = 1e-9, quat_tol: float = 1e-6, where: str | None = None
+) -> None:
+    """Refuse an entity frame with a field out of its domain; the message names the frame."""
+    where = where or f"entity {f.id} ({f.name!r})"
+    if not isinstance(f.id, int | np.integer) or not (0 <= int(f.id) < 2**63):
+        raise KDError(f"{where}: id {f.id!r} is not a non-negative int64")
+    try:
+        Level(f.level)
+        Status(f.status)
+    except ValueError as e:
+        raise KDError(f"{where}: {e}") from None
+    _check_unit(f.confidence, "confidence", where)
+    _check_unit(f.name_uncertainty, "name_uncertainty", where)
+    for name, a in f.attributes.items():
+        if not isinstance(a, Attribute):
+            raise KDError(f"{where}: attribute {name!r} is {a!r}, not an Attribute")
+        check_attribute(a, name, where)
+    if f.state is not None:
+        check_state(f.state, where, cov_tol, quat_tol)
+    prev = f.state.t_ns if f.state is not None else None
+    for s in f.expectations:
+        check_state(s, f"{where} expectation", cov_tol, quat_tol)
+        if prev is not None and s.t_ns <= prev:
+            raise KDError(
+                f"{where}: expectation at t_ns={s.t_ns} is not after the state before it "
+                f"(t_ns={prev})"
+            )
+        prev = s.t_ns
+    check_value(f.value, where)
+    for cell in f.map_cells:
+        if len(cell) != 3:
+            raise KDError(f"{where}: map cell {cell!r} is not (level, column, row)")
+
+
+def check_event(e: EventFrame) -> None:
+    """Refuse an event frame with a field out of its domain; the message names the event."""
+    where = f"event {e.id} ({e.name!r})"
+    if not isinstance(e.id, int | np.integer) or not (0 <= int(e.id) < 2**63):
+        raise KDError(f"{where}: id {e.id!r} is not a non-negative int64")
+    if e.t_end_ns is not None and e.t_end_ns < e.t_start_ns:
+        raise KDError(f"{where}: t_end_ns {e.t_end_ns} is before t_start_ns {e.t_start_ns}")
+    _check_unit(e.confidence, "confidence", where)
+    _check_unit(e.name_uncertainty, "name_uncertainty", where)
+    for k, v in e.attributes.items():
+        if not isinstance(v, float | int) or not math.isfinite(v):
+            raise KDError(f"{where}: attribute {k!r} = {v!r} is not a finite number")
+    check_value(e.value, where)

@@ -1,0 +1,261 @@
+"""Pointers between frames as typed relations with a time of validity.
+
+Reference 4.4.2 (inheritance and situational pointers, Figures 18 and 19) and 4.4.8-4.4.9
+(event parent/sub-events, before/after/simultaneous-with, causes, entities involved) of
+``001_8aa68a06538d844c.txt``. A relation ``src --kind--> dst`` is valid over
+``[t_from_ns, t_to_ns)``; ``t_to_ns`` None means still valid. Paired kinds are stored both
+ways and always change together (belongs_to/has_part, on_top_of/beneath,
+in_front_of/behind, before/after); symmetric kinds (beside, near, simultaneous_with) likewise.
+``is_a`` and ``appears_in`` are the class and image pointers held in the entity frame
+(``generic_classes``, ``specific_class``, ``images``); the ``relations`` SQL view lists them
+with the frame-to-frame pointers.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, replace
+from enum import StrEnum
+
+from kd_store.errors import KDError
+
+
+class RelationKind(StrEnum):
+    BELONGS_TO = "belongs_to"
+    HAS_PART = "has_part"
+    IS_A = "is_a"
+    APPEARS_IN = "appears_in"
+    ON_TOP_OF = "on_top_of"
+    BENEATH = "beneath"
+    BESIDE = "beside"
+    IN_FRONT_OF = "in_front_of"
+    BEHIND = "behind"
+    INSIDE_OF = "inside_of"
+    NEAR = "near"
+    BEFORE = "before"
+    AFTER = "after"
+    DURING = "during"
+    SIMULTANEOUS_WITH = "simultaneous_with"
+    CAUSES = "causes"
+    INVOLVES = "involves"
+
+
+K = RelationKind
+INVERSE: dict[RelationKind, RelationKind] = {
+    K.BELONGS_TO: K.HAS_PART,
+    K.HAS_PART: K.BELONGS_TO,
+    K.ON_TOP_OF: K.BENEATH,
+    K.BENEATH: K.ON_TOP_OF,
+    K.IN_FRONT_OF: K.BEHIND,
+    K.BEHIND: K.IN_FRONT_OF,
+    K.BEFORE: K.AFTER,
+    K.AFTER: K.BEFORE,
+    K.BESIDE: K.BESIDE,
+    K.NEAR: K.NEAR,
+    K.SIMULTANEOUS_WITH: K.SIMULTANEOUS_WITH,
+}
+#: Kinds held as frame fields, not graph edges.
+FIELD_KINDS = frozenset({K.IS_A, K.APPEARS_IN})
+
+
+@dataclass(frozen=True, slots=True)
+class Relation:
+    """``src --kind--> dst`` valid over ``[t_from_ns, t_to_ns)`` (``t_to_ns`` None: open)."""
+
+    src: int
+    kind: RelationKind
+    dst: int
+    t_from_ns: int
+    t_to_ns: int | None = None
+
+    def valid_at(self, t_ns: int | None) -> bool:
+        """Valid at ``t_ns``; None asks whether it is open (valid now)."""
+        if t_ns is None:
+            return self.t_to_ns is None
+        return self.t_from_ns <= t_ns and (self.t_to_ns is None or t_ns < self.t_to_ns)
+
+    @property
+    def key(self) -> tuple[int, str, int, int]:
+        return (self.src, self.kind.value, self.dst, self.t_from_ns)
+
+
+class RelationGraph:
+    """Adjacency of relations by source and by destination; knows nothing of frame contents.
+
+    The caller (the KD) checks that both ends exist; the graph keeps inverse pairs together,
+    refuses belongs_to cycles and gives every child at most one open parent.
+    """
+
+    def __init__(self) -> None:
+        self._out: dict[int, list[Relation]] = {}
+        self._in: dict[int, list[Relation]] = {}
+        self.dirty: set[tuple[int, str, int, int]] = set()
+
+    # ------------------------------------------------------------------ reading
+
+    def out(self, src: int, kind: RelationKind | None = None, t_ns: int | None = None) -> list[int]:
+        """Destinations of ``src``'s relations of ``kind`` valid at ``t_ns`` (None: open now)."""
+        return [
+            r.dst
+            for r in self._out.get(src, ())
+            if (kind is None or r.kind == kind) and r.valid_at(t_ns)
+        ]
+
+    def inn(self, dst: int, kind: RelationKind | None = None, t_ns: int | None = None) -> list[int]:
+        """Sources of relations of ``kind`` into ``dst`` valid at ``t_ns``."""
+        return [
+            r.src
+            for r in self._in.get(dst, ())
+            if (kind is None or r.kind == kind) and r.valid_at(t_ns)
+        ]
+
+    def relations_of(self, node: int) -> list[Relation]:
+        """Every relation (open or closed) whose source is ``node``."""
+        return list(self._out.get(node, ()))
+
+    def __iter__(self) -> Iterator[Relation]:
+        for rels in self._out.values():
+            yield from rels
+
+    def __len__(self) -> int:
+        return sum(len(r) for r in self._out.values())
+
+    def parent(self, child: int, t_ns: int | None = None) -> int | None:
+        p = self.out(child, K.BELONGS_TO, t_ns)
+        return p[0] if p else None
+
+    def ancestors(self, node: int, t_ns: int | None = None) -> list[int]:
+        """Parent, grandparent, ... (nearest first)."""
+        out: list[int] = []
+        p = self.parent(node, t_ns)
+        while p is not None:
+            out.append(p)
+            p = self.parent(p, t_ns)
+        return out
+
+    def parts_tree(self, root: int, t_ns: int | None = None) -> list[tuple[int, int]]:
+        """(id, depth) of ``root`` and all its parts, depth first, parts in id order."""
+        out: list[tuple[int, int]] = []
+        stack = [(root, 0)]
+        while stack:
+            node, depth = stack.pop()
+            out.append((node, depth))
+            parts = sorted(self.out(node, K.HAS_PART, t_ns), reverse=True)
+            stack.extend((p, depth + 1) for p in parts)
+        return out
+
+    def neighbourhood(
+        self,
+        node: int,
+        kinds: Iterable[RelationKind] | None = None,
+        depth: int = 1,
+        t_ns: int | None = None,
+    ) -> dict[int, int]:
+        """Frames within ``depth`` hops of ``node`` over relations of ``kinds`` (either
+        direction), as id -> hop count; ``node`` itself is not included."""
+        kind_set = None if kinds is None else {RelationKind(k) for k in kinds}
+        seen = {node: 0}
+        queue = deque([node])
+        while queue:
+            n = queue.popleft()
+            if seen[n] >= depth:
+                continue
+            for r in (*self._out.get(n, ()), *self._in.get(n, ())):
+                if (kind_set is None or r.kind in kind_set) and r.valid_at(t_ns):
+                    other = r.dst if r.src == n else r.src
+                    if other not in seen:
+                        seen[other] = seen[n] + 1
+                        queue.append(other)
+        del seen[node]
+        return seen
+
+    # ------------------------------------------------------------------ writing
+
+    def check_add(self, src: int, kind: RelationKind, dst: int) -> None:
+        """Refuse a relation that would make a self loop or a belongs_to cycle."""
+        if kind in FIELD_KINDS:
+            raise KDError(
+                f"relation {src} {kind.value} {dst!r}: is_a and appears_in are held in the "
+                "entity frame (generic_classes/specific_class, images), set them there"
+            )
+        if src == dst:
+            raise KDError(f"relation {src} {kind.value} {dst}: a frame cannot point to itself")
+        child, parent = (src, dst) if kind == K.BELONGS_TO else (dst, src)
+        if kind in (K.BELONGS_TO, K.HAS_PART) and (
+            parent == child or child in [parent, *self.ancestors(parent)]
+        ):
+            raise KDError(
+                f"relation {src} {kind.value} {dst}: frame {child} is already an ancestor of "
+                f"{parent}, so this would make a belongs_to cycle"
+            )
+
+    def add(self, src: int, kind: RelationKind, dst: int, t_from_ns: int) -> None:
+        """Add ``src --kind--> dst`` (and its inverse), valid from ``t_from_ns``.
+
+        An already-open identical relation is kept as is. A new parent closes the child's
+        previous open parent at ``t_from_ns`` (re-grouping)."""
+        kind = RelationKind(kind)
+        self.check_add(src, kind, dst)
+        if kind == K.HAS_PART:
+            src, dst, kind = dst, src, K.BELONGS_TO
+        if dst in self.out(src, kind):
+            return
+        if kind == K.BELONGS_TO:
+            old = self.parent(src)
+            if old is not None:
+                self.close(src, K.BELONGS_TO, old, t_from_ns)
+        self._put(Relation(src, kind, dst, int(t_from_ns)))
+        inv = INVERSE.get(kind)
+        if inv is not None:
+            self._put(Relation(dst, inv, src, int(t_from_ns)))
+
+    def close(self, src: int, kind: RelationKind, dst: int, t_to_ns: int) -> bool:
+        """End the open ``src --kind--> dst`` (and its inverse) at ``t_to_ns``; False if none."""
+        kind = RelationKind(kind)
+        found = self._close_one(src, kind, dst, t_to_ns)
+        inv = INVERSE.get(kind)
+        if found and inv is not None:
+            self._close_one(dst, inv, src, t_to_ns)
+        return found
+
+    def remove_node(self, node: int) -> None:
+        """Drop every relation touching ``node`` (used when short-term memory forgets it)."""
+        for r in self._out.pop(node, []):
+            self._in[r.dst] = [x for x in self._in.get(r.dst, []) if x.src != node]
+        for r in self._in.pop(node, []):
+            self._out[r.src] = [x for x in self._out.get(r.src, []) if x.dst != node]
+        self.dirty = {k for k in self.dirty if node not in (k[0], k[2])}
+
+    def load(self, rels: Iterable[Relation]) -> None:
+        """Put stored relations back (both directions are stored, so no inverse is added)."""
+        for r in rels:
+            self._put(r, dirty=False)
+
+    def _put(self, r: Relation, dirty: bool = True) -> None:
+        self._out.setdefault(r.src, []).append(r)
+        self._in.setdefault(r.dst, []).append(r)
+        if dirty:
+            self.dirty.add(r.key)
+
+    def _close_one(self, src: int, kind: RelationKind, dst: int, t_to_ns: int) -> bool:
+        for i, r in enumerate(self._out.get(src, [])):
+            if r.kind == kind and r.dst == dst and r.t_to_ns is None:
+                if t_to_ns < r.t_from_ns:
+                    raise KDError(
+                        f"relation {src} {kind.value} {dst}: end t_ns={t_to_ns} is before its "
+                        f"start t_ns={r.t_from_ns}"
+                    )
+                closed = replace(r, t_to_ns=int(t_to_ns))
+                self._out[src][i] = closed
+                ins = self._in[dst]
+                ins[ins.index(r)] = closed
+                self.dirty.add(closed.key)
+                return True
+        return False
+
+    def find(self, key: tuple[int, str, int, int]) -> Relation | None:
+        for r in self._out.get(key[0], ()):
+            if r.key == key:
+                return r
+        return None

@@ -1,0 +1,163 @@
+-- Long-term memory of the knowledge database, schema version 1.
+-- Units: metres, radians, m/s; times int64 nanoseconds (t_ns). Quaternions (qx, qy, qz, qw).
+-- cov_pv: the 21 upper-triangle entries, row-major, of the 6x6 covariance over
+-- (x, y, z, vx, vy, vz); var_rpy: variances of roll, pitch, yaw (rad^2).
+-- Base tables hold the data; notebooks read the views (documented in docs/kd.md).
+
+CREATE TABLE IF NOT EXISTS kd_meta (key VARCHAR NOT NULL, value VARCHAR NOT NULL);
+
+CREATE TABLE IF NOT EXISTS entity_frames (
+    id BIGINT NOT NULL,
+    name VARCHAR NOT NULL,
+    name_uncertainty DOUBLE NOT NULL,
+    level TINYINT NOT NULL,
+    status VARCHAR NOT NULL,
+    confidence DOUBLE NOT NULL,
+    generic_classes VARCHAR[] NOT NULL,
+    specific_class VARCHAR,
+    worth_preserve DOUBLE NOT NULL,
+    worth_acquire DOUBLE NOT NULL,
+    worth_defend DOUBLE NOT NULL,
+    worth_defeat DOUBLE NOT NULL,
+    cost DOUBLE NOT NULL,
+    risk DOUBLE NOT NULL,
+    images VARCHAR[] NOT NULL,
+    map_cells STRUCT(map_level INTEGER, col BIGINT, "row" BIGINT)[] NOT NULL,
+    attributes MAP(VARCHAR, STRUCT(observed DOUBLE, observed_var DOUBLE, estimated DOUBLE,
+                                   estimated_var DOUBLE, predicted DOUBLE, predicted_var DOUBLE))
+               NOT NULL,
+    created_ns BIGINT NOT NULL,
+    noteworthy BOOLEAN NOT NULL,
+    t_ns BIGINT,
+    frame VARCHAR,
+    x DOUBLE, y DOUBLE, z DOUBLE,
+    qx DOUBLE, qy DOUBLE, qz DOUBLE, qw DOUBLE,
+    vx DOUBLE, vy DOUBLE, vz DOUBLE,
+    cov_pv DOUBLE[21],
+    var_rpy DOUBLE[3]
+);
+
+CREATE TABLE IF NOT EXISTS entity_state_rows (
+    entity_id BIGINT NOT NULL,
+    t_ns BIGINT NOT NULL,
+    frame VARCHAR NOT NULL,
+    x DOUBLE NOT NULL, y DOUBLE NOT NULL, z DOUBLE NOT NULL,
+    qx DOUBLE NOT NULL, qy DOUBLE NOT NULL, qz DOUBLE NOT NULL, qw DOUBLE NOT NULL,
+    vx DOUBLE NOT NULL, vy DOUBLE NOT NULL, vz DOUBLE NOT NULL,
+    cov_pv DOUBLE[21] NOT NULL,
+    var_rpy DOUBLE[3] NOT NULL
+);
+
+CREATE TABLE IF NOT EXISTS entity_expectation_rows (
+    entity_id BIGINT NOT NULL,
+    t_ns BIGINT NOT NULL,
+    frame VARCHAR NOT NULL,
+    x DOUBLE NOT NULL, y DOUBLE NOT NULL, z DOUBLE NOT NULL,
+    qx DOUBLE NOT NULL, qy DOUBLE NOT NULL, qz DOUBLE NOT NULL, qw DOUBLE NOT NULL,
+    vx DOUBLE NOT NULL, vy DOUBLE NOT NULL, vz DOUBLE NOT NULL,
+    cov_pv DOUBLE[21] NOT NULL,
+    var_rpy DOUBLE[3] NOT NULL
+);
+
+CREATE TABLE IF NOT EXISTS event_frames (
+    id BIGINT NOT NULL,
+    name VARCHAR NOT NULL,
+    class_name VARCHAR NOT NULL,
+    t_start_ns BIGINT NOT NULL,
+    t_end_ns BIGINT,
+    attributes MAP(VARCHAR, DOUBLE) NOT NULL,
+    level TINYINT NOT NULL,
+    confidence DOUBLE NOT NULL,
+    name_uncertainty DOUBLE NOT NULL,
+    worth_preserve DOUBLE NOT NULL,
+    worth_acquire DOUBLE NOT NULL,
+    worth_defend DOUBLE NOT NULL,
+    worth_defeat DOUBLE NOT NULL,
+    cost DOUBLE NOT NULL,
+    risk DOUBLE NOT NULL,
+    noteworthy BOOLEAN NOT NULL
+);
+
+CREATE TABLE IF NOT EXISTS relation_rows (
+    src_id BIGINT NOT NULL,
+    kind VARCHAR NOT NULL,
+    dst_id BIGINT NOT NULL,
+    t_from_ns BIGINT NOT NULL,
+    t_to_ns BIGINT
+);
+
+CREATE TABLE IF NOT EXISTS class_prototypes (
+    name VARCHAR NOT NULL,
+    kind VARCHAR NOT NULL,
+    level TINYINT NOT NULL,
+    is_a VARCHAR,
+    attributes MAP(VARCHAR, DOUBLE) NOT NULL,
+    weights MAP(VARCHAR, DOUBLE) NOT NULL,
+    worth_preserve DOUBLE NOT NULL,
+    worth_acquire DOUBLE NOT NULL,
+    worth_defend DOUBLE NOT NULL,
+    worth_defeat DOUBLE NOT NULL,
+    cost DOUBLE NOT NULL,
+    risk DOUBLE NOT NULL
+);
+
+-- ---------------------------------------------------------------- views for notebooks
+
+CREATE OR REPLACE VIEW entities AS
+SELECT id, name, name_uncertainty, level, status, confidence, generic_classes, specific_class,
+       coalesce(specific_class, generic_classes[-1]) AS class_name,
+       worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk,
+       images, map_cells, attributes, created_ns, noteworthy,
+       t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy
+FROM entity_frames;
+
+CREATE OR REPLACE VIEW entity_states AS
+SELECT entity_id, t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy
+FROM entity_state_rows;
+
+CREATE OR REPLACE VIEW entity_expectations AS
+SELECT entity_id, t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy
+FROM entity_expectation_rows;
+
+CREATE OR REPLACE VIEW entity_attributes AS
+SELECT entity_id, name,
+       struct_extract(a, 'observed') AS observed,
+       struct_extract(a, 'observed_var') AS observed_var,
+       struct_extract(a, 'estimated') AS estimated,
+       struct_extract(a, 'estimated_var') AS estimated_var,
+       struct_extract(a, 'predicted') AS predicted,
+       struct_extract(a, 'predicted_var') AS predicted_var
+FROM (SELECT id AS entity_id, unnest(map_keys(attributes)) AS name,
+             unnest(map_values(attributes)) AS a
+      FROM entity_frames);
+
+CREATE OR REPLACE VIEW events AS
+SELECT id, name, class_name, t_start_ns, t_end_ns,
+       (t_end_ns - t_start_ns) / 1e9 AS duration_s, attributes, level, confidence,
+       name_uncertainty, worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk,
+       noteworthy
+FROM event_frames;
+
+CREATE OR REPLACE VIEW relations AS
+SELECT src_id, kind, dst_id, CAST(NULL AS VARCHAR) AS dst_name, t_from_ns, t_to_ns
+FROM relation_rows
+UNION ALL
+SELECT id, 'is_a', NULL, c, created_ns, NULL
+FROM (SELECT id, created_ns, unnest(list_concat(generic_classes,
+      CASE WHEN specific_class IS NULL THEN [] ELSE [specific_class] END)) AS c
+      FROM entity_frames)
+UNION ALL
+SELECT id, 'appears_in', NULL, img, created_ns, NULL
+FROM (SELECT id, created_ns, unnest(images) AS img FROM entity_frames);
+
+CREATE OR REPLACE VIEW classes AS
+SELECT name, kind, level, is_a, attributes, weights,
+       worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk
+FROM class_prototypes;
+
+CREATE OR REPLACE MACRO entity_states_as_of(t) AS TABLE
+SELECT * FROM entity_states WHERE t_ns <= t
+QUALIFY row_number() OVER (PARTITION BY entity_id ORDER BY t_ns DESC) = 1;
+
+CREATE OR REPLACE MACRO events_at(t) AS TABLE
+SELECT * FROM events WHERE t_start_ns <= t AND (t_end_ns IS NULL OR t_end_ns >= t);

@@ -1,0 +1,924 @@
+"""The knowledge database: frames, pointers, classes and the three memory tiers in one place.
+
+Reference 001, section 4.4 (``../shared/reference/001_8aa68a06538d844c.txt``):
+entity frames 4.4.2, classes 4.4.3, events 4.4.8-4.4.9, memory tiers 4.4.11. In RAM the KD is
+immediate experience (this cycle) and short-term memory (recent histories, attention);
+long-term memory is a DuckDB file that receives, at each :meth:`KnowledgeDatabase.flush`, the
+frames the promotion rule admits, written as Arrow batches in one transaction.
+
+Current entity state is also kept in slot-indexed numpy columns, so batch ingest, region
+queries and filters never loop in Python over rows; a frame's ``state`` is rebuilt from the
+columns the first time it is read after an ingest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import duckdb
+import numpy as np
+import pyarrow as pa
+
+from kd_store import persist
+from kd_store.classes import ClassLibrary, ClassPrototype
+from kd_store.config import KDConfig, PromotionRule
+from kd_store.errors import KDError
+from kd_store.frames import (
+    STATUS_CODES,
+    EntityFrame,
+    EventFrame,
+    Level,
+    State,
+    Status,
+    check_entity,
+    check_event,
+    check_state,
+)
+from kd_store.memory import ImmediateExperience, ShortTermMemory
+from kd_store.relations import Relation, RelationGraph, RelationKind
+from kd_store.spatial import GridIndex, Region, check_region
+from kd_store.states import _UNPACK_FLAT, StateBatch, StateColumns, check_batch
+
+NO_TIME = np.iinfo(np.int64).min
+K = RelationKind
+_SPATIAL = {K.ON_TOP_OF, K.BENEATH, K.BESIDE, K.IN_FRONT_OF, K.BEHIND, K.INSIDE_OF, K.NEAR}
+
+
+class _Columns:
+    """Slot-indexed numpy columns of every entity in RAM (current state and filter keys)."""
+
+    def __init__(self, capacity: int = 1024) -> None:
+        self.n = 0
+        self.id = np.zeros(capacity, np.int64)
+        self.alive = np.zeros(capacity, bool)
+        self.t_ns = np.full(capacity, NO_TIME, np.int64)
+        self.frame = np.full(capacity, -1, np.int32)
+        self.pos = np.zeros((capacity, 3))
+        self.quat = np.zeros((capacity, 4))
+        self.vel = np.zeros((capacity, 3))
+        self.cov21 = np.zeros((capacity, 21))
+        self.var_rpy = np.zeros((capacity, 3))
+        self.status = np.zeros(capacity, np.int8)
+        self.level = np.zeros(capacity, np.int8)
+        self.confidence = np.zeros(capacity)
+        self.max_worth = np.zeros(capacity)
+        self.noteworthy = np.zeros(capacity, bool)
+        self.klass = np.full(capacity, -1, np.int32)
+        self.ltm = np.zeros(capacity, bool)  # in long-term memory
+        self.dirty = np.zeros(capacity, bool)  # changed since the last flush
+        self.stale = np.zeros(capacity, bool)  # frame.state older than the columns
+
+    def grow(self) -> None:
+        for k, v in vars(self).items():
+            if isinstance(v, np.ndarray):
+                extra = np.zeros((v.shape[0], *v.shape[1:]), v.dtype)
+                if k == "t_ns":
+                    extra[:] = NO_TIME
+                elif k in ("frame", "klass"):
+                    extra[:] = -1
+                setattr(self, k, np.concatenate([v, extra]))
+
+
+class KnowledgeDatabase:
+    """Entity and event frames with pointer graphs, a class library and three memory tiers.
+
+    Open with :func:`open` (``":memory:"`` for a throwaway KD). Use as a context manager: a
+    clean exit flushes and closes. Not safe for concurrent writers; readers in other threads
+    use :meth:`reader` (their own DuckDB cursor, a consistent snapshot per query).
+    """
+
+    def __init__(self, con: duckdb.DuckDBPyConnection, path: str, config: KDConfig) -> None:
+        self.path = path
+        self.config = config
+        self.promotion_rule: PromotionRule = config.promotion
+        self._con = con
+        self._lock = threading.RLock()
+        self._read_only = False
+        self.classes = ClassLibrary.default()
+        self.graph = RelationGraph()
+        self.stm = ShortTermMemory({n: round(h * 1e9) for n, h in config.memory.horizons_s.items()})
+        self.immediate = ImmediateExperience()
+        self._cols = _Columns()
+        self._frames: list[EntityFrame | None] = []
+        self._slot: dict[int, int] = {}
+        self._free: list[int] = []
+        self._sorted: tuple[np.ndarray, np.ndarray] | None = None
+        self._frame_names: list[str] = []
+        self._frame_code: dict[str, int] = {}
+        self._class_code: dict[str, int] = {}
+        self._grid: dict[int, GridIndex] = {}
+        self._events: dict[int, EventFrame] = {}
+        self._event_ltm: set[int] = set()
+        self._event_dirty: set[int] = set()
+        self._pending: list[StateColumns] = []
+        self._next_id = 0
+        self._load(persist.read(con))
+
+    # ================================================================ files
+
+    def __enter__(self) -> KnowledgeDatabase:
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if et is None and not self._read_only:
+            self.flush()
+        self.close()
+
+    def close(self) -> None:
+        """Close the file without flushing (what was not flushed is short-term and is lost)."""
+        with self._lock:
+            self._con.close()
+
+    def checkpoint(self) -> int:
+        """Flush, then fold DuckDB's write-ahead log into the file. Returns rows flushed."""
+        n = self.flush()
+        with self._lock:
+            self._con.execute("CHECKPOINT")
+        return n
+
+    def _load(self, s: persist.Stored) -> None:
+        """Recall long-term memory: frames, relations and classes (histories stay on disk)."""
+        stored = {p.name: p for p in s.classes}
+        defaults = set(self.classes._by_name)
+        while stored:  # parents before children
+            ready = [p for p in stored.values() if p.is_a is None or p.is_a not in stored]
+            for p in ready:
+                self.classes.add(p)
+                del stored[p.name]
+        self.classes.dirty = defaults - {p.name for p in s.classes}
+        for f in s.entities:
+            self._insert_entity(f, ltm=True)
+        for e in s.events:
+            self._events[e.id] = e
+            self._event_ltm.add(e.id)
+        self.graph.load(s.relations)
+        self._next_id = max(s.next_id, self._next_id)
+
+    # ================================================================ ids
+
+    def new_id(self) -> int:
+        """A fresh frame id (entities and events share one id space)."""
+        i = self._next_id
+        self._next_id += 1
+        return i
+
+    def __contains__(self, frame_id: object) -> bool:
+        return frame_id in self._slot or frame_id in self._events
+
+    def _kind_of(self, frame_id: int, where: str) -> str:
+        if frame_id in self._slot:
+            return "entity"
+        if frame_id in self._events:
+            return "event"
+        raise KDError(f"{where}: frame {frame_id!r} is not in the KD")
+
+    def _take_id(self, frame_id: int | None, where: str) -> int:
+        if frame_id is None:
+            return self.new_id()
+        frame_id = int(frame_id)
+        if frame_id in self:
+            raise KDError(f"{where}: id {frame_id} is already taken")
+        if frame_id < 0:
+            raise KDError(f"{where}: id {frame_id} is negative")
+        self._next_id = max(self._next_id, frame_id + 1)
+        return frame_id
+
+    # ================================================================ entities
+
+    def add_entity(self, name: str, level: Level | int, **fields: Any) -> EntityFrame:
+        """Make an entity frame (fields as :class:`EntityFrame`; ``id`` optional) and add it.
+        A ``state`` becomes the first entry of its short-term memory."""
+        frame_id = fields.pop("id", None)
+        if "created_ns" not in fields and self.immediate.t_ns is not None:
+            fields["created_ns"] = self.immediate.t_ns
+        probe = _coerce(EntityFrame(id=0, name=name, level=Level(level), **fields))
+        check_entity(probe, **self._tols(), where=f"new entity {name!r}")
+        self._check_classes(probe, f"new entity {name!r}")
+        f = dataclasses.replace(probe, id=self._take_id(frame_id, f"new entity {name!r}"))
+        self._insert_entity(f, ltm=False)
+        return f
+
+    def insert_entity(self, frame: EntityFrame) -> EntityFrame:
+        """Add a complete frame with its own id (which must be free)."""
+        check_entity(frame, **self._tols())
+        frame = _coerce(frame)
+        self._check_classes(frame, f"entity {frame.id}")
+        self._take_id(frame.id, f"entity {frame.id} ({frame.name!r})")
+        self._insert_entity(frame, ltm=False)
+        return frame
+
+    def get(self, entity_id: int) -> EntityFrame:
+        """The entity frame ``entity_id`` (its ``state`` is the latest)."""
+        slot = self._slot.get(entity_id)
+        if slot is None:
+            raise KDError(f"entity {entity_id!r}: unknown id")
+        if self._cols.stale[slot]:
+            self._materialize(slot)
+        return self._frames[slot]  # type: ignore[return-value]
+
+    def entities(self) -> Iterator[EntityFrame]:
+        """Every entity frame in RAM, in slot order."""
+        for i in self._slot.values():
+            yield self.get(int(self._cols.id[i]))
+
+    def entity_ids(self) -> np.ndarray:
+        """(N,) int64 ids of the entities in RAM, sorted."""
+        return self._sorted_ids()[0].copy()
+
+    def update_entity(self, entity_id: int, **changes: Any) -> EntityFrame:
+        """Change fields of an entity frame (not ``id``; states go through :meth:`observe`)."""
+        old = self.get(entity_id)
+        where = f"entity {entity_id} ({old.name!r})"
+        bad = {"id", "state", "created_ns"} & set(changes)
+        if bad:
+            raise KDError(f"{where}: {sorted(bad)} cannot be changed with update_entity")
+        try:
+            new = dataclasses.replace(old, **changes)
+        except TypeError as e:
+            raise KDError(f"{where}: {e}") from None
+        check_entity(new, **self._tols(), where=where)
+        new = _coerce(new)
+        self._check_classes(new, where)
+        slot = self._slot[entity_id]
+        self._frames[slot] = new
+        self._set_keys(slot, new)
+        return new
+
+    def observe(self, entity_id: int, state: State) -> EntityFrame:
+        """Add one state to an entity's history; it becomes the current state."""
+        f = self.get(entity_id)
+        check_state(state, f"entity {entity_id} ({f.name!r})", **self._state_tols())
+        self.ingest(
+            StateBatch(
+                np.array([entity_id]),
+                np.array([state.t_ns]),
+                state.frame,
+                state.position_xyz[None],
+                state.orientation_xyzw[None],
+                state.velocity_xyz[None],
+                state.covariance[None],
+                state.orientation_var_rpy[None],
+            )
+        )
+        return self.get(entity_id)
+
+    def expect(self, entity_id: int, states: Iterable[State]) -> EntityFrame:
+        """Replace an entity's short-term expectation queue (predicted states, time order)."""
+        old = self.get(entity_id)
+        new = dataclasses.replace(old, expectations=tuple(states))
+        check_entity(new, **self._tols())
+        self._frames[self._slot[entity_id]] = new
+        self._cols.dirty[self._slot[entity_id]] = True
+        return new
+
+    def mark_noteworthy(self, frame_id: int) -> None:
+        """Flag an entity or event for long-term memory (4.4.11)."""
+        if self._kind_of(frame_id, "mark_noteworthy") == "entity":
+            self.update_entity(frame_id, noteworthy=True)
+        else:
+            self.update_event(frame_id, noteworthy=True)
+
+    def found_specific_class(self, entity_id: int) -> ClassPrototype:
+        """Found a specific class from a confirmed entity and point the entity at it."""
+        proto = self.classes.found_specific(self.get(entity_id))
+        self.update_entity(entity_id, specific_class=proto.name)
+        return proto
+
+    # ---------------------------------------------------------------- batch ingest
+
+    def ingest(self, batch: StateBatch) -> int:
+        """Add a batch of state updates (see :class:`StateBatch`); returns rows added.
+
+        Refuses, keeping nothing of the batch: unknown ids, NaN/inf, bad covariances, and times
+        that do not strictly increase per entity or are not after its current state."""
+        where = f"state batch in frame {batch.frame!r}"
+        c = check_batch(batch, where, **self._state_tols())
+        if not len(c):
+            return 0
+        slots = self._slots_of(c.entity_id, where)
+        order = np.lexsort((c.t_ns, c.entity_id))
+        e, t = c.entity_id[order], c.t_ns[order]
+        first = np.r_[True, e[1:] != e[:-1]]
+        back = ~first & (np.r_[0, np.diff(t)] <= 0)
+        if back.any():
+            i = int(np.flatnonzero(back)[0])
+            raise KDError(
+                f"{where}: entity {int(e[i])}: t_ns={int(t[i])} does not come after "
+                f"t_ns={int(t[i - 1])} in the same batch"
+            )
+        head = order[first]
+        before = c.t_ns[head] <= self._cols.t_ns[slots[head]]
+        if before.any():
+            i = int(head[np.flatnonzero(before)[0]])
+            raise KDError(
+                f"{where}: entity {int(c.entity_id[i])}: t_ns={int(c.t_ns[i])} goes back from "
+                f"its current state at t_ns={int(self._cols.t_ns[slots[i]])}"
+            )
+        # -- checked: from here on nothing raises
+        last = order[np.r_[e[1:] != e[:-1], True]]
+        self._set_state_columns(slots[last], c.take(last))
+        self._append_history(c, slots)
+        in_ltm = self._cols.ltm[slots]
+        if in_ltm.all():
+            self._pending.append(c)
+        elif in_ltm.any():
+            self._pending.append(c.take(in_ltm))
+        self.immediate.note(e[first])
+        return len(c)
+
+    def _set_state_columns(self, slots: np.ndarray, c: StateColumns) -> None:
+        cols = self._cols
+        cols.t_ns[slots] = c.t_ns
+        cols.frame[slots] = self._frame_code_of(c.frame)
+        cols.pos[slots] = c.position_xyz
+        cols.quat[slots] = c.orientation_xyzw
+        cols.vel[slots] = c.velocity_xyz
+        cols.cov21[slots] = c.cov21
+        cols.var_rpy[slots] = c.orientation_var_rpy
+        cols.stale[slots] = True
+        cols.dirty[slots] = True
+        self._grid.clear()
+
+    def _append_history(self, c: StateColumns, slots: np.ndarray) -> None:
+        nodes = self.config.memory.node_of_sp_level
+        levels = self._cols.level[slots]
+        present = np.unique(levels)
+        names = {nodes[int(lv)] for lv in present}
+        if len(names) == 1:
+            self.stm.history[names.pop()].append(c)
+            return
+        for name in names:
+            lv = [k for k, v in nodes.items() if v == name]
+            self.stm.history[name].append(c.take(np.isin(levels, lv)))
+
+    def _frame_code_of(self, frame: str) -> int:
+        code = self._frame_code.get(frame)
+        if code is None:
+            code = self._frame_code[frame] = len(self._frame_names)
+            self._frame_names.append(frame)
+        return code
+
+    def _materialize(self, slot: int) -> None:
+        cols = self._cols
+        v = np.concatenate(
+            (
+                cols.pos[slot],
+                cols.quat[slot],
+                cols.vel[slot],
+                cols.cov21[slot][_UNPACK_FLAT],
+                cols.var_rpy[slot],
+            )
+        )
+        state = State.from_vector(int(cols.t_ns[slot]), self._frame_names[cols.frame[slot]], v)
+        object.__setattr__(self._frames[slot], "state", state)  # the KD owns its frames
+        cols.stale[slot] = False
+
+    # ---------------------------------------------------------------- slots and keys
+
+    def _insert_entity(self, f: EntityFrame, ltm: bool) -> None:
+        cols = self._cols
+        if self._free:
+            slot = self._free.pop()
+        else:
+            if cols.n == cols.id.shape[0]:
+                cols.grow()
+            slot = cols.n
+            cols.n += 1
+            self._frames.append(None)
+        self._frames[slot] = f
+        self._slot[f.id] = slot
+        cols.id[slot] = f.id
+        cols.alive[slot] = True
+        cols.ltm[slot] = ltm
+        cols.dirty[slot] = not ltm
+        cols.stale[slot] = False
+        cols.t_ns[slot] = NO_TIME
+        cols.frame[slot] = -1
+        self._set_keys(slot, f)
+        self._sorted = None
+        if f.state is not None:
+            c = StateColumns.from_states([f.id], [f.state])[0]
+            self._set_state_columns(np.array([slot]), c)
+            cols.stale[slot] = False
+            if not ltm:
+                self._append_history(c, np.array([slot]))
+                self.immediate.note(np.array([f.id]))
+        cols.dirty[slot] = not ltm
+
+    def _set_keys(self, slot: int, f: EntityFrame) -> None:
+        cols = self._cols
+        cols.status[slot] = STATUS_CODES[Status(f.status).value]
+        cols.level[slot] = int(f.level)
+        cols.confidence[slot] = f.confidence
+        cols.max_worth[slot] = f.value.max_worth
+        cols.noteworthy[slot] = f.noteworthy
+        name = f.most_specific_class
+        cols.klass[slot] = (
+            -1 if name is None else self._class_code.setdefault(name, len(self._class_code))
+        )
+        cols.dirty[slot] = True
+
+    def _remove_entity(self, entity_id: int) -> None:
+        slot = self._slot.pop(entity_id)
+        self._frames[slot] = None
+        self._cols.alive[slot] = False
+        self._cols.t_ns[slot] = NO_TIME
+        self._free.append(slot)
+        self.graph.remove_node(entity_id)
+        self._sorted = None
+        self._grid.clear()
+
+    def _sorted_ids(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._sorted is None:
+            slots = np.fromiter(self._slot.values(), np.int64, len(self._slot))
+            ids = self._cols.id[slots]
+            order = np.argsort(ids)
+            self._sorted = (ids[order], slots[order])
+        return self._sorted
+
+    def _slots_of(self, ids: np.ndarray, where: str) -> np.ndarray:
+        sorted_ids, sorted_slots = self._sorted_ids()
+        if not len(sorted_ids):
+            raise KDError(f"{where}: entity {int(ids[0])} is not in the KD")
+        k = np.clip(np.searchsorted(sorted_ids, ids), 0, len(sorted_ids) - 1)
+        unknown = sorted_ids[k] != ids
+        if unknown.any():
+            bad = np.unique(ids[unknown])
+            raise KDError(f"{where}: entities {bad[:5].tolist()} are not in the KD")
+        return sorted_slots[k]
+
+    def _check_classes(self, f: EntityFrame, where: str) -> None:
+        for c in (*f.generic_classes, *([f.specific_class] if f.specific_class else [])):
+            if c not in self.classes:
+                raise KDError(f"{where}: class pointer {c!r} is not in the class library")
+
+    def _tols(self) -> dict[str, float]:
+        return {"cov_tol": self.config.covariance_tol, "quat_tol": self.config.quaternion_tol}
+
+    _state_tols = _tols
+
+    # ================================================================ events
+
+    def add_event(self, name: str, class_name: str, t_start_ns: int, **fields: Any) -> EventFrame:
+        """Make an event frame (fields as :class:`EventFrame`; ``id`` optional) and add it."""
+        frame_id = fields.pop("id", None)
+        probe = EventFrame(id=0, name=name, class_name=class_name, t_start_ns=t_start_ns, **fields)
+        check_event(probe)
+        e = dataclasses.replace(probe, id=self._take_id(frame_id, f"new event {name!r}"))
+        self._events[e.id] = e
+        self._event_dirty.add(e.id)
+        return e
+
+    def insert_event(self, event: EventFrame) -> EventFrame:
+        """Add a complete event frame with its own id (which must be free)."""
+        check_event(event)
+        self._take_id(event.id, f"event {event.id} ({event.name!r})")
+        self._events[event.id] = event
+        self._event_dirty.add(event.id)
+        return event
+
+    def get_event(self, event_id: int) -> EventFrame:
+        try:
+            return self._events[event_id]
+        except KeyError:
+            raise KDError(f"event {event_id!r}: unknown id") from None
+
+    def update_event(self, event_id: int, **changes: Any) -> EventFrame:
+        """Change fields of an event frame (e.g. ``t_end_ns`` when it ends)."""
+        old = self.get_event(event_id)
+        if "id" in changes:
+            raise KDError(f"event {event_id}: id cannot be changed")
+        try:
+            new = dataclasses.replace(old, **changes)
+        except TypeError as e:
+            raise KDError(f"event {event_id} ({old.name!r}): {e}") from None
+        check_event(new)
+        self._events[event_id] = new
+        self._event_dirty.add(event_id)
+        return new
+
+    def events(
+        self,
+        t_from_ns: int | None = None,
+        t_to_ns: int | None = None,
+        class_name: str | None = None,
+        participant: int | None = None,
+    ) -> list[EventFrame]:
+        """Events overlapping [t_from_ns, t_to_ns] (open ends: unbounded), of ``class_name``,
+        involving entity ``participant``; in start-time order."""
+        lo = NO_TIME if t_from_ns is None else t_from_ns
+        hi = np.iinfo(np.int64).max if t_to_ns is None else t_to_ns
+        pool: Iterable[int] = self._events
+        if participant is not None:
+            self._kind_of(participant, "events by participant")
+            pool = self.graph.inn(participant, K.INVOLVES)
+        out = [
+            e
+            for e in (self._events[i] for i in pool)
+            if e.overlaps(lo, hi) and (class_name is None or e.class_name == class_name)
+        ]
+        return sorted(out, key=lambda e: (e.t_start_ns, e.id))
+
+    def events_at(self, t_ns: int) -> list[EventFrame]:
+        """Events going on at ``t_ns``."""
+        return self.events(t_ns, t_ns)
+
+    # ================================================================ pointers
+
+    def relate(self, src: int, kind: RelationKind | str, dst: int, t_ns: int | None = None) -> None:
+        """Point ``src --kind--> dst`` from ``t_ns`` on (default: this cycle's time, else 0)."""
+        kind = self._kind(kind, src, dst)
+        where = f"relation {src} {kind.value} {dst}"
+        ks, kd = self._kind_of(src, where), self._kind_of(dst, where)
+        if kind in (K.BELONGS_TO, K.HAS_PART) and ks != kd:
+            raise KDError(f"{where}: a {ks} cannot be part of an {kd} (or the other way)")
+        if kind in _SPATIAL and "event" in (ks, kd):
+            raise KDError(
+                f"{where}: spatial relations link entities, {src} is a {ks}, {dst} a {kd}"
+            )
+        if kind == K.INVOLVES and (ks, kd) != ("event", "entity"):
+            raise KDError(f"{where}: involves points from an event to an entity, not {ks}->{kd}")
+        self.graph.add(src, kind, dst, self._now(t_ns))
+
+    def unrelate(
+        self, src: int, kind: RelationKind | str, dst: int, t_ns: int | None = None
+    ) -> bool:
+        """End ``src --kind--> dst`` at ``t_ns`` (kept in history); False if it was not open."""
+        return self.graph.close(src, self._kind(kind, src, dst), dst, self._now(t_ns))
+
+    def pointers(
+        self, frame_id: int, kind: RelationKind | str | None = None, t_ns: int | None = None
+    ) -> list[int]:
+        """Frames ``frame_id`` points to by ``kind`` at ``t_ns`` (None: now)."""
+        self._kind_of(frame_id, "pointers")
+        return self.graph.out(frame_id, None if kind is None else RelationKind(kind), t_ns)
+
+    def pointed_by(
+        self, frame_id: int, kind: RelationKind | str | None = None, t_ns: int | None = None
+    ) -> list[int]:
+        """Frames pointing to ``frame_id`` by ``kind`` at ``t_ns``."""
+        self._kind_of(frame_id, "pointed_by")
+        return self.graph.inn(frame_id, None if kind is None else RelationKind(kind), t_ns)
+
+    def relations(self, frame_id: int) -> list[Relation]:
+        """Every relation from ``frame_id``, open and closed."""
+        self._kind_of(frame_id, "relations")
+        return self.graph.relations_of(frame_id)
+
+    def parent(self, frame_id: int, t_ns: int | None = None) -> int | None:
+        self._kind_of(frame_id, "parent")
+        return self.graph.parent(frame_id, t_ns)
+
+    def parts(self, frame_id: int, t_ns: int | None = None) -> list[int]:
+        return sorted(self.pointers(frame_id, K.HAS_PART, t_ns))
+
+    def ancestors(self, frame_id: int, t_ns: int | None = None) -> list[int]:
+        """Parent, grandparent, ... nearest first."""
+        self._kind_of(frame_id, "ancestors")
+        return self.graph.ancestors(frame_id, t_ns)
+
+    def parts_tree(self, frame_id: int, t_ns: int | None = None) -> list[tuple[int, int]]:
+        """(id, depth) of the frame and all its parts, depth first."""
+        self._kind_of(frame_id, "parts_tree")
+        return self.graph.parts_tree(frame_id, t_ns)
+
+    def neighbourhood(
+        self,
+        frame_id: int,
+        kinds: Iterable[RelationKind | str] | None = None,
+        depth: int = 1,
+        t_ns: int | None = None,
+    ) -> dict[int, int]:
+        """Frames within ``depth`` hops over ``kinds`` (either direction): id -> hops."""
+        self._kind_of(frame_id, "neighbourhood")
+        ks = None if kinds is None else [RelationKind(k) for k in kinds]
+        return self.graph.neighbourhood(frame_id, ks, depth, t_ns)
+
+    def class_lineage(self, entity_id: int) -> list[str]:
+        """The entity's most specific class and its is_a ancestors, most specific first."""
+        name = self.get(entity_id).most_specific_class
+        return [] if name is None else self.classes.lineage(name)
+
+    def _kind(self, kind: RelationKind | str, src: int, dst: int) -> RelationKind:
+        try:
+            return RelationKind(kind)
+        except ValueError:
+            raise KDError(f"relation {src} {kind!r} {dst}: unknown relation kind") from None
+
+    def _now(self, t_ns: int | None) -> int:
+        if t_ns is not None:
+            return int(t_ns)
+        return self.immediate.t_ns if self.immediate.t_ns is not None else 0
+
+    # ================================================================ memory tiers
+
+    def begin_cycle(self, t_ns: int) -> None:
+        """Start a new cycle of immediate experience at ``t_ns``."""
+        self.immediate.begin(t_ns)
+
+    def observed_this_cycle(self) -> np.ndarray:
+        """Sorted ids of the frames observed or made since :meth:`begin_cycle`."""
+        return self.immediate.ids()
+
+    def set_attention(self, node: str, entity_ids: Iterable[int]) -> None:
+        """Set the entities-of-attention list of a node level (``"primitive"``, ...)."""
+        if node not in self.stm.attention:
+            raise KDError(
+                f"attention: unknown node level {node!r} (have {sorted(self.stm.attention)})"
+            )
+        ids = [int(i) for i in entity_ids]
+        for i in ids:
+            if i not in self._slot:
+                raise KDError(f"attention list of {node!r}: entity {i} is not in the KD")
+        self.stm.attention[node] = ids
+
+    def attention(self, node: str) -> list[int]:
+        return list(self.stm.attention[node])
+
+    def history(self, entity_id: int) -> list[State]:
+        """The entity's short-term memory queue: remembered past states, oldest first."""
+        f = self.get(entity_id)
+        node = self.config.memory.node_of_sp_level[int(f.level)]
+        states = self.stm.history[node].states_of(entity_id)
+        for name, h in self.stm.history.items():  # after a level change
+            if name != node:
+                states += h.states_of(entity_id)
+        return sorted(states, key=lambda s: s.t_ns)
+
+    def long_term_history(self, entity_id: int) -> list[State]:
+        """The entity's states in long-term memory (after a flush), oldest first."""
+        self.flush()
+        with self._lock:
+            return persist.read_states(self._con, entity_id)
+
+    def as_of(self, t_ns: int) -> dict[int, State]:
+        """State of every entity at ``t_ns``: its latest remembered state at or before ``t_ns``
+        (short-term memory; for older times use the ``entity_states_as_of`` SQL macro)."""
+        out: dict[int, State] = {}
+        for h in self.stm.history.values():
+            for k, s in h.as_of(t_ns).items():
+                if k in self._slot and (k not in out or s.t_ns > out[k].t_ns):
+                    out[k] = s
+        return out
+
+    def advance(self, t_now_ns: int) -> list[int]:
+        """Let short-term memory move on to ``t_now_ns``: trim histories to each level's
+        horizon and forget frames older than it that long-term memory did not take and
+        attention does not hold (4.4.11). Returns the ids forgotten."""
+        self.stm.trim(t_now_ns)
+        keep = self.stm.attended()
+        gone = []
+        for entity_id, slot in list(self._slot.items()):
+            if self._cols.ltm[slot] or entity_id in keep:
+                continue
+            f = self._frames[slot]
+            t_last = max(int(self._cols.t_ns[slot]), f.created_ns)  # type: ignore[union-attr]
+            if t_last < t_now_ns - self.config.memory.horizon_ns(f.level):  # type: ignore[union-attr]
+                gone.append(entity_id)
+        for e in list(self._events.values()):
+            if e.id in self._event_ltm or e.id in keep:
+                continue
+            end = e.t_end_ns if e.t_end_ns is not None else t_now_ns
+            if end < t_now_ns - self.config.memory.horizon_ns(max(1, min(5, e.level))):
+                del self._events[e.id]
+                self._event_dirty.discard(e.id)
+                self.graph.remove_node(e.id)
+                gone.append(e.id)
+        for entity_id in (g for g in gone if g in self._slot):
+            self._remove_entity(entity_id)
+        ents = np.array(gone, dtype=np.int64)
+        for h in self.stm.history.values():
+            h.drop(ents)
+        return sorted(gone)
+
+    # ================================================================ long-term memory
+
+    def flush(self) -> int:
+        """Promote what the rule admits and write every change of long-term frames since the
+        last flush, in one transaction. Returns the number of state rows written."""
+        if self._read_only:
+            return 0
+        with self._lock:
+            w, newly = self._collect()
+            if not w:
+                return 0
+            persist.write(self._con, w)
+            self._after_flush(newly, w)
+            return sum(len(c) for c in w.states)
+
+    def _collect(self) -> tuple[persist.Write, np.ndarray]:
+        cols, rule, n = self._cols, self.promotion_rule, self._cols.n
+        codes = [STATUS_CODES[Status(s).value] for s in rule.statuses]
+        admit = (np.isin(cols.status[:n], codes) & (cols.confidence[:n] >= rule.min_confidence)) | (
+            cols.noteworthy[:n] | (cols.max_worth[:n] >= rule.min_worth)
+        )
+        newly = np.flatnonzero(admit & cols.alive[:n] & ~cols.ltm[:n])
+        new_ids = cols.id[newly]
+        states = list(self._pending)
+        for h in self.stm.history.values():
+            states += h.rows_of(new_ids)
+        is_new = np.zeros(n, bool)
+        is_new[newly] = True
+        write_slots = np.flatnonzero(cols.alive[:n] & ((cols.ltm[:n] & cols.dirty[:n]) | is_new))
+        entities = [self._frames[s] for s in write_slots]
+        has = cols.t_ns[write_slots] != NO_TIME
+        entity_states = persist.current_states_to_arrow(
+            cols.t_ns[write_slots],
+            [
+                self._frame_names[c] if h else None
+                for c, h in zip(cols.frame[write_slots], has, strict=True)
+            ],
+            cols.pos[write_slots],
+            cols.quat[write_slots],
+            cols.vel[write_slots],
+            cols.cov21[write_slots],
+            cols.var_rpy[write_slots],
+        )
+        new_events = {
+            i
+            for i, e in self._events.items()
+            if i not in self._event_ltm
+            and (e.noteworthy or e.confidence >= rule.min_event_confidence)
+        }
+        ltm_events = self._event_ltm | new_events
+        events = [self._events[i] for i in sorted((self._event_dirty & ltm_events) | new_events)]
+        in_ltm = (
+            set(new_ids.tolist())
+            | ltm_events
+            | {int(i) for i in cols.id[np.flatnonzero(cols.ltm[:n] & cols.alive[:n])]}
+        )
+        touched = set(new_ids.tolist()) | new_events
+        rel_keys = set(self.graph.dirty)
+        for node in touched:
+            rel_keys.update(r.key for r in self.graph.relations_of(node))
+            rel_keys.update(
+                r.key
+                for r in self.graph._in.get(node, ())  # pointers into new frames
+            )
+        rels = [r for k in rel_keys if (r := self.graph.find(k)) is not None]
+        rels = [r for r in rels if r.src in in_ltm and r.dst in in_ltm]
+        classes = [self.classes.get(c) for c in self.classes.dirty if c in self.classes]
+        w = persist.Write(
+            entities=entities,  # type: ignore[arg-type]
+            entity_states=entity_states,
+            states=[c for c in states if len(c)],
+            events=events,
+            relations=rels,
+            classes=classes,
+            next_id=self._next_id,
+        )
+        self._new_events = new_events
+        return w, newly
+
+    def _after_flush(self, newly: np.ndarray, w: persist.Write) -> None:
+        cols = self._cols
+        cols.ltm[newly] = True
+        cols.dirty[: cols.n] = False
+        self._event_ltm |= self._new_events
+        self._event_dirty.clear()
+        self.graph.dirty.clear()
+        self.classes.dirty.clear()
+        self._pending = []
+
+    # ================================================================ queries
+
+    def region(
+        self,
+        region: Region,
+        classes: Iterable[str] | None = None,
+        statuses: Iterable[Status | str] | None = None,
+        levels: Iterable[int] | None = None,
+        min_confidence: float = 0.0,
+    ) -> np.ndarray:
+        """Ids (sorted int64) of entities whose current position, held in ``region.frame``, lies
+        in the region and which pass the filters (class includes its is_a descendants)."""
+        check_region(region)
+        code = self._frame_code.get(region.frame)
+        if code is None:
+            return np.zeros(0, np.int64)
+        grid = self._grid.get(code)
+        if grid is None:
+            cols = self._cols
+            slots = np.flatnonzero(cols.alive[: cols.n] & (cols.frame[: cols.n] == code))
+            grid = self._grid[code] = GridIndex(slots, cols.pos[slots], self.config.grid_cell_m)
+        cand = grid.candidates(region)
+        cols = self._cols
+        keep = region.contains(cols.pos[cand])
+        if min_confidence > 0:
+            keep &= cols.confidence[cand] >= min_confidence
+        if statuses is not None:
+            codes = [STATUS_CODES[Status(s).value] for s in statuses]
+            keep &= np.isin(cols.status[cand], codes)
+        if levels is not None:
+            keep &= np.isin(cols.level[cand], [int(v) for v in levels])
+        if classes is not None:
+            names = set().union(*(self.classes.descendants(c) for c in classes))
+            codes = [self._class_code[n] for n in names if n in self._class_code]
+            keep &= np.isin(cols.klass[cand], codes)
+        return np.sort(cols.id[cand[keep]])
+
+    def sql(self, query: str, flush: bool = True) -> pa.Table:
+        """Run one read-only SELECT over the documented views (docs/kd.md); returns Arrow.
+        Flushes first by default, so the views show long-term memory up to now."""
+        if flush:
+            self.flush()
+        with self._lock:
+            return _read_only_query(_cursor(self._con), query)
+
+    def reader(self) -> SQLReader:
+        """A reader for another thread: its own cursor, a consistent snapshot per query."""
+        with self._lock:
+            return SQLReader(_cursor(self._con))
+
+    def export_parquet(self, folder: str | Path) -> list[Path]:
+        """Flush, then write long-term memory as one Parquet file per table in ``folder``."""
+        self.flush()
+        with self._lock:
+            return persist.export_parquet(self._con, folder)
+
+    def import_parquet(self, folder: str | Path) -> None:
+        """Load a Parquet KD (from :meth:`export_parquet`) into this KD, which must be empty."""
+        if self._slot or self._events:
+            raise KDError(
+                f"import of {folder}: this KD already holds frames; import into a new one"
+            )
+        with self._lock:
+            persist.import_parquet(self._con, folder)
+            stored = persist.read(self._con)
+        self.classes = ClassLibrary.default()
+        self._load(stored)
+
+
+def _cursor(con: duckdb.DuckDBPyConnection) -> duckdb.DuckDBPyConnection:
+    cur = con.cursor()
+    cur.execute("SET enable_progress_bar = false")
+    return cur
+
+
+def _coerce(f: EntityFrame) -> EntityFrame:
+    """Enum fields as enums (callers may pass ``"confirmed"`` or ``4``); checked before."""
+    if type(f.status) is Status and type(f.level) is Level:
+        return f
+    return dataclasses.replace(f, status=Status(f.status), level=Level(f.level))
+
+
+class SQLReader:
+    """Read-only SQL on its own DuckDB cursor (use one per thread)."""
+
+    def __init__(self, cursor: duckdb.DuckDBPyConnection) -> None:
+        self._cur = cursor
+        self._in_tx = False
+
+    def sql(self, query: str) -> pa.Table:
+        return _read_only_query(self._cur, query, own_tx=not self._in_tx)
+
+    @contextmanager
+    def snapshot(self) -> Iterator[SQLReader]:
+        """Run several queries against one snapshot: ``with r.snapshot(): r.sql(...); ...``."""
+        self._cur.execute("BEGIN TRANSACTION")
+        self._in_tx = True
+        try:
+            yield self
+        finally:
+            self._in_tx = False
+            self._cur.execute("ROLLBACK")
+
+    def close(self) -> None:
+        self._cur.close()
+
+
+def _read_only_query(cur: duckdb.DuckDBPyConnection, query: str, own_tx: bool = True) -> pa.Table:
+    """One SELECT in a transaction that is rolled back, so even a query with side effects
+    leaves nothing behind."""
+    try:
+        statements = duckdb.extract_statements(query)
+    except duckdb.Error as e:
+        raise KDError(f"SQL {query!r}: {e}") from None
+    if len(statements) != 1 or statements[0].type != duckdb.StatementType.SELECT:
+        kinds = [s.type.name for s in statements]
+        raise KDError(f"SQL {query!r}: only one read-only SELECT is allowed, got {kinds}")
+    if own_tx:
+        cur.execute("BEGIN TRANSACTION")
+    try:
+        return cur.sql(query).to_arrow_table()
+    except duckdb.Error as e:
+        raise KDError(f"SQL {query!r}: {e}") from None
+    finally:
+        if own_tx:
+            cur.execute("ROLLBACK")
+
+
+def open(path: str | Path = ":memory:", config: KDConfig | None = None) -> KnowledgeDatabase:
+    """Open the KD in a DuckDB file (created if missing), or a throwaway one (``":memory:"``).
+
+    A file written by a newer engine (higher schema version) is refused with a KDError."""
+    con = persist.connect(path)
+    return KnowledgeDatabase(con, str(path), config or KDConfig())
