@@ -109,3 +109,35 @@ def test_convoy_members_keep_their_spacing(world: World) -> None:
     ids = [a.object_id for a in world.agents]
     c0, c1 = (states.centers[0, ids.index(m.object_id), :2] for m in members)
     assert np.linalg.norm(c0 - c1) == pytest.approx(spec.spacing_m, abs=0.05)
+
+
+def test_agent_culling_never_loses_a_hit(world: World) -> None:
+    """Rays cast through the culled path equal a brute-force slab test against every agent."""
+    from fixtures.world import _ray_box
+
+    rng = np.random.default_rng(3)
+    T, B = 40, 300
+    t_ns = np.sort(rng.integers(0, 60 * NS_PER_S, T))
+    states = world.agent_states(t_ns)
+    # origins a few metres from a random agent at each group's time, rays in all directions
+    pick = rng.integers(0, len(world.agents), T)
+    origins = states.centers[np.arange(T), pick] + rng.normal(0.0, 6.0, (T, 3))
+    origins[:, 2] = world.height(origins[:, 0], origins[:, 1]) + 1.5
+    dirs = rng.normal(size=(T, B, 3))
+    dirs /= np.linalg.norm(dirs, axis=2, keepdims=True)
+    hits = world.cast_rays(origins, dirs, t_ns)
+    brute = np.full((T, B), np.inf)
+    for k, track in enumerate(world.agents):
+        for g in range(T):
+            r, _ = _ray_box(
+                np.repeat(origins[g : g + 1], B, axis=0),
+                dirs[g],
+                np.repeat(states.centers[g : g + 1, k], B, axis=0),
+                np.full(B, states.yaws[g, k]),
+                track.size / 2,
+            )
+            brute[g] = np.minimum(brute[g], r)
+    on_agent = brute < hits.range_m + 1e-9
+    assert on_agent.sum() > 100
+    assert np.allclose(hits.range_m[on_agent], brute[on_agent])
+    assert np.all(hits.cls[on_agent] >= 0)
