@@ -387,9 +387,9 @@ def check_entity(
             raise KDError(f"{where}: map cell {cell!r} is not (level, column, row)")
 
 
-def check_event(e: EventFrame) -> None:
+def check_event(e: EventFrame, where: str | None = None) -> None:
     """Refuse an event frame with a field out of its domain; the message names the event."""
-    where = f"event {e.id} ({e.name!r})"
+    where = where or f"event {e.id} ({e.name!r})"
     if not isinstance(e.id, int | np.integer) or not (0 <= int(e.id) < 2**63):
         raise KDError(f"{where}: id {e.id!r} is not a non-negative int64")
     if e.t_end_ns is not None and e.t_end_ns < e.t_start_ns:

@@ -170,6 +170,11 @@ class KnowledgeDatabase:
         self._next_id += 1
         return i
 
+    @property
+    def next_id(self) -> int:
+        """The id :meth:`new_id` will hand out next (kept across restarts)."""
+        return self._next_id
+
     def __contains__(self, frame_id: object) -> bool:
         return frame_id in self._slot or frame_id in self._events
 
@@ -200,8 +205,9 @@ class KnowledgeDatabase:
         if "created_ns" not in fields and self.immediate.t_ns is not None:
             fields["created_ns"] = self.immediate.t_ns
         probe = _coerce(EntityFrame(id=0, name=name, level=Level(level), **fields))
-        check_entity(probe, **self._tols(), where=f"new entity {name!r}")
-        self._check_classes(probe, f"new entity {name!r}")
+        where = _new_where("entity", frame_id, name)
+        check_entity(probe, **self._tols(), where=where)
+        self._check_classes(probe, where)
         f = dataclasses.replace(probe, id=self._take_id(frame_id, f"new entity {name!r}"))
         self._insert_entity(f, ltm=False)
         return f
@@ -471,7 +477,7 @@ class KnowledgeDatabase:
         """Make an event frame (fields as :class:`EventFrame`; ``id`` optional) and add it."""
         frame_id = fields.pop("id", None)
         probe = EventFrame(id=0, name=name, class_name=class_name, t_start_ns=t_start_ns, **fields)
-        check_event(probe)
+        check_event(probe, _new_where("event", frame_id, name))
         e = dataclasses.replace(probe, id=self._take_id(frame_id, f"new event {name!r}"))
         self._events[e.id] = e
         self._event_dirty.add(e.id)
@@ -855,6 +861,10 @@ class KnowledgeDatabase:
             stored = persist.read(self._con)
         self.classes = ClassLibrary.default()
         self._load(stored)
+
+
+def _new_where(kind: str, frame_id: int | None, name: str) -> str:
+    return f"new {kind} {name!r}" if frame_id is None else f"{kind} {frame_id} ({name!r})"
 
 
 def _cursor(con: duckdb.DuckDBPyConnection) -> duckdb.DuckDBPyConnection:

@@ -1,0 +1,172 @@
+"""Round trips of every field through memory, a DuckDB file and Parquet; schema versions;
+read-only SQL over the documented views."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import duckdb
+import numpy as np
+import pytest
+
+import kd_store
+from kd_store import Attribute, KDError, Level, RelationKind, State, Status, Value
+
+
+def _cov(seed: int) -> np.ndarray:
+    A = np.random.default_rng(seed).normal(size=(6, 4))
+    return A @ A.T  # PSD of rank 4
+
+
+def _state(t_ns: int, seed: int, frame: str = "world") -> State:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=4)
+    return State(
+        t_ns,
+        frame,
+        rng.normal(size=3) * 10,
+        q / np.linalg.norm(q),
+        rng.normal(size=3),
+        _cov(seed),
+        rng.uniform(0, 0.1, 3),
+    )
+
+
+def build_full_kd(kd: kd_store.KnowledgeDatabase) -> dict[str, int]:
+    """A KD using every field of every frame kind; returns the ids by role."""
+    tree = kd.add_entity(
+        "oak-7",
+        Level.OBJECT,
+        status=Status.CONFIRMED,
+        confidence=0.875,
+        name_uncertainty=0.125,
+        attributes={
+            "height_m": Attribute(7.5, 0.25, 7.25, 0.0625, 7.3, 0.1),
+            "width_m": Attribute(estimated=3.0, estimated_var=0.5),  # others NaN
+        },
+        state=_state(1_000, 1),
+        generic_classes=("vegetation", "tree"),
+        value=Value(0.5, 0.25, 0.125, 0.0625, 2.0, 3.5),
+        images=("object_image/level4",),
+        map_cells=((3, 128, 127), (4, 12, 13)),
+        created_ns=999,
+        noteworthy=False,
+    )
+    kd.observe(tree.id, _state(2_000, 2))
+    kd.expect(tree.id, [_state(3_000, 3), _state(4_000, 4, "world")])
+    kd.found_specific_class(tree.id)
+    trunk = kd.add_entity(
+        "trunk", Level.SURFACE, status="confirmed", confidence=0.7, state=_state(1_500, 5)
+    )
+    kd.relate(trunk.id, RelationKind.BELONGS_TO, tree.id, t_ns=1_500)
+    post = kd.add_entity("post-1", 4, generic_classes=("post",), noteworthy=True)
+    kd.relate(post.id, "beside", tree.id, t_ns=100)
+    kd.unrelate(post.id, "beside", tree.id, t_ns=900)
+    kd.relate(post.id, "near", tree.id, t_ns=900)
+    ev = kd.add_event(
+        "passed oak",
+        "landmark_passed",
+        1_000,
+        t_end_ns=5_000,
+        attributes={"closest_m": 4.5, "speed_mps": 2.0},
+        level=3,
+        confidence=0.9,
+        name_uncertainty=0.2,
+        value=Value(cost=1.0, risk=0.5),
+    )
+    sub = kd.add_event("saw oak", "detection", 1_000, t_end_ns=1_200, confidence=0.95)
+    kd.relate(sub.id, "belongs_to", ev.id, t_ns=1_000)
+    kd.relate(ev.id, "involves", tree.id, t_ns=1_000)
+    kd.relate(sub.id, "before", ev.id, t_ns=1_200)
+    kd.relate(sub.id, "causes", ev.id, t_ns=1_200)
+    return {"tree": tree.id, "trunk": trunk.id, "post": post.id, "event": ev.id, "sub": sub.id}
+
+
+def snapshot(kd: kd_store.KnowledgeDatabase, ids: dict[str, int]) -> dict:
+    """Everything a round trip must keep, in comparable form."""
+    return {
+        "entities": {k: kd.get(ids[k]) for k in ("tree", "trunk", "post")},
+        "events": {k: kd.get_event(ids[k]) for k in ("event", "sub")},
+        "relations": sorted((r.key, r.t_to_ns) for i in ids.values() for r in kd.relations(i)),
+        "classes": {p.name: p for p in kd.classes},
+        "next": kd.next_id,
+    }
+
+
+def test_every_field_survives_memory(tmp_path: Path) -> None:
+    kd = kd_store.open()
+    ids = build_full_kd(kd)
+    f = kd.get(ids["tree"])
+    assert f.name == "oak-7" and f.level == Level.OBJECT and f.status == Status.CONFIRMED
+    assert f.confidence == 0.875 and f.name_uncertainty == 0.125
+    assert f.state == _state(2_000, 2)
+    assert f.expectations == (_state(3_000, 3), _state(4_000, 4))
+    assert f.attributes["height_m"] == Attribute(7.5, 0.25, 7.25, 0.0625, 7.3, 0.1)
+    assert math.isnan(f.attributes["width_m"].observed)
+    assert f.specific_class == f"oak-7#{f.id}"
+    assert f.value == Value(0.5, 0.25, 0.125, 0.0625, 2.0, 3.5)
+    assert f.map_cells == ((3, 128, 127), (4, 12, 13)) and f.created_ns == 999
+    assert kd.history(ids["tree"]) == [_state(1_000, 1), _state(2_000, 2)]
+
+
+def test_every_field_survives_a_duckdb_file(tmp_path: Path) -> None:
+    path = tmp_path / "kd.duckdb"
+    with kd_store.open(path) as kd:
+        ids = build_full_kd(kd)
+        before = snapshot(kd, ids)
+    with kd_store.open(path) as kd:
+        after = snapshot(kd, ids)
+        assert kd.long_term_history(ids["tree"]) == [_state(1_000, 1), _state(2_000, 2)]
+    assert after == before
+
+
+def test_every_field_survives_parquet(tmp_path: Path) -> None:
+    kd = kd_store.open()
+    ids = build_full_kd(kd)
+    before = snapshot(kd, ids)
+    files = kd.export_parquet(tmp_path / "pq")
+    assert {p.name for p in files} >= {"entity_frames.parquet", "entity_state_rows.parquet"}
+    kd2 = kd_store.open()
+    kd2.import_parquet(tmp_path / "pq")
+    assert snapshot(kd2, ids) == before
+    assert kd2.long_term_history(ids["tree"]) == [_state(1_000, 1), _state(2_000, 2)]
+    with pytest.raises(KDError, match="already holds"):
+        kd2.import_parquet(tmp_path / "pq")
+
+
+def test_newer_schema_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "kd.duckdb"
+    kd_store.open(path).close()
+    con = duckdb.connect(str(path))
+    con.execute("UPDATE kd_meta SET value = '99' WHERE key = 'schema_version'")
+    con.close()
+    with pytest.raises(KDError, match=r"schema version 99 is newer than this engine's 1"):
+        kd_store.open(path)
+
+
+def test_sql_views_and_read_only() -> None:
+    kd = kd_store.open()
+    ids = build_full_kd(kd)
+    t = kd.sql("SELECT id, class_name, x FROM entities ORDER BY id")
+    assert t.column("id").to_pylist() == sorted([ids["tree"], ids["trunk"], ids["post"]])
+    rel = kd.sql(
+        f"SELECT kind, dst_id, dst_name, t_to_ns FROM relations WHERE src_id = {ids['post']} "
+        "ORDER BY t_from_ns, kind"
+    ).to_pylist()
+    assert {"kind": "beside", "dst_id": ids["tree"], "dst_name": None, "t_to_ns": 900} in rel
+    assert {"kind": "is_a", "dst_id": None, "dst_name": "post", "t_to_ns": None} in rel
+    attrs = kd.sql("SELECT name, estimated FROM entity_attributes ORDER BY name").to_pylist()
+    assert attrs == [{"name": "height_m", "estimated": 7.25}, {"name": "width_m", "estimated": 3.0}]
+    at = kd.sql("SELECT entity_id, t_ns FROM entity_states_as_of(1600) ORDER BY entity_id")
+    assert at.to_pylist() == [
+        {"entity_id": ids["tree"], "t_ns": 1_000},
+        {"entity_id": ids["trunk"], "t_ns": 1_500},
+    ]
+    ev = kd.sql("SELECT id FROM events_at(1100) ORDER BY id").column("id").to_pylist()
+    assert ev == [ids["event"], ids["sub"]]
+    assert kd.sql("SELECT count(*) AS n FROM classes WHERE kind = 'specific'")["n"][0].as_py() == 1
+    for bad in ("DELETE FROM entity_frames", "SELECT 1; DROP TABLE entity_frames", "COPY x TO 'y'"):
+        with pytest.raises(KDError, match="read-only SELECT"):
+            kd.sql(bad)
+    assert kd.sql("SELECT count(*) AS n FROM entities")["n"][0].as_py() == 3
