@@ -140,6 +140,8 @@ class KnowledgeDatabase:
     def checkpoint(self) -> int:
         """Flush, then fold DuckDB's write-ahead log into the file. Returns rows flushed."""
         n = self.flush()
+        if self._read_only:
+            return n
         with self._lock:
             self._con.execute("CHECKPOINT")
         return n
@@ -926,9 +928,15 @@ def _read_only_query(cur: duckdb.DuckDBPyConnection, query: str, own_tx: bool = 
             cur.execute("ROLLBACK")
 
 
-def open(path: str | Path = ":memory:", config: KDConfig | None = None) -> KnowledgeDatabase:
+def open(
+    path: str | Path = ":memory:", config: KDConfig | None = None, read_only: bool = False
+) -> KnowledgeDatabase:
     """Open the KD in a DuckDB file (created if missing), or a throwaway one (``":memory:"``).
 
-    A file written by a newer engine (higher schema version) is refused with a KDError."""
-    con = persist.connect(path)
-    return KnowledgeDatabase(con, str(path), config or KDConfig())
+    ``read_only`` opens an existing file for reading (e.g. a notebook while no writer runs):
+    changes stay in RAM and :meth:`KnowledgeDatabase.flush` writes nothing. A file written
+    by a newer engine (higher schema version) is refused with a KDError."""
+    con = persist.connect(path, read_only=read_only)
+    kd = KnowledgeDatabase(con, str(path), config or KDConfig())
+    kd._read_only = read_only
+    return kd

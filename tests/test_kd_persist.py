@@ -170,3 +170,26 @@ def test_sql_views_and_read_only() -> None:
         with pytest.raises(KDError, match="read-only SELECT"):
             kd.sql(bad)
     assert kd.sql("SELECT count(*) AS n FROM entities")["n"][0].as_py() == 3
+
+
+def test_checkpoint_context_manager_and_read_only(tmp_path: Path) -> None:
+    path = tmp_path / "kd.duckdb"
+    with kd_store.open(path) as kd:
+        a = kd.add_entity("a", Level.OBJECT, status="confirmed", confidence=1.0)
+        kd.observe(a.id, _state(10, 1))
+        assert kd.checkpoint() == 1
+        wal = Path(str(path) + ".wal")
+        assert not wal.exists() or wal.stat().st_size == 0
+        b = kd.add_entity("b", Level.OBJECT, status="confirmed", confidence=1.0)
+    # the clean exit flushed b
+    with kd_store.open(path, read_only=True) as kd:
+        assert [f.name for f in kd.entities()] == ["a", "b"]
+        kd.update_entity(b.id, confidence=0.5)  # stays in RAM
+        assert kd.flush() == 0
+    with kd_store.open(path) as kd:
+        assert kd.get(b.id).confidence == 1.0
+    with pytest.raises(KDError, match=r"none\.duckdb: cannot open"):
+        kd_store.open(tmp_path / "none.duckdb", read_only=True)
+    duckdb.connect(str(tmp_path / "other.duckdb")).execute("CREATE TABLE t (a INT)").close()
+    with pytest.raises(KDError, match=r"other\.duckdb: not a KD file"):
+        kd_store.open(tmp_path / "other.duckdb", read_only=True)
