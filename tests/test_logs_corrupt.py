@@ -18,7 +18,7 @@ from sp.logs import (
     OdometryFrame,
     open_log,
 )
-from sp.logs.ros_codec import encode_frame, ros2msg_schema, typestore
+from sp.logs.ros_codec import encode_frame, ros2msg_schema, serialize
 
 N_SCANS = 40
 
@@ -114,7 +114,7 @@ def test_backwards_header_stamps_are_reported(tmp_path) -> None:
         for k, stamp in enumerate(stamps):
             frame = OdometryFrame(stamp * 10**6, "odom", "base_link", np.eye(4))
             (enc,) = encode_frame(frame)
-            data = typestore().serialize_cdr(enc.message, enc.msgtype)
+            data = serialize(enc)
             w.add_message(cid, (k + 1) * 10**7, data, (k + 1) * 10**7)
         w.finish()
     src = open_log(path)

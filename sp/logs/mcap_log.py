@@ -10,8 +10,12 @@ messages and topics (and why box velocities travel on ``<topic>/velocities``) is
 
 Log time = publish time = the frame's ``t_ns`` (which must be >= 0); header stamps = ``t_ns``.
 
-Chunk compression defaults to LZ4: point clouds barely shrink under zstd, which costs several
-times the write time (see ``bench/bench_logs.py``); choose with :class:`McapWriterConfig`.
+Chunks are uncompressed by default: point clouds and camera images barely shrink under LZ4
+(zstd does better) while either costs several times the write time (``python -m bench
+logs``); uncompressed chunks are also streamed to the file without holding messages in memory.
+Choose with :class:`McapWriterConfig`. Each chunk carries a CRC, which is how damaged bytes
+are found when reading. Closing fsyncs the file before the atomic rename (``durable``), so a
+crash leaves either the old state or the complete log.
 
 Reading walks the records itself (not the summary), so that a log cut short or with damaged
 chunks can still be read with ``skip_corrupt=True``; chunks are merged in log-time order
@@ -35,8 +39,8 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
-from mcap.writer import CompressionType, Writer
 
+from sp.logs.mcap_file import McapFileWriter
 from sp.logs.ros_codec import (
     KIND_KEY,
     FrameAssembler,
@@ -44,7 +48,6 @@ from sp.logs.ros_codec import (
     frame_topic,
     role_of,
     ros2msg_schema,
-    typestore,
 )
 from sp.logs.source import LogSource, TopicInfo, topic_info
 from sp.logs.types import Frame, LogError
@@ -68,20 +71,25 @@ class Compression(enum.Enum):
     ZSTD = "zstd"
 
 
-_MCAP_COMPRESSION = {
-    Compression.NONE: CompressionType.NONE,
-    Compression.LZ4: CompressionType.LZ4,
-    Compression.ZSTD: CompressionType.ZSTD,
-}
+_MCAP_COMPRESSION = {Compression.NONE: "", Compression.LZ4: "lz4", Compression.ZSTD: "zstd"}
 
 
 @dataclass(frozen=True, slots=True)
 class McapWriterConfig:
     """How :class:`McapLogWriter` lays out the file."""
 
-    compression: Compression = Compression.LZ4
+    compression: Compression = Compression.NONE
     chunk_size_bytes: int = 4 * 1024 * 1024  # uncompressed bytes per chunk
+    durable: bool = True  # fsync the file before the rename and the folder after it
     library: str = "rcs-worldmodel sp.logs"
+
+
+def _fsync_dir(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 class McapLogWriter:
@@ -105,12 +113,13 @@ class McapLogWriter:
             self._file = open(self._tmp, "wb")
         except OSError as exc:
             raise LogError(f"{self.path}: cannot write: {exc}") from exc
-        self._writer = Writer(
+        self._writer = McapFileWriter(
             self._file,
-            chunk_size=self.config.chunk_size_bytes,
             compression=_MCAP_COMPRESSION[self.config.compression],
+            chunk_size=self.config.chunk_size_bytes,
+            profile="ros2",
+            library=self.config.library,
         )
-        self._writer.start(profile="ros2", library=self.config.library)
         self._schema_ids: dict[str, int] = {}
         self._channel_ids: dict[tuple[str, str], int] = {}
         self._sequence = 0
@@ -133,9 +142,9 @@ class McapLogWriter:
         if cid is None:
             sid = self._schema_ids.get(msgtype)
             if sid is None:
-                sid = self._writer.register_schema(msgtype, "ros2msg", ros2msg_schema(msgtype))
+                sid = self._writer.add_schema(msgtype, "ros2msg", ros2msg_schema(msgtype))
                 self._schema_ids[msgtype] = sid
-            cid = self._writer.register_channel(topic, "cdr", sid, metadata={KIND_KEY: kind})
+            cid = self._writer.add_channel(topic, "cdr", sid, {KIND_KEY: kind})
             self._channel_ids[key] = cid
         return cid
 
@@ -145,19 +154,17 @@ class McapLogWriter:
         t_ns = int(frame.t_ns)
         if t_ns < 0:
             raise LogError(f"{self.path}: {type(frame).__name__} t_ns={t_ns} < 0 (MCAP times)")
-        store = typestore()
         for enc in encode_frame(frame):
-            data = store.serialize_cdr(enc.message, enc.msgtype)
             cid = self._channel_id(enc.topic, enc.msgtype, enc.kind)
-            self._writer.add_message(cid, t_ns, data, t_ns, self._sequence)
+            self._writer.add_message(cid, t_ns, t_ns, self._sequence, enc.parts)
             self._sequence += 1
             self.messages_written += 1
-            self.payload_bytes += len(data)
+            self.payload_bytes += enc.nbytes
 
     def attach(self, name: str, data: bytes, media_type: str, t_ns: int = 0) -> None:
         """Attach a file (e.g. the scenario that made the log) to the log."""
         self._check_open()
-        self._writer.add_attachment(int(t_ns), int(t_ns), name, media_type, bytes(data))
+        self._writer.add_attachment(name, media_type, bytes(data), int(t_ns))
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Add a named record of string key/value pairs."""
@@ -174,8 +181,13 @@ class McapLogWriter:
         self._open = False
         try:
             self._writer.finish()
+            if self.config.durable:
+                self._file.flush()
+                os.fsync(self._file.fileno())
             self._file.close()
             os.replace(self._tmp, self.path)
+            if self.config.durable:
+                _fsync_dir(self.path.parent)
         except OSError as exc:
             raise LogError(f"{self.path}: cannot finish the log: {exc}") from exc
 

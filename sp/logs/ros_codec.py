@@ -40,6 +40,7 @@ Stamps: every header stamp is the frame's ``t_ns``; frames read back carry the h
 from __future__ import annotations
 
 import enum
+import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import cache
@@ -175,14 +176,49 @@ def frame_topic(topic: str, role: Role | None) -> str:
 # --------------------------------------------------------------------------- encoding
 
 
+Buffer = bytes | memoryview
+
+
 @dataclass(frozen=True, slots=True)
 class Encoded:
-    """One ROS 2 message ready to serialise: its topic, type, object and MCAP channel kind."""
+    """One ROS 2 message: topic, type, MCAP channel kind, and its little-endian CDR bytes as
+    parts (bulk arrays are referenced, not copied: a frame's image is one of the parts)."""
 
     topic: str
     msgtype: str
-    message: Any
     kind: str
+    parts: tuple[Buffer, ...]
+
+    @property
+    def nbytes(self) -> int:
+        return sum(len(p) for p in self.parts)
+
+
+def serialize(enc: Encoded) -> bytes:
+    """The CDR bytes of an encoded message, joined (the writer uses ``enc.parts`` as is)."""
+    return b"".join(enc.parts)
+
+
+def _cdr(message: Any, msgtype: str) -> tuple[Buffer]:
+    return (typestore().serialize_cdr(message, msgtype, little_endian=True),)
+
+
+def _as_bytes(a: np.ndarray) -> memoryview:
+    return memoryview(np.ascontiguousarray(a)).cast("B")
+
+
+def _cdr_around_bulk(
+    message: Any, msgtype: str, bulk: memoryview, after: int
+) -> tuple[Buffer, ...]:
+    """CDR parts of ``message`` whose uint8[] field (left empty in ``message``) holds ``bulk``.
+
+    ``after`` is how many CDR bytes follow that field. The small rest is serialised once and
+    the bulk goes between its two halves untouched, so it is never copied.
+    """
+    small = typestore().serialize_cdr(message, msgtype, little_endian=True)
+    cut = len(small) - after - 4  # the empty sequence's uint32 length
+    head = bytes(small[:cut]) + struct.pack("<I", len(bulk))
+    return (head, bulk, bytes(small[len(small) - after :])) if after else (head, bulk)
 
 
 def encode_frame(frame: Frame) -> list[Encoded]:
@@ -238,13 +274,6 @@ def _encode_ladar(scan: LadarScan) -> list[Encoded]:
         names.append("ring")
         formats.append("<u2")
     dtype = np.dtype({"names": names, "formats": formats})  # packed: offsets follow sizes
-    cloud = np.empty(n, dtype=dtype)
-    xyz = np.asarray(scan.points_xyz, dtype=np.float32).reshape(n, 3)
-    cloud["x"], cloud["y"], cloud["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    cloud["intensity"] = scan.intensity
-    cloud["t"] = t_off
-    if scan.ring is not None:
-        cloud["ring"] = scan.ring
     field = _t("sensor_msgs/msg/PointField")
     fields = [
         field(name=k, offset=dtype.fields[k][1], datatype=_PF_CODES[dtype[k].str[1:]], count=1)
@@ -258,24 +287,33 @@ def _encode_ladar(scan: LadarScan) -> list[Encoded]:
         is_bigendian=False,
         point_step=dtype.itemsize,
         row_step=dtype.itemsize * n,
-        data=cloud.view(np.uint8),
+        data=np.zeros(0, np.uint8),
         is_dense=True,
     )
-    return [Encoded(scan.topic, POINTCLOUD2, msg, "ladar_scan")]
+    cloud = np.empty(n, dtype=dtype)
+    xyz = np.asarray(scan.points_xyz, dtype=np.float32).reshape(n, 3)
+    cloud["x"], cloud["y"], cloud["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    cloud["intensity"] = scan.intensity
+    cloud["t"] = t_off
+    if scan.ring is not None:
+        cloud["ring"] = scan.ring
+    parts = _cdr_around_bulk(msg, POINTCLOUD2, _as_bytes(cloud.view(np.uint8)), after=1)
+    return [Encoded(scan.topic, POINTCLOUD2, "ladar_scan", parts)]
 
 
-def _image_msg(t_ns: int, frame_id: str, pixels: np.ndarray, encoding: str) -> Any:
+def _image(t_ns: int, frame_id: str, pixels: np.ndarray, encoding: str) -> tuple[Buffer, ...]:
+    """CDR parts of an Image message of ``pixels`` (referenced, not copied)."""
     h, w = pixels.shape[:2]
-    data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
-    return _t(IMAGE)(
+    msg = _t(IMAGE)(
         header=_header(t_ns, frame_id),
         height=h,
         width=w,
         encoding=encoding,
         is_bigendian=0,
-        step=data.size // max(h, 1),
-        data=data,
+        step=pixels.nbytes // max(h, 1),
+        data=np.zeros(0, np.uint8),
     )
+    return _cdr_around_bulk(msg, IMAGE, _as_bytes(pixels), after=0)
 
 
 def _encode_camera(cam: CameraFrame) -> list[Encoded]:
@@ -306,24 +344,24 @@ def _encode_camera(cam: CameraFrame) -> list[Encoded]:
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         ),
     )
-    out = [Encoded(f"{cam.topic}/camera_info", CAMERA_INFO, info, "camera_info")]
+    out = [Encoded(f"{cam.topic}/camera_info", CAMERA_INFO, "camera_info", _cdr(info, CAMERA_INFO))]
     if cam.depth is not None:
-        depth = np.asarray(cam.depth, dtype="<f4")
-        out.append(
-            Encoded(
-                f"{cam.topic}/depth",
-                IMAGE,
-                _image_msg(cam.t_ns, cam.frame_id, depth, "32FC1"),
-                "camera_depth",
-            )
-        )
+        depth = _image(cam.t_ns, cam.frame_id, np.asarray(cam.depth, dtype="<f4"), "32FC1")
+        out.append(Encoded(f"{cam.topic}/depth", IMAGE, "camera_depth", depth))
     encoding = "mono8" if image.ndim == 2 else "rgb8"
-    msg = _image_msg(cam.t_ns, cam.frame_id, image, encoding)
-    out.append(Encoded(f"{cam.topic}/image", IMAGE, msg, "camera_image"))
+    pixels = _image(cam.t_ns, cam.frame_id, image, encoding)
+    out.append(Encoded(f"{cam.topic}/image", IMAGE, "camera_image", pixels))
     return out
 
 
-def _odometry_msg(
+def _cdr_string(text: str, pos: int) -> tuple[bytes, int]:
+    """A CDR string at byte ``pos`` (4-aligned): uint32 length with NUL, bytes, NUL."""
+    raw = text.encode() + b"\0"
+    pad = -pos % 4
+    return b"\0" * pad + struct.pack("<I", len(raw)) + raw, pos + pad + 4 + len(raw)
+
+
+def _odometry_cdr(
     t_ns: int,
     frame_id: str,
     child: str,
@@ -332,22 +370,32 @@ def _odometry_msg(
     ang: np.ndarray,
     pose_cov: np.ndarray,
     twist_cov: np.ndarray,
-) -> Any:
-    return _t(ODOMETRY)(
-        header=_header(t_ns, frame_id),
-        child_frame_id=child,
-        pose=_t("geometry_msgs/msg/PoseWithCovariance")(
-            pose=_pose(T), covariance=_f64(pose_cov, 36)
-        ),
-        twist=_t("geometry_msgs/msg/TwistWithCovariance")(
-            twist=_t("geometry_msgs/msg/Twist")(linear=_vector3(lin), angular=_vector3(ang)),
-            covariance=_f64(twist_cov, 36),
-        ),
-    )
+) -> tuple[Buffer]:
+    """nav_msgs/msg/Odometry packed directly (it is written at high rate): header, child
+    frame, then 85 float64 (position, orientation xyzw, 36 covariance, linear, angular, 36
+    covariance) 8-aligned. The tests check it byte for byte against rosbags' serialiser."""
+    sec, nanosec = divmod(int(t_ns), NS_PER_S)
+    if not -(2**31) <= sec < 2**31:
+        raise LogError(f"t_ns = {t_ns} does not fit a ROS time (int32 seconds)")
+    frame, pos = _cdr_string(frame_id, 8)
+    child_part, pos = _cdr_string(child, pos)
+    T = np.asarray(T, dtype=np.float64)
+    doubles = np.concatenate(
+        [
+            T[:3, 3],
+            matrix_to_quat(T[:3, :3]),
+            _f64(pose_cov, 36),
+            _f64(lin, 3),
+            _f64(ang, 3),
+            _f64(twist_cov, 36),
+        ]
+    ).astype("<f8")
+    cdr = b"\0\1\0\0" + struct.pack("<iI", sec, nanosec) + frame + child_part
+    return (cdr + b"\0" * (-pos % 8) + doubles.tobytes(),)
 
 
 def _encode_odometry(o: OdometryFrame) -> list[Encoded]:
-    msg = _odometry_msg(
+    parts = _odometry_cdr(
         o.t_ns,
         o.frame_id,
         o.child_frame_id,
@@ -357,13 +405,13 @@ def _encode_odometry(o: OdometryFrame) -> list[Encoded]:
         o.pose_covariance,
         o.twist_covariance,
     )
-    return [Encoded(o.topic, ODOMETRY, msg, "odometry")]
+    return [Encoded(o.topic, ODOMETRY, "odometry", parts)]
 
 
 def _encode_ground_truth(g: GroundTruthPose) -> list[Encoded]:
     z3, z66 = np.zeros(3), np.zeros((6, 6))
-    msg = _odometry_msg(g.t_ns, g.frame_id, g.child_frame_id, g.T_parent_child, z3, z3, z66, z66)
-    return [Encoded(g.topic, ODOMETRY, msg, "ground_truth_pose")]
+    parts = _odometry_cdr(g.t_ns, g.frame_id, g.child_frame_id, g.T_parent_child, z3, z3, z66, z66)
+    return [Encoded(g.topic, ODOMETRY, "ground_truth_pose", parts)]
 
 
 def _encode_imu(m: ImuFrame) -> list[Encoded]:
@@ -383,7 +431,7 @@ def _encode_imu(m: ImuFrame) -> list[Encoded]:
         linear_acceleration=_vector3(m.linear_acceleration),
         linear_acceleration_covariance=np.zeros(9),
     )
-    return [Encoded(m.topic, IMU, msg, "imu")]
+    return [Encoded(m.topic, IMU, "imu", _cdr(msg, IMU))]
 
 
 def _encode_transform(tf: TransformFrame) -> list[Encoded]:
@@ -397,7 +445,8 @@ def _encode_transform(tf: TransformFrame) -> list[Encoded]:
         ),
     )
     topic = "/tf_static" if tf.static and tf.topic == "/tf" else tf.topic
-    return [Encoded(topic, TF_MESSAGE, _t(TF_MESSAGE)(transforms=[stamped]), "transform")]
+    msg = _t(TF_MESSAGE)(transforms=[stamped])
+    return [Encoded(topic, TF_MESSAGE, "transform", _cdr(msg, TF_MESSAGE))]
 
 
 def _encode_boxes(b: ObjectBoxes) -> list[Encoded]:
@@ -437,8 +486,13 @@ def _encode_boxes(b: ObjectBoxes) -> list[Encoded]:
         data=_f64(b.velocities, 3 * m),
     )
     return [
-        Encoded(f"{b.topic}/velocities", FLOAT64_MULTI_ARRAY, velocities, "box_velocities"),
-        Encoded(b.topic, DETECTION3D_ARRAY, boxes, "object_boxes"),
+        Encoded(
+            f"{b.topic}/velocities",
+            FLOAT64_MULTI_ARRAY,
+            "box_velocities",
+            _cdr(velocities, FLOAT64_MULTI_ARRAY),
+        ),
+        Encoded(b.topic, DETECTION3D_ARRAY, "object_boxes", _cdr(boxes, DETECTION3D_ARRAY)),
     ]
 
 
