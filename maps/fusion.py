@@ -9,12 +9,14 @@ exactly the same as updating point by point, in any order.
 
 Per-point variance grows with range: ``sigma = sigma0 + k * range`` (:func:`range_variance`).
 
-A point more than ``obstacle_height_m`` above the cell's ground reference (the current
-estimate plus three of its standard deviations, or the lowest point of this sweep in a cell
-seen for the first time) is an obstacle point: it raises the occupancy log-odds and the
-cell's max height but not the ground estimate.
-A cell with ground points and no obstacle point this sweep lowers its log-odds (no ray
-casting: cells the beams pass over are not updated).
+A point more than ``obstacle_height_m`` above the cell's ground reference is an obstacle
+point. The reference is the current estimate plus three of its standard deviations; in a
+cell seen for the first time it is the lowest point of this sweep there, or the lowest ground
+of a neighbouring cell plus a slope allowance when that is lower (so a cell that only saw an
+object's face is not taken for ground). An obstacle point raises the occupancy log-odds and
+the cell's max height but not the ground estimate. A cell with ground points and no obstacle
+point this sweep lowers its log-odds (no ray casting: cells the beams pass over are not
+updated).
 
 Everything is vectorised with ``np.bincount`` / ``np.minimum.at`` over flat cell indices; the
 per-sweep sufficient statistics of a level (:class:`CellBatch`) are additive, so a finer level
@@ -56,6 +58,7 @@ class FusionConfig:
     sigma0_m: float = 0.02  # range noise at zero range
     sigma_per_m: float = 0.001  # extra range noise per metre of range
     obstacle_height_m: float = 0.3  # above the ground reference -> obstacle point
+    max_ground_slope: float = 0.5  # rise per run a neighbouring ground cell may differ by
     process_var_m2: float = 0.0  # added to a cell's variance before each sweep's update
     l_hit: float = 0.85  # log-odds added when a cell holds obstacle points this sweep
     l_miss: float = -0.4  # log-odds added when it holds only ground points
@@ -153,15 +156,17 @@ def summarise(
     z = points_xyz[:, 2] - z_ref
     ncell = size * size
 
-    # ground reference: current estimate, else this sweep's lowest point in the cell
+    # ground reference: the current estimate (+3 sigma), else the lowest point of this sweep
+    # in the cell or, lower still, in a neighbouring cell (+ a slope allowance)
     z_lo = np.full(ncell, np.inf)
     np.minimum.at(z_lo, flat, z)
-    elev = level.storage("elevation").reshape(-1)[flat].astype(np.float64) - z_ref
+    elev_l = level.storage("elevation").reshape(-1)
+    elev = elev_l[flat].astype(np.float64) - z_ref
     known = np.isfinite(elev)
-    ref = np.where(known, elev, z_lo[flat])
-    if known.any():  # an uncertain estimate (e.g. a priori terrain) widens the gate by 3 sigma
+    ref = _new_cell_reference(level, z_lo, z_ref, config)[flat]
+    if known.any():
         sigma = np.sqrt(level.storage("elevation_var").reshape(-1)[flat].astype(np.float64))
-        ref = np.where(known, ref + 3.0 * np.nan_to_num(sigma), ref)
+        ref = np.where(known, elev + 3.0 * np.nan_to_num(sigma), ref)
     ground = z <= ref + config.obstacle_height_m
     w = np.where(ground, 1.0 / variance_m2, 0.0)
     g = ground.astype(np.float64)
@@ -206,6 +211,36 @@ def summarise(
         z_max=z_hi[cells] + z_ref,
         n_obstacle=np.rint(sums[5][cells]).astype(np.int64),
     )
+
+
+def _new_cell_reference(
+    level: MapLevel, z_lo: np.ndarray, z_ref: float, config: FusionConfig
+) -> np.ndarray:
+    """Dense (size*size,) ground reference for cells with points this sweep and no estimate:
+    ``min(own lowest point, lowest neighbour + slope allowance)`` over the 8 neighbours
+    (their estimate if known, else their lowest point this sweep). A cell whose every point
+    lies on an object face is then not mistaken for ground when a neighbour saw the ground."""
+    size = level.size
+    elev = level.storage("elevation").reshape(-1)
+    cells = np.flatnonzero(np.isfinite(z_lo) & np.isnan(elev))
+    ref = z_lo.copy()
+    if cells.size == 0:
+        return ref
+    base = np.where(np.isnan(elev), z_lo, elev.astype(np.float64) - z_ref)
+    srow, scol = np.divmod(cells, size)
+    wrow = (srow - level.origin_cell[1]) % size  # window row/col: no neighbours across the seam
+    wcol = (scol - level.origin_cell[0]) % size
+    nb = np.full(cells.shape, np.inf)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr == 0 and dc == 0:
+                continue
+            ok = (wrow + dr >= 0) & (wrow + dr < size) & (wcol + dc >= 0) & (wcol + dc < size)
+            nflat = ((srow + dr) % size) * size + (scol + dc) % size
+            nb = np.where(ok, np.minimum(nb, base[nflat]), nb)
+    allowance = config.max_ground_slope * np.sqrt(2.0) * level.resolution_m
+    ref[cells] = np.minimum(z_lo[cells], nb + allowance)
+    return ref
 
 
 def _child_flat(level: MapLevel, child: CellBatch) -> np.ndarray:

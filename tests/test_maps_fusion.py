@@ -38,7 +38,7 @@ def _reference(batches, res: float, cfg: FusionConfig) -> dict:
             )
             c.update(lo=min(c["lo"], p[2]), hi=max(c["hi"], p[2]), seen=t_ns)
             x0, P0 = start.get(k, (np.nan, np.nan))
-            ref = x0 + 3 * np.sqrt(P0) if np.isfinite(x0) else lowest[k]
+            ref = x0 + 3 * np.sqrt(P0) if np.isfinite(x0) else _new_ref(k, lowest, start, res, cfg)
             if p[2] > ref + cfg.obstacle_height_m:
                 c["nob"] += 1
                 hits[k] = True
@@ -58,6 +58,19 @@ def _reference(batches, res: float, cfg: FusionConfig) -> dict:
             c = cells[k]
             c["occ"] = float(np.clip(c.get("occ", 0.0) + (cfg.l_hit if hit else cfg.l_miss), -4, 4))
     return cells
+
+
+def _new_ref(k, lowest: dict, start: dict, res: float, cfg: FusionConfig) -> float:
+    """Reference of a cell with no estimate: own lowest point, or a lower neighbour + slope."""
+    nb = np.inf
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            n = (k[0] + dx, k[1] + dy)
+            if n == k:
+                continue
+            x0 = start.get(n, (np.nan,))[0]
+            nb = min(nb, x0 if np.isfinite(x0) else lowest.get(n, np.inf))
+    return min(lowest[k], nb + cfg.max_ground_slope * np.sqrt(2) * res)
 
 
 @settings(max_examples=25, deadline=None)
