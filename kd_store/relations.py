@@ -205,8 +205,14 @@ class RelationGraph:
             old = self.parent(src)
             if old is not None:
                 self.close(src, K.BELONGS_TO, old, t_from_ns)
-        self._put(Relation(src, kind, dst, int(t_from_ns)))
         inv = INVERSE.get(kind)
+        r = Relation(src, kind, dst, int(t_from_ns))
+        if self.find(r.key) is not None:  # closed at its own start: valid again from there
+            self._swap(r)
+            if inv is not None:
+                self._swap(Relation(dst, inv, src, int(t_from_ns)))
+            return
+        self._put(r)
         if inv is not None:
             self._put(Relation(dst, inv, src, int(t_from_ns)))
 
@@ -239,20 +245,24 @@ class RelationGraph:
             self.dirty.add(r.key)
 
     def _close_one(self, src: int, kind: RelationKind, dst: int, t_to_ns: int) -> bool:
-        for i, r in enumerate(self._out.get(src, [])):
+        for r in self._out.get(src, []):
             if r.kind == kind and r.dst == dst and r.t_to_ns is None:
                 if t_to_ns < r.t_from_ns:
                     raise KDError(
                         f"relation {src} {kind.value} {dst}: end t_ns={t_to_ns} is before its "
                         f"start t_ns={r.t_from_ns}"
                     )
-                closed = replace(r, t_to_ns=int(t_to_ns))
-                self._out[src][i] = closed
-                ins = self._in[dst]
-                ins[ins.index(r)] = closed
-                self.dirty.add(closed.key)
+                self._swap(replace(r, t_to_ns=int(t_to_ns)))
                 return True
         return False
+
+    def _swap(self, new: Relation) -> None:
+        """Replace the stored relation with ``new``'s key by ``new``."""
+        outs, ins = self._out[new.src], self._in[new.dst]
+        i = next(k for k, r in enumerate(outs) if r.key == new.key)
+        j = next(k for k, r in enumerate(ins) if r.key == new.key)
+        outs[i] = ins[j] = new
+        self.dirty.add(new.key)
 
     def find(self, key: tuple[int, str, int, int]) -> Relation | None:
         for r in self._out.get(key[0], ()):

@@ -70,6 +70,7 @@ class _Columns:
         self.max_worth = np.zeros(capacity)
         self.noteworthy = np.zeros(capacity, bool)
         self.klass = np.full(capacity, -1, np.int32)
+        self.created_ns = np.zeros(capacity, np.int64)
         self.ltm = np.zeros(capacity, bool)  # in long-term memory
         self.dirty = np.zeros(capacity, bool)  # changed since the last flush
         self.stale = np.zeros(capacity, bool)  # frame.state older than the columns
@@ -405,6 +406,7 @@ class KnowledgeDatabase:
         self._slot[f.id] = slot
         cols.id[slot] = f.id
         cols.alive[slot] = True
+        cols.created_ns[slot] = f.created_ns
         cols.ltm[slot] = ltm
         cols.dirty[slot] = not ltm
         cols.stale[slot] = False
@@ -683,14 +685,11 @@ class KnowledgeDatabase:
         attention does not hold (4.4.11). Returns the ids forgotten."""
         self.stm.trim(t_now_ns)
         keep = self.stm.attended()
-        gone = []
-        for entity_id, slot in list(self._slot.items()):
-            if self._cols.ltm[slot] or entity_id in keep:
-                continue
-            f = self._frames[slot]
-            t_last = max(int(self._cols.t_ns[slot]), f.created_ns)  # type: ignore[union-attr]
-            if t_last < t_now_ns - self.config.memory.horizon_ns(f.level):  # type: ignore[union-attr]
-                gone.append(entity_id)
+        cols, n = self._cols, self._cols.n
+        horizon = np.array([0, *(self.config.memory.horizon_ns(lv) for lv in range(1, 6))])
+        t_last = np.maximum(cols.t_ns[:n], cols.created_ns[:n])
+        stale = cols.alive[:n] & ~cols.ltm[:n] & (t_last < t_now_ns - horizon[cols.level[:n]])
+        gone = [i for i in cols.id[np.flatnonzero(stale)].tolist() if i not in keep]
         for e in list(self._events.values()):
             if e.id in self._event_ltm or e.id in keep:
                 continue
@@ -715,14 +714,15 @@ class KnowledgeDatabase:
         if self._read_only:
             return 0
         with self._lock:
-            w, newly = self._collect()
+            w, newly, new_events = self._collect()
             if not w:
                 return 0
             persist.write(self._con, w)
-            self._after_flush(newly, w)
+            self._after_flush(newly, new_events)
             return sum(len(c) for c in w.states)
 
-    def _collect(self) -> tuple[persist.Write, np.ndarray]:
+    def _collect(self) -> tuple[persist.Write, np.ndarray, set[int]]:
+        """What the next flush writes, the entity slots it promotes and the events it promotes."""
         cols, rule, n = self._cols, self.promotion_rule, self._cols.n
         codes = [STATUS_CODES[Status(s).value] for s in rule.statuses]
         admit = (np.isin(cols.status[:n], codes) & (cols.confidence[:n] >= rule.min_confidence)) | (
@@ -758,11 +758,13 @@ class KnowledgeDatabase:
         }
         ltm_events = self._event_ltm | new_events
         events = [self._events[i] for i in sorted((self._event_dirty & ltm_events) | new_events)]
-        in_ltm = (
-            set(new_ids.tolist())
-            | ltm_events
-            | {int(i) for i in cols.id[np.flatnonzero(cols.ltm[:n] & cols.alive[:n])]}
-        )
+
+        def in_ltm(frame_id: int) -> bool:
+            slot = self._slot.get(frame_id)
+            if slot is None:
+                return frame_id in ltm_events
+            return bool(cols.ltm[slot] or is_new[slot])
+
         touched = set(new_ids.tolist()) | new_events
         rel_keys = set(self.graph.dirty)
         for node in touched:
@@ -772,7 +774,7 @@ class KnowledgeDatabase:
                 for r in self.graph._in.get(node, ())  # pointers into new frames
             )
         rels = [r for k in rel_keys if (r := self.graph.find(k)) is not None]
-        rels = [r for r in rels if r.src in in_ltm and r.dst in in_ltm]
+        rels = [r for r in rels if in_ltm(r.src) and in_ltm(r.dst)]
         classes = [self.classes.get(c) for c in self.classes.dirty if c in self.classes]
         w = persist.Write(
             entities=entities,  # type: ignore[arg-type]
@@ -783,14 +785,13 @@ class KnowledgeDatabase:
             classes=classes,
             next_id=self._next_id,
         )
-        self._new_events = new_events
-        return w, newly
+        return w, newly, new_events
 
-    def _after_flush(self, newly: np.ndarray, w: persist.Write) -> None:
+    def _after_flush(self, newly: np.ndarray, new_events: set[int]) -> None:
         cols = self._cols
         cols.ltm[newly] = True
         cols.dirty[: cols.n] = False
-        self._event_ltm |= self._new_events
+        self._event_ltm |= new_events
         self._event_dirty.clear()
         self.graph.dirty.clear()
         self.classes.dirty.clear()

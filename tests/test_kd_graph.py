@@ -3,6 +3,8 @@ taxonomy, and pointer consistency under random operation sequences (hypothesis).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -184,3 +186,20 @@ def test_pointer_consistency_under_random_kd_operations(seq: list) -> None:
             pass  # refused: cycles, self loops, removed frames
         _check_invariants(kd.graph, nodes)
     _check_invariants(kd.graph, nodes)
+
+
+def test_relation_closed_and_reopened_at_the_same_time_is_stored_once(tmp_path: Path) -> None:
+    path = tmp_path / "kd.duckdb"
+    with kd_store.open(path) as kd:
+        for i in range(2):
+            kd.add_entity(f"e{i}", Level.OBJECT, id=i, status="confirmed", confidence=1.0)
+        kd.relate(0, "near", 1, t_ns=5)
+        kd.flush()
+        kd.unrelate(0, "near", 1, t_ns=5)
+        kd.relate(0, "near", 1, t_ns=5)
+        assert kd.pointers(0, "near") == [1] and len(kd.relations(0)) == 1
+    with kd_store.open(path) as kd:
+        rows = kd.sql("SELECT src_id, t_to_ns FROM relations WHERE kind = 'near'").to_pylist()
+        assert sorted(r["src_id"] for r in rows) == [0, 1] and {r["t_to_ns"] for r in rows} == {
+            None
+        }
