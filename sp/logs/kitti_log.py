@@ -70,11 +70,11 @@ class KittiLogSource(LogSource):
     def _load(self, i: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(N, 4) float32 scan i and its finite-point mask, or None when skipped as corrupt."""
         path = self.scan_files[i]
-        raw = np.fromfile(path, dtype="<f4")
-        if raw.size % 4:
-            self.fail(f"{path.name}: {raw.size * 4} bytes is not a whole number of points")
+        size = path.stat().st_size
+        if size % 16:
+            self.fail(f"{path.name}: {size} bytes is not a whole number of 16-byte points")
             return None
-        xyzi = raw.reshape(-1, 4)
+        xyzi = np.fromfile(path, dtype="<f4").reshape(-1, 4)
         return xyzi, np.isfinite(xyzi[:, :3]).all(axis=1)
 
     def _frames(
