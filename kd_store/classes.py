@@ -16,7 +16,6 @@ from enum import StrEnum
 from importlib import resources
 from pathlib import Path
 
-import numpy as np
 import yaml
 
 from kd_store.errors import KDError
@@ -116,27 +115,6 @@ class ClassLibrary:
         """``name`` and every class whose lineage contains it."""
         self.get(name)
         return {c for c in self._by_name if name in self.lineage(c)}
-
-    def match(self, attributes: Mapping[str, float], level: int) -> list[tuple[str, float]]:
-        """Generic and specific classes of ``level`` ranked by weighted normalised dot product
-        (4.5, classification) between ``attributes`` and each prototype, best first.
-
-        Each shared attribute i contributes ``w_i a_i p_i``; the score is that sum over
-        ``sqrt(sum w_i a_i^2) sqrt(sum w_i p_i^2)``, in [-1, 1]. Attributes missing on either
-        side are left out; classes sharing none are left out."""
-        out = []
-        for p in self._by_name.values():
-            if p.level != level or p.kind == ClassKind.GEOMETRIC:
-                continue
-            keys = [k for k in p.attributes if k in attributes and math.isfinite(attributes[k])]
-            if not keys:
-                continue
-            w = np.array([p.weights[k] for k in keys])
-            a = np.array([attributes[k] for k in keys])
-            q = np.array([p.attributes[k] for k in keys])
-            den = math.sqrt(float(w @ (a * a))) * math.sqrt(float(w @ (q * q)))
-            out.append((p.name, float(w @ (a * q)) / den if den > 0 else 0.0))
-        return sorted(out, key=lambda x: -x[1])
 
     # ------------------------------------------------------------------ writing
 

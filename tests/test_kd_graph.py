@@ -83,17 +83,6 @@ def test_class_library_taxonomy_and_lineage() -> None:
         lib.add(ClassPrototype("object", ClassKind.GEOMETRIC, Level.OBJECT, is_a="tree"))
 
 
-def test_classification_by_weighted_normalised_dot_product() -> None:
-    lib = ClassLibrary.default()
-    person = {"height_m": 1.7, "width_m": 0.5, "length_m": 0.3, "speed_mps": 1.5}
-    assert lib.match(person, Level.OBJECT)[0][0] == "person"
-    car = {"height_m": 1.5, "width_m": 1.9, "length_m": 4.2, "speed_mps": 12.0}
-    assert lib.match(car, Level.OBJECT)[0][0] == "vehicle"
-    # identical to a prototype scores exactly 1
-    proto = lib.get("rock").attributes
-    assert lib.match(dict(proto), Level.OBJECT)[0] == ("rock", pytest.approx(1.0))
-
-
 def test_found_specific_class_and_lineage_through_kd() -> None:
     kd = kd_store.open()
     f = kd.add_entity(
