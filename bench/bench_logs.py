@@ -36,7 +36,7 @@ from sp.logs import (
     OdometryFrame,
     open_log,
 )
-from sp.logs.ros_codec import encode_frame, serialize
+from sp.logs.ros_encode import encode_frame, serialize
 
 N_SWEEPS = 50
 RINGS, COLUMNS = 32, 1024

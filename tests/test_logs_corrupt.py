@@ -18,7 +18,8 @@ from sp.logs import (
     OdometryFrame,
     open_log,
 )
-from sp.logs.ros_codec import encode_frame, ros2msg_schema, serialize
+from sp.logs.ros_encode import encode_frame, serialize
+from sp.logs.ros_types import ros2msg_schema
 
 N_SCANS = 40
 

@@ -23,7 +23,8 @@ from sp.logs import (
     open_log,
 )
 from sp.logs.kitti_log import KittiLogSource
-from sp.logs.ros_codec import ODOMETRY, encode_frame, serialize, typestore
+from sp.logs.ros_encode import encode_frame, serialize
+from sp.logs.ros_types import ODOMETRY, typestore
 from sp.logs.rosbag_log import RosbagLogSource
 
 

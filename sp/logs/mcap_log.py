@@ -5,7 +5,7 @@ Files are standard MCAP (profile ``ros2``): schemas in ``ros2msg`` encoding with
 ROS 2 message definitions, messages in ``cdr`` encoding, chunked with CRCs, fully indexed, so
 ``ros2 bag``, Foxglove, ``rosbags`` and the ``mcap`` library read them. How each frame maps to
 messages and topics (and why box velocities travel on ``<topic>/velocities``) is in
-:mod:`sp.logs.ros_codec`. Each channel's metadata says the frame kind it carries
+:mod:`sp.logs.ros_encode`. Each channel's metadata says the frame kind it carries
 (``frame_kind``), so ground-truth poses and odometry, both nav_msgs/Odometry, stay apart.
 
 Log time = publish time = the frame's ``t_ns`` (which must be >= 0); header stamps = ``t_ns``.
@@ -41,14 +41,9 @@ from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 
 from sp.logs.mcap_file import McapFileWriter
-from sp.logs.ros_codec import (
-    KIND_KEY,
-    FrameAssembler,
-    encode_frame,
-    frame_topic,
-    role_of,
-    ros2msg_schema,
-)
+from sp.logs.ros_decode import FrameAssembler
+from sp.logs.ros_encode import encode_frame
+from sp.logs.ros_types import KIND_KEY, frame_topic, role_of, ros2msg_schema
 from sp.logs.source import LogSource, TopicInfo, topic_info
 from sp.logs.types import Frame, LogError
 

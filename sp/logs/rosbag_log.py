@@ -1,7 +1,7 @@
 """ROS 1 ``.bag`` files and ROS 2 bag folders, read through ``rosbags`` (AnyReader).
 
 Messages come in log-time order across topics and become frames through the same
-:class:`~sp.logs.ros_codec.FrameAssembler` as MCAP logs (ROS 1 messages are decoded by
+:class:`~sp.logs.ros_decode.FrameAssembler` as MCAP logs (ROS 1 messages are decoded by
 rosbags into the same field layout). The bag formats have no attachments or metadata
 records, so those are empty.
 """
@@ -12,7 +12,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from sp.logs.ros_codec import FrameAssembler, frame_topic, role_of
+from sp.logs.ros_decode import FrameAssembler
+from sp.logs.ros_types import frame_topic, role_of
 from sp.logs.source import LogSource, TopicInfo, topic_info
 from sp.logs.types import Frame, LogError
 

@@ -11,8 +11,11 @@
 Every source yields the frames of :mod:`sp.logs.types` in time order, reports what it had to
 skip in ``stats`` (:class:`~sp.logs.types.ReadStats`) and raises
 :class:`~sp.logs.types.LogError` (naming the file and the problem) for input it cannot read.
-In the 4D/RCS reference model these logs stand in for the sensors that feed sensory
-processing (reference 001, section 4.5: "sensory processing ... operates on sensor data").
+In the 4D/RCS reference model (reference 001), "the level 1 SP typically receives data from
+the physical sensors" (section 4.5): a log source stands in for those sensors, and each frame
+it yields is one sample of a sensor's signal, which section 4.4.10 counts as an event at the
+input of the servo level. Hence every frame carries its own time (``t_ns``), and sources
+report times that run backwards rather than reorder them silently.
 """
 
 from __future__ import annotations

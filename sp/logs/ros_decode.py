@@ -1,0 +1,338 @@
+"""ROS messages -> sensor frames, for every ROS-based log source (MCAP files, ROS bags).
+
+:class:`FrameAssembler` joins the messages of one instant: an image with the depth image and
+camera info of its camera, a box array with its velocities (the topics and layouts are those of
+:mod:`sp.logs.ros_encode`). Frames carry their header stamp (the sensor's time) as ``t_ns``,
+while sources yield them in log-time order. ROS 1 messages decoded by rosbags have the same
+field names, so the same code reads them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import numpy as np
+
+from maps.frames import NS_PER_S, quat_to_matrix
+from sp.logs.ros_types import ROLE_KIND, Role, frame_topic
+from sp.logs.types import (
+    CameraFrame,
+    Frame,
+    GroundTruthPose,
+    ImuFrame,
+    LadarScan,
+    LogError,
+    ObjectBoxes,
+    OdometryFrame,
+    ReadStats,
+    TransformFrame,
+)
+
+_PF_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_DEPTH_ENCODINGS = ("32FC1", "16UC1")
+
+
+def stamp_ns(header: Any) -> int:
+    """int64 nanoseconds of a ROS header stamp."""
+    return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
+
+
+def _T_of(position: Any, orientation: Any) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(
+        np.array([orientation.x, orientation.y, orientation.z, orientation.w])
+    )
+    T[:3, 3] = position.x, position.y, position.z
+    return T
+
+
+def _xyz(v: Any) -> np.ndarray:
+    return np.array([v.x, v.y, v.z], dtype=np.float64)
+
+
+def decode_pointcloud2(msg: Any, topic: str, stats: ReadStats) -> LadarScan:
+    """PointCloud2 -> LadarScan. Non-finite points are dropped and counted in ``stats``.
+
+    Per-point time from a field ``t`` or ``offset_time`` (integer ns after the stamp) or
+    ``time`` (float seconds after the stamp); ring from ``ring`` (or ``laser_number``).
+    """
+    order = ">" if msg.is_bigendian else "<"
+    fields = {f.name: f for f in msg.fields}
+    if not {"x", "y", "z"} <= fields.keys():
+        raise ValueError(f"PointCloud2 without x, y, z fields (has {sorted(fields)})")
+    dtype = np.dtype(
+        {
+            "names": list(fields),
+            "formats": [order + _PF_DTYPES[f.datatype] for f in fields.values()],
+            "offsets": [f.offset for f in fields.values()],
+            "itemsize": msg.point_step,
+        }
+    )
+    rows = np.frombuffer(np.asarray(msg.data, dtype=np.uint8), dtype=np.uint8)
+    rows = rows[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
+    cloud = rows[:, : msg.width * msg.point_step].copy().view(dtype).reshape(-1)
+    xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float32)
+    finite = np.isfinite(xyz).all(axis=1)
+    n_bad = int(finite.size - finite.sum())
+    if n_bad:
+        stats.dropped_nonfinite_points += n_bad
+        cloud, xyz = cloud[finite], xyz[finite]
+    n = xyz.shape[0]
+    intensity = (
+        cloud["intensity"].astype(np.float32) if "intensity" in fields else np.zeros(n, np.float32)
+    )
+    if "t" in fields or "offset_time" in fields:
+        t_off = cloud["t" if "t" in fields else "offset_time"].astype(np.int64)
+    elif "time" in fields:
+        t_off = np.round(cloud["time"].astype(np.float64) * NS_PER_S).astype(np.int64)
+    else:
+        t_off = np.zeros(n, np.int64)
+    ring_name = "ring" if "ring" in fields else "laser_number" if "laser_number" in fields else None
+    ring = cloud[ring_name].astype(np.uint16) if ring_name else None
+    return LadarScan(
+        t_ns=stamp_ns(msg.header),
+        frame_id=msg.header.frame_id,
+        points_xyz=xyz,
+        intensity=intensity,
+        t_offset_ns=t_off,
+        ring=ring,
+        topic=topic,
+    )
+
+
+def _image_pixels(msg: Any) -> np.ndarray:
+    """Image message -> (H, W) uint8, (H, W, 3) uint8 RGB, or (H, W) float32 depth in metres."""
+    enc = msg.encoding
+    channels, dtype = {
+        "mono8": (1, "u1"),
+        "8UC1": (1, "u1"),
+        "rgb8": (3, "u1"),
+        "8UC3": (3, "u1"),
+        "bgr8": (3, "u1"),
+        "rgba8": (4, "u1"),
+        "bgra8": (4, "u1"),
+        "32FC1": (1, "f4"),
+        "16UC1": (1, "u2"),
+        "mono16": (1, "u2"),
+    }.get(enc, (0, ""))
+    if not channels:
+        raise ValueError(f"image encoding {enc!r} is not supported")
+    dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
+    raw = np.asarray(msg.data, dtype=np.uint8).reshape(msg.height, msg.step)
+    row_bytes = msg.width * channels * dt.itemsize
+    px = raw[:, :row_bytes].copy().view(dt).reshape(msg.height, msg.width, channels)
+    if enc.startswith("bgr"):
+        px = px[..., 2::-1]
+    px = px[..., :3] if channels == 4 else px
+    px = px[..., 0] if channels == 1 else px
+    if enc == "32FC1":
+        return px.astype(np.float32)
+    if dt.itemsize == 2:  # 16-bit depth in millimetres, 0 = unknown
+        depth = px.astype(np.float32) / 1000.0
+        depth[px == 0] = np.nan
+        return depth
+    return np.ascontiguousarray(px)
+
+
+def decode_odometry(msg: Any, topic: str) -> OdometryFrame:
+    """nav_msgs/Odometry -> OdometryFrame."""
+    return OdometryFrame(
+        t_ns=stamp_ns(msg.header),
+        frame_id=msg.header.frame_id,
+        child_frame_id=msg.child_frame_id,
+        T_parent_child=_T_of(msg.pose.pose.position, msg.pose.pose.orientation),
+        twist_linear=_xyz(msg.twist.twist.linear),
+        twist_angular=_xyz(msg.twist.twist.angular),
+        pose_covariance=np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6).copy(),
+        twist_covariance=np.asarray(msg.twist.covariance, dtype=np.float64).reshape(6, 6).copy(),
+        topic=topic,
+    )
+
+
+def decode_ground_truth(msg: Any, topic: str) -> GroundTruthPose:
+    """nav_msgs/Odometry (or geometry_msgs/PoseStamped, child "base_link") -> GroundTruthPose."""
+    pose = msg.pose.pose if hasattr(msg, "child_frame_id") else msg.pose
+    return GroundTruthPose(
+        t_ns=stamp_ns(msg.header),
+        frame_id=msg.header.frame_id,
+        child_frame_id=getattr(msg, "child_frame_id", "base_link"),
+        T_parent_child=_T_of(pose.position, pose.orientation),
+        topic=topic,
+    )
+
+
+def decode_imu(msg: Any, topic: str) -> ImuFrame:
+    """sensor_msgs/Imu -> ImuFrame (orientation None when orientation_covariance[0] == -1)."""
+    o = msg.orientation
+    has_orientation = float(msg.orientation_covariance[0]) != -1.0
+    return ImuFrame(
+        t_ns=stamp_ns(msg.header),
+        frame_id=msg.header.frame_id,
+        angular_velocity=_xyz(msg.angular_velocity),
+        linear_acceleration=_xyz(msg.linear_acceleration),
+        orientation_xyzw=np.array([o.x, o.y, o.z, o.w]) if has_orientation else None,
+        topic=topic,
+    )
+
+
+def decode_tf(msg: Any, topic: str) -> list[TransformFrame]:
+    """tf2_msgs/TFMessage -> one TransformFrame per transform (static on ``*tf_static``)."""
+    static = topic.endswith("tf_static")
+    return [
+        TransformFrame(
+            t_ns=stamp_ns(ts.header),
+            parent_frame_id=ts.header.frame_id,
+            child_frame_id=ts.child_frame_id,
+            T_parent_child=_T_of(ts.transform.translation, ts.transform.rotation),
+            static=static,
+            topic=topic,
+        )
+        for ts in msg.transforms
+    ]
+
+
+class FrameAssembler:
+    """Turns deserialised ROS messages, fed in log-time order, into frames.
+
+    Messages with the same log time form one instant; within it, camera infos, depth images and
+    box velocities are taken first so that the image / box array they belong to finds them.
+    A camera's intrinsics are the latest CameraInfo on its topic (NaN before the first one).
+    Track ids that are not integers get stable integer ids in order of first appearance.
+    """
+
+    def __init__(
+        self,
+        stats: ReadStats,
+        kinds: tuple[type, ...] | None = None,
+        on_error: Callable[[str], None] | None = None,
+    ) -> None:
+        self.stats = stats
+        self.kinds = kinds
+        self.on_error = on_error
+        self._pending: list[tuple[str, Role, Any]] = []
+        self._pending_t: int | None = None
+        self._camera_info: dict[str, Any] = {}
+        self._depth: dict[str, tuple[int, np.ndarray]] = {}
+        self._velocities: dict[str, np.ndarray] = {}
+        self._track_ids: dict[str, int] = {}
+
+    def wants(self, role: Role | None) -> bool:
+        """Whether messages of ``role`` are worth deserialising for the requested kinds."""
+        if role is None:
+            return False
+        return self.kinds is None or ROLE_KIND[role] in self.kinds
+
+    def push(self, topic: str, role: Role, message: Any, log_t_ns: int) -> list[Frame]:
+        """Add one message; returns the frames completed by the instant before it."""
+        out: list[Frame] = []
+        if self._pending_t is not None and log_t_ns != self._pending_t:
+            out = self.flush()
+        self._pending_t = log_t_ns
+        self._pending.append((topic, role, message))
+        return out
+
+    def flush(self) -> list[Frame]:
+        """Decode the messages of the pending instant."""
+        batch = sorted(self._pending, key=lambda p: not _is_prerequisite(*p))
+        self._pending, self._pending_t = [], None
+        out: list[Frame] = []
+        for topic, role, message in batch:
+            try:
+                out.extend(self._decode(topic, role, message))
+            except (ValueError, KeyError, IndexError, AttributeError) as exc:
+                problem = f"{topic}: cannot make a frame of a {role.value} message: {exc}"
+                if self.on_error is None:
+                    raise LogError(problem) from exc
+                self.on_error(problem)
+        return out
+
+    def _decode(self, topic: str, role: Role, msg: Any) -> Iterable[Frame]:
+        if role is Role.LADAR:
+            return [decode_pointcloud2(msg, topic, self.stats)]
+        if role is Role.ODOMETRY:
+            return [decode_odometry(msg, topic)]
+        if role is Role.GROUND_TRUTH:
+            return [decode_ground_truth(msg, topic)]
+        if role is Role.IMU:
+            return [decode_imu(msg, topic)]
+        if role is Role.TF:
+            return decode_tf(msg, topic)
+        if role is Role.CAMERA_INFO:
+            self._camera_info[frame_topic(topic, role)] = msg
+            return []
+        if role is Role.BOX_VELOCITIES:
+            data = np.asarray(msg.data, dtype=np.float64)
+            self._velocities[frame_topic(topic, role)] = data.reshape(-1, 3).copy()
+            return []
+        if role is Role.BOXES:
+            return [self._boxes(msg, topic)]
+        return self._image(msg, topic)
+
+    def _image(self, msg: Any, topic: str) -> list[Frame]:
+        base = frame_topic(topic, Role.IMAGE)
+        t_ns = stamp_ns(msg.header)
+        pixels = _image_pixels(msg)
+        if _is_depth(topic, msg):
+            self._depth[base] = (t_ns, pixels)
+            return []
+        depth = self._depth.pop(base, None)
+        info = self._camera_info.get(base)
+        if info is None:
+            self.stats.note(f"{topic}: no CameraInfo before the image at t_ns={t_ns}; K is NaN")
+            K, dist = np.full((3, 3), np.nan), np.zeros(5)
+        else:
+            K = np.asarray(info.k, dtype=np.float64).reshape(3, 3).copy()
+            dist = np.zeros(5)
+            d = np.asarray(info.d, dtype=np.float64)[:5]
+            dist[: d.size] = d
+        return [
+            CameraFrame(
+                t_ns=t_ns,
+                frame_id=msg.header.frame_id,
+                image=pixels,
+                K=K,
+                depth=depth[1] if depth is not None and depth[0] == t_ns else None,
+                dist=dist,
+                topic=base,
+            )
+        ]
+
+    def _track_id(self, text: str) -> int:
+        try:
+            return int(text)
+        except ValueError:
+            return self._track_ids.setdefault(text, len(self._track_ids))
+
+    def _boxes(self, msg: Any, topic: str) -> ObjectBoxes:
+        dets = msg.detections
+        m = len(dets)
+        quats = np.array(
+            [[d.bbox.center.orientation.__getattribute__(c) for c in "xyzw"] for d in dets]
+        ).reshape(m, 4)
+        x, y, z, w = quats.T
+        velocities = self._velocities.pop(topic, None)
+        if velocities is None or velocities.shape[0] != m:
+            velocities = np.full((m, 3), np.nan)
+        return ObjectBoxes(
+            t_ns=stamp_ns(msg.header),
+            frame_id=msg.header.frame_id,
+            ids=np.array([self._track_id(d.id) for d in dets], dtype=np.int64),
+            classes=[d.results[0].hypothesis.class_id if d.results else "" for d in dets],
+            centers=np.array([_xyz(d.bbox.center.position) for d in dets]).reshape(m, 3),
+            sizes=np.array([_xyz(d.bbox.size) for d in dets]).reshape(m, 3),
+            yaws=np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
+            velocities=velocities,
+            topic=topic,
+        )
+
+
+def _is_depth(topic: str, msg: Any) -> bool:
+    return msg.encoding in _DEPTH_ENCODINGS or "depth" in topic.rsplit("/", 1)[-1]
+
+
+def _is_prerequisite(topic: str, role: Role, msg: Any) -> bool:
+    """Messages an instant's image or box array needs before it: infos, depth, velocities."""
+    if role is Role.IMAGE:
+        return _is_depth(topic, msg)
+    return role in (Role.CAMERA_INFO, Role.BOX_VELOCITIES)
