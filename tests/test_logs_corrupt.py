@@ -128,6 +128,8 @@ def test_backwards_header_stamps_are_reported(tmp_path) -> None:
 def test_missing_topics_are_named(good_log) -> None:
     src = open_log(good_log)
     src.require_topics(["/ladar/points"])
+    with pytest.raises(LogError, match=r"missing topics \['/ladar'\]"):
+        src.require_topics(["/ladar"])
     with pytest.raises(LogError, match=r"good\.mcap: missing topics \['/camera', '/odom'\]"):
         src.require_topics(["/ladar/points", "/camera", "/odom"])
 

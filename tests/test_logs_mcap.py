@@ -166,6 +166,8 @@ def test_info_attachments_metadata_static(written) -> None:
     assert (info.first_t_ns, info.last_t_ns) == (0, T0 + 70)
     text = format_log_info(info)
     assert "/camera/camera_info" in text and "sensor_msgs/msg/CameraInfo" in text
+    src.require_topics(["/camera", "/camera/depth", "/ir", "/ground_truth/objects", "/tf_static"])
+    assert "/ground_truth/objects/velocities" not in src.frame_topics()
     assert src.attachments() == {"scenario.yaml": b"seed: 7\n"}
     assert src.metadata() == {"run": {"seed": "7", "world": "test"}}
     np.testing.assert_allclose(

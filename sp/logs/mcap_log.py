@@ -43,7 +43,7 @@ from mcap.stream_reader import breakup_chunk
 from sp.logs.mcap_file import McapFileWriter
 from sp.logs.ros_decode import FrameAssembler
 from sp.logs.ros_encode import encode_frame
-from sp.logs.ros_types import KIND_KEY, frame_topic, role_of, ros2msg_schema
+from sp.logs.ros_types import KIND_KEY, frame_topic, frame_topics_of, role_of, ros2msg_schema
 from sp.logs.source import LogSource, TopicInfo, topic_info
 from sp.logs.types import Frame, LogError
 
@@ -401,6 +401,9 @@ class McapLogSource(LogSource):
             key = (channel.topic, self._msgtype(channel))
             by_topic.setdefault(key, []).extend(times.get(cid, []))
         return [topic_info(topic, msgtype, t) for (topic, msgtype), t in by_topic.items()]
+
+    def frame_topics(self) -> set[str]:
+        return frame_topics_of((t.name, t.msgtype) for t in self.info().topics)
 
     def attachments(self) -> dict[str, bytes]:
         return {a.name: a.data for a in self._scan(self._quiet_fail) if isinstance(a, Attachment)}

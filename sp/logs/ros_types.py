@@ -10,6 +10,7 @@ its MCAP channel metadata says ``frame_kind: ground_truth_pose`` or its topic st
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterable
 from functools import cache
 from typing import Any
 
@@ -128,3 +129,13 @@ def frame_topic(topic: str, role: Role | None) -> str:
     if role is Role.BOX_VELOCITIES:
         return topic.removesuffix("/velocities")
     return topic
+
+
+def frame_topics_of(topics: Iterable[tuple[str, str]]) -> set[str]:
+    """Frame topics fed by stored ``(topic, msgtype)`` pairs (types frames do not carry: none)."""
+    out = set()
+    for topic, msgtype in topics:
+        role = role_of(topic, msgtype)
+        if role is not None:
+            out.add(frame_topic(topic, role))
+    return out

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from sp.logs.ros_decode import FrameAssembler
-from sp.logs.ros_types import frame_topic, role_of
+from sp.logs.ros_types import frame_topic, frame_topics_of, role_of
 from sp.logs.source import LogSource, TopicInfo, topic_info
 from sp.logs.types import Frame, LogError
 
@@ -75,6 +75,9 @@ class RosbagLogSource(LogSource):
                     continue
                 yield from assembler.push(conn.topic, wanted[conn.id][1], msg, t_ns)
         yield from assembler.flush()
+
+    def frame_topics(self) -> set[str]:
+        return frame_topics_of((t.name, t.msgtype) for t in self.info().topics)
 
     def _topics(self) -> list[TopicInfo]:
         times: dict[tuple[str, str], list[int]] = {(t, m): [] for t, m, _ in self._connections}

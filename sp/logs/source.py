@@ -216,10 +216,13 @@ class LogSource(ABC):
         """Metadata records by name (empty where the format has none)."""
         return {}
 
+    def frame_topics(self) -> set[str]:
+        """The topics of the frames this log yields (a camera's ROS topics share one)."""
+        return {t.name for t in self.info().topics}
+
     def require_topics(self, names: Iterable[str]) -> None:
         """Raise LogError naming every topic of ``names`` the log lacks (stored or frame topics)."""
-        have = {t.name for t in self.info().topics}
-        have |= {n.rsplit("/", 1)[0] for n in have}  # a camera's parts name its frame topic
+        have = {t.name for t in self.info().topics} | self.frame_topics()
         missing = [n for n in names if n not in have]
         if missing:
             raise LogError(f"{self.path}: missing topics {missing} (topics there: {sorted(have)})")
