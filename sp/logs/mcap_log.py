@@ -392,7 +392,7 @@ class McapLogSource(LogSource):
     # -------------------------------------------------------------- the rest of the interface
     def _topics(self) -> list[TopicInfo]:
         times: dict[int, list[int]] = {}
-        for item in self._scan(self._quiet_fail):
+        for item in self._scan(self.fail):  # info() runs once: its problems count in stats
             if isinstance(item, _ChunkMessages):
                 for m in item.messages:
                     times.setdefault(m.channel_id, []).append(m.log_time)

@@ -85,9 +85,8 @@ class RosbagLogSource(LogSource):
             try:
                 for conn, t_ns, _ in reader.messages():
                     times[(conn.topic, conn.msgtype)].append(t_ns)
-            except Exception as exc:
-                if not self.skip_corrupt:
-                    raise LogError(f"{self.path}: damaged record: {exc}") from exc
+            except Exception as exc:  # info() runs once: its problems count in stats
+                self.fail(f"cannot read past a damaged record: {exc}")
         return [topic_info(topic, msgtype, t) for (topic, msgtype), t in times.items()]
 
 

@@ -191,7 +191,10 @@ class LogSource(ABC):
             yield frame
 
     def info(self) -> LogInfo:
-        """Format, topics (type, count, first/last t_ns, rate) and notes; computed once."""
+        """Format, topics (type, count, first/last t_ns, rate) and notes; computed once.
+
+        Counts are of stored messages (for ROS logs, by log time). Reading the index counts
+        corrupt records in ``stats`` like reading frames does (each pass adds its own)."""
         if self._info is None:
             topics = tuple(sorted(self._topics(), key=lambda t: t.name))
             self._info = LogInfo(self.path, self.format_name, topics, tuple(self._notes()))
