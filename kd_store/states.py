@@ -39,6 +39,9 @@ def unpack_covariance(cov21: np.ndarray) -> np.ndarray:
     return cov21[:, _UNPACK_INDEX]
 
 
+_BLOCK = 8192  # rows per block: keeps the unrolled factorisation's temporaries in cache
+
+
 def psd_mask(cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = None) -> np.ndarray:
     """Which packed 6x6 covariances are positive semidefinite: (N, 21) -> (N,) bool.
 
@@ -48,6 +51,16 @@ def psd_mask(cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = No
     The scale is ``max(1, largest diagonal entry)`` (bounds every entry of a PSD matrix);
     pass it as ``scale`` (N,) when the caller has it already.
     """
+    cov21 = np.asarray(cov21, dtype=np.float64)
+    if len(cov21) > _BLOCK:
+        return np.concatenate(
+            [
+                psd_mask(
+                    cov21[i : i + _BLOCK], tol, None if scale is None else scale[i : i + _BLOCK]
+                )
+                for i in range(0, len(cov21), _BLOCK)
+            ]
+        )
     A = np.ascontiguousarray(np.asarray(cov21, dtype=np.float64).T)  # (21, N)
     if scale is None:
         scale = np.maximum(1.0, np.maximum.reduce([A[_PACK_INDEX[(i, i)]] for i in range(6)]))
@@ -287,10 +300,13 @@ def check_batch(
     )
     bad_norm = np.abs(np.einsum("ij,ij->i", quat, quat) - 1.0) > 2 * quat_tol
     refuse(not bad_norm.any(), lambda: bad_norm, "not a unit quaternion", quat)
-    cov21 = np.take(flat, _FLAT_UP, axis=1)
-    scale = np.maximum(1.0, np.maximum.reduce([cov21[:, k] for k in _DIAG]))
-    asym = np.abs(cov21 - np.take(flat, _FLAT_LO, axis=1)) > (cov_tol * scale)[:, None]
-    refuse(not asym.any(), lambda: asym.any(axis=1), "covariance is not symmetric", cov)
+    cov21, scale, symmetric = _pack_checked(flat, cov_tol)
+
+    def asym() -> np.ndarray:
+        lo = np.take(flat, _FLAT_LO, axis=1)
+        return (np.abs(cov21 - lo) > (cov_tol * scale)[:, None]).any(axis=1)
+
+    refuse(symmetric, asym, "covariance is not symmetric", cov)
     psd = psd_mask(cov21, cov_tol, scale)
     refuse(bool(psd.all()), lambda: ~psd, "covariance is not positive semidefinite", cov)
     return StateColumns(
@@ -303,6 +319,23 @@ def check_batch(
         cov21,
         var.copy(),
     )
+
+
+def _pack_checked(flat: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(N, 36) covariances -> packed (N, 21), scale (N,) and whether all are symmetric within
+    ``tol * scale``; in cache-sized blocks, exact symmetry (the usual case) skips the rest."""
+    n = len(flat)
+    cov21 = np.empty((n, 21))
+    symmetric = True
+    for i in range(0, n, _BLOCK):
+        block = flat[i : i + _BLOCK]
+        up = cov21[i : i + _BLOCK] = np.take(block, _FLAT_UP, axis=1)
+        lo = np.take(block, _FLAT_LO, axis=1)
+        if symmetric and not np.array_equal(up, lo):
+            sc = np.maximum(1.0, np.maximum.reduce([up[:, k] for k in _DIAG]))
+            symmetric = not (np.abs(up - lo) > (tol * sc)[:, None]).any()
+    scale = np.maximum(1.0, np.maximum.reduce([cov21[:, k] for k in _DIAG]))
+    return cov21, scale, symmetric
 
 
 def concat(chunks: list[StateColumns]) -> list[StateColumns]:
