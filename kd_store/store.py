@@ -150,9 +150,11 @@ class KnowledgeDatabase:
     def _load(self, s: persist.Stored) -> None:
         """Recall long-term memory: frames, relations and classes (histories stay on disk)."""
         stored = {p.name: p for p in s.classes}
-        defaults = set(self.classes._by_name)
+        defaults = {p.name for p in self.classes}
         while stored:  # parents before children
             ready = [p for p in stored.values() if p.is_a is None or p.is_a not in stored]
+            if not ready:
+                raise KDError(f"KD file {self.path}: stored classes {sorted(stored)} form a cycle")
             for p in ready:
                 self.classes.add(p)
                 del stored[p.name]
@@ -264,7 +266,7 @@ class KnowledgeDatabase:
     def observe(self, entity_id: int, state: State) -> EntityFrame:
         """Add one state to an entity's history; it becomes the current state."""
         f = self.get(entity_id)
-        check_state(state, f"entity {entity_id} ({f.name!r})", **self._state_tols())
+        check_state(state, f"entity {entity_id} ({f.name!r})", **self._tols())
         self.ingest(
             StateBatch(
                 np.array([entity_id]),
@@ -309,7 +311,7 @@ class KnowledgeDatabase:
         Refuses, keeping nothing of the batch: unknown ids, NaN/inf, bad covariances, and times
         that do not strictly increase per entity or are not after its current state."""
         where = f"state batch in frame {batch.frame!r}"
-        c = check_batch(batch, where, **self._state_tols())
+        c = check_batch(batch, where, **self._tols())
         if not len(c):
             return 0
         slots = self._slots_of(c.entity_id, where)
@@ -472,8 +474,6 @@ class KnowledgeDatabase:
 
     def _tols(self) -> dict[str, float]:
         return {"cov_tol": self.config.covariance_tol, "quat_tol": self.config.quaternion_tol}
-
-    _state_tols = _tols
 
     # ================================================================ events
 
