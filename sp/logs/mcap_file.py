@@ -2,13 +2,14 @@
 
 The ``mcap`` library's Writer copies every message three or four times on its way to the file
 (into a chunk buffer, out of it, into a record buffer, out of that). For logs of point clouds
-and images that dominates the cost of logging, so this writer keeps a chunk as a list of
-buffers: each message's bytes are referenced, not copied, the chunk CRC is computed over the
-parts, and the parts go to the file as they are (or through one compression pass). Small
-records (header, schemas, channels, indexes, summary, footer) are serialised by the ``mcap``
-library's record classes, so the file layout is the library's (MCAP spec v0: chunked, with
-message indexes, chunk indexes, statistics and summary offsets); the tests read our files
-with the ``mcap`` reader (CRCs validated) and with ``rosbags``.
+and images that dominates the cost of logging, so this writer streams an uncompressed chunk:
+each message's parts (which may include a frame's own image array) go straight to the file,
+the chunk CRC is computed over them on the way, and the chunk's header, written as a
+placeholder, is filled in when the chunk closes. Compressed chunks are gathered and go
+through one compression pass. Small records (header, schemas, channels, indexes, summary,
+footer) are serialised by the ``mcap`` library's record classes, so the layout is the
+library's (MCAP spec v0: chunked, with message indexes, chunk indexes, statistics and summary
+offsets); the tests read our files with the ``mcap`` reader (CRCs validated) and ``rosbags``.
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 reads them back (and any ROS 2 MCAP with ``cdr`` messages).
 
 Files are standard MCAP (profile ``ros2``): schemas in ``ros2msg`` encoding with the full
-ROS 2 message definitions, messages in ``cdr`` encoding, chunked with CRCs, fully indexed, so
-``ros2 bag``, Foxglove, ``rosbags`` and the ``mcap`` library read them. How each frame maps to
+ROS 2 message definitions, messages in ``cdr`` encoding, chunked with CRCs, fully indexed
+(the tests read them with ``rosbags`` and with the ``mcap`` library's reader and ROS 2
+decoder, which ROS 2 tooling builds on). How each frame maps to
 messages and topics (and why box velocities travel on ``<topic>/velocities``) is in
 :mod:`sp.logs.ros_encode`. Each channel's metadata says the frame kind it carries
 (``frame_kind``), so ground-truth poses and odometry, both nav_msgs/Odometry, stay apart.
