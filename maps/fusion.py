@@ -112,48 +112,73 @@ class FusionStats:
     cells_updated: dict[str, int] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class PointColumns:
+    """Points as contiguous float64 columns (N,): world ``x, y, z`` metres and ``var`` m^2.
+
+    Columns rather than an (N, 3) array: selecting rows of 1-D arrays is several times faster.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    var: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+    def subset(self, keep: np.ndarray) -> PointColumns:
+        return PointColumns(self.x[keep], self.y[keep], self.z[keep], self.var[keep])
+
+
 def clean_points(
     points_xyz: np.ndarray, variance_m2: np.ndarray | float, stats: FusionStats
-) -> tuple[np.ndarray, np.ndarray]:
-    """Check shapes, drop non-finite points (counted): ``(xyz (N, 3) f64, var (N,) f64)``."""
+) -> PointColumns:
+    """Check shapes, drop non-finite points (counted in ``stats``), split into columns."""
     pts = np.asarray(points_xyz)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise FusionError(f"points_xyz must be (N, 3) world metres, got shape {pts.shape}")
-    var = np.broadcast_to(np.asarray(variance_m2, dtype=np.float64), pts.shape[:1])
-    stats.points_in += int(pts.shape[0])
-    ok = np.isfinite(pts).all(axis=1) & np.isfinite(var) & (var > 0)
+    n = int(pts.shape[0])
+    var = np.asarray(variance_m2, dtype=np.float64)
+    if var.ndim and var.shape != (n,):
+        raise FusionError(f"variance_m2 must be a scalar or ({n},), got shape {var.shape}")
+    cols = PointColumns(
+        *(np.ascontiguousarray(pts[:, k], dtype=np.float64) for k in range(3)),
+        np.ascontiguousarray(np.broadcast_to(var, (n,))),
+    )
+    stats.points_in += n
+    ok = np.isfinite(cols.x + cols.y + cols.z + cols.var) & (cols.var > 0)  # nan/inf propagate
     if not ok.all():
-        stats.dropped_nonfinite += int(pts.shape[0] - np.count_nonzero(ok))
-        pts, var = pts[ok], var[ok]
-    return np.asarray(pts, dtype=np.float64), np.ascontiguousarray(var)
+        stats.dropped_nonfinite += n - int(np.count_nonzero(ok))
+        cols = cols.subset(ok)
+    return cols
 
 
 def summarise(
     level: MapLevel,
-    points_xyz: np.ndarray,
-    variance_m2: np.ndarray,
+    points: PointColumns,
     config: FusionConfig,
     z_ref: float,
     child: CellBatch | None = None,
 ) -> CellBatch:
-    """Per-cell statistics of ``points_xyz`` (inside the window) plus a finer level's batch.
+    """Per-cell statistics of ``points`` (those inside the window) plus a finer level's batch.
 
-    Points must be finite world metres ``(N, 3)`` with variances ``(N,)``; points outside the
-    window are ignored. The child batch's cells are attributed to the cell holding their
-    centre (exact when the resolutions nest by an integer ratio).
+    Points must be finite; points outside the window are ignored. The child batch's cells are
+    attributed to the cell holding their centre (exact when resolutions nest by an integer
+    ratio).
     """
     size = level.size
     res = level.resolution_m
-    ix = np.floor(points_xyz[:, 0] / res).astype(np.int64)
-    iy = np.floor(points_xyz[:, 1] / res).astype(np.int64)
-    ix0, iy0 = int(level.origin_cell[0]), int(level.origin_cell[1])
-    inside = (ix >= ix0) & (ix < ix0 + size) & (iy >= iy0) & (iy < iy0 + size)
+    ix = np.floor(points.x / res).astype(np.int64)
+    iy = np.floor(points.y / res).astype(np.int64)
+    inside = ((ix - level.origin_cell[0]).view(np.uint64) < size) & (
+        (iy - level.origin_cell[1]).view(np.uint64) < size
+    )  # negative offsets wrap to huge unsigned values
+    z, var = points.z, points.var
     if not inside.all():
-        ix, iy = ix[inside], iy[inside]
-        points_xyz, variance_m2 = points_xyz[inside], variance_m2[inside]
-    scol, srow = ix % size, iy % size
-    flat = srow * size + scol
-    z = points_xyz[:, 2] - z_ref
+        ix, iy, z, var = ix[inside], iy[inside], z[inside], var[inside]
+    flat = storage_flat(level, ix, iy)
+    z = z - z_ref
     ncell = size * size
 
     # ground reference: the current estimate (+3 sigma), else the lowest point of this sweep
@@ -168,7 +193,7 @@ def summarise(
         sigma = np.sqrt(level.storage("elevation_var").reshape(-1)[flat].astype(np.float64))
         ref = np.where(known, elev + 3.0 * np.nan_to_num(sigma), ref)
     ground = z <= ref + config.obstacle_height_m
-    w = np.where(ground, 1.0 / variance_m2, 0.0)
+    w = np.where(ground, 1.0 / var, 0.0)
     g = ground.astype(np.float64)
 
     idx, parts = flat, [w, w * z, g, g * z, g * z * z, 1.0 - g]
@@ -198,7 +223,7 @@ def summarise(
     ix = level.origin_cell[0] + (s_col - level.origin_cell[0]) % size
     iy = level.origin_cell[1] + (s_row - level.origin_cell[1]) % size
     return CellBatch(
-        resolution_m=res,
+        resolution_m=level.resolution_m,
         z_ref=z_ref,
         ix=ix,
         iy=iy,
@@ -211,6 +236,14 @@ def summarise(
         z_max=z_hi[cells] + z_ref,
         n_obstacle=np.rint(sums[5][cells]).astype(np.int64),
     )
+
+
+def storage_flat(level: MapLevel, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    """Flat storage index (int64) of global cells ``ix, iy`` (N,) of ``level``."""
+    size = level.size
+    if size & (size - 1) == 0:  # a power of two: the modulo is a bit mask (also for negatives)
+        return (iy & (size - 1)) * size + (ix & (size - 1))
+    return (iy % size) * size + ix % size
 
 
 def _new_cell_reference(
@@ -336,9 +369,9 @@ def fuse_points(
     """Fuse world points ``(N, 3)`` with variances (m^2, scalar or (N,)) into one level."""
     config = config or FusionConfig()
     stats = FusionStats()
-    pts, var = clean_points(points_xyz, variance_m2, stats)
-    z_ref = float(pts[:, 2].mean()) if len(pts) else 0.0
-    batch = summarise(level, pts, var, config, z_ref)
+    pts = clean_points(points_xyz, variance_m2, stats)
+    z_ref = float(pts.z.mean()) if len(pts) else 0.0
+    batch = summarise(level, pts, config, z_ref)
     stats.outside = int(len(pts) - batch.n.sum() - batch.n_obstacle.sum())
     stats.ground[level.name] = int(batch.n.sum())
     stats.obstacle[level.name] = int(batch.n_obstacle.sum())

@@ -140,20 +140,19 @@ class MapStack:
             origin = np.asarray(sensor_xyz, dtype=np.float64).reshape(3)
             variance_m2 = range_variance(np.linalg.norm(pts - origin, axis=1), self.config.fusion)
         stats = FusionStats()
-        pts, var = clean_points(pts, variance_m2, stats)
-        z_ref = float(pts[:, 2].mean()) if len(pts) else 0.0
-        remaining = np.ones(len(pts), dtype=bool)
+        pts = clean_points(pts, variance_m2, stats)
+        z_ref = float(pts.z.mean()) if len(pts) else 0.0
         child = None
-        for lvl in self.levels:
+        for lvl in self.levels:  # finest first: each point goes raw to the finest level holding it
             lo, hi = lvl.bounds_xy
-            mine = remaining & _in_box(pts, lo, hi)
-            remaining &= ~mine
-            batch = summarise(lvl, pts[mine], var[mine], self.config.fusion, z_ref, child)
+            mine = (pts.x >= lo[0]) & (pts.x < hi[0]) & (pts.y >= lo[1]) & (pts.y < hi[1])
+            batch = summarise(lvl, pts.subset(mine), self.config.fusion, z_ref, child)
+            pts = pts.subset(~mine)
             stats.cells_updated[lvl.name] = apply(lvl, batch, self.config.fusion, t_ns)
             stats.ground[lvl.name] = int(batch.n.sum())
             stats.obstacle[lvl.name] = int(batch.n_obstacle.sum())
             child = batch
-        stats.outside = int(np.count_nonzero(remaining))
+        stats.outside = len(pts)
         return stats
 
     def update_terrain(self) -> None:
@@ -178,8 +177,3 @@ def entering_cells(dx: int, dy: int, size: int) -> tuple[np.ndarray, np.ndarray]
             mask[:-dy, :] = True
     rows, cols = np.nonzero(mask)
     return rows, cols
-
-
-def _in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    x, y = pts[:, 0], pts[:, 1]
-    return (x >= lo[0]) & (x < hi[0]) & (y >= lo[1]) & (y < hi[1])
