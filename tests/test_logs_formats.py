@@ -14,6 +14,7 @@ from test_logs_mcap import assert_same_frame, make_frames
 
 from maps.frames import rpy_to_matrix, se3
 from sp.logs import (
+    CameraFrame,
     Compression,
     LadarScan,
     LogError,
@@ -187,3 +188,27 @@ def test_damaged_ros1_bag(real_data, tmp_path) -> None:
         f.truncate(len(data) // 2)
     with pytest.raises(LogError, match=r"cut\.bag: cannot open as a ROS bag"):
         open_log(cut)
+
+
+def test_foreign_images_without_camera_info_have_nan_intrinsics(tmp_path) -> None:
+    from mcap.writer import Writer
+
+    from sp.logs.ros_types import IMAGE, ros2msg_schema
+
+    path = tmp_path / "images_only.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2")
+        cid = w.register_channel(
+            "/cam/image", "cdr", w.register_schema(IMAGE, "ros2msg", ros2msg_schema(IMAGE))
+        )
+        for k in range(3):
+            frame = CameraFrame(k, "cam", np.full((4, 5), k, np.uint8), np.eye(3))
+            (enc,) = [e for e in encode_frame(frame) if e.topic.endswith("/image")]
+            w.add_message(cid, k, serialize(enc), k)
+        w.finish()
+    src = open_log(path)
+    frames = list(src.frames())
+    assert [f.image[0, 0] for f in frames] == [0, 1, 2] and frames[0].topic == "/cam"
+    assert all(np.isnan(f.K).all() and f.depth is None for f in frames)
+    assert src.stats.messages == ["/cam/image: no CameraInfo before the image at t_ns=0; K NaN"]

@@ -216,6 +216,7 @@ class FrameAssembler:
         self._depth: dict[str, tuple[int, np.ndarray]] = {}
         self._velocities: dict[str, np.ndarray] = {}
         self._track_ids: dict[str, int] = {}
+        self._no_info: set[str] = set()  # cameras already reported without CameraInfo
 
     def wants(self, role: Role | None) -> bool:
         """Whether messages of ``role`` are worth deserialising for the requested kinds."""
@@ -279,7 +280,9 @@ class FrameAssembler:
         depth = self._depth.pop(base, None)
         info = self._camera_info.get(base)
         if info is None:
-            self.stats.note(f"{topic}: no CameraInfo before the image at t_ns={t_ns}; K is NaN")
+            if base not in self._no_info:
+                self._no_info.add(base)
+                self.stats.note(f"{topic}: no CameraInfo before the image at t_ns={t_ns}; K NaN")
             K, dist = np.full((3, 3), np.nan), np.zeros(5)
         else:
             K = np.asarray(info.k, dtype=np.float64).reshape(3, 3).copy()
