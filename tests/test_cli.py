@@ -1,0 +1,71 @@
+"""The `wm` command line end to end: real subprocesses, real files, the messages a user sees."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+WM = [sys.executable, "-m", "wm.cli"]
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([*WM, *args], capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def short_log(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("cli") / "default.mcap"
+    r = run("simulate", "default", "--out", str(out), "--seconds", "1", "--seed", "3")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_simulate_then_log_info_lists_every_topic(short_log):
+    r = run("log-info", str(short_log))
+    assert r.returncode == 0, r.stderr
+    lines = {ln.split()[0]: ln.split() for ln in r.stdout.splitlines() if ln.startswith("/")}
+    # 1 s at 10 Hz: sweeps and images at 10 Hz, stamped from 0 to 1 s inclusive or not.
+    assert lines["/ladar/points"][1] == "sensor_msgs/msg/PointCloud2"
+    assert int(lines["/ladar/points"][2]) in (10, 11)
+    assert lines["/camera/image"][1] == "sensor_msgs/msg/Image"
+    assert lines["/odom"][1] == "nav_msgs/msg/Odometry"
+    assert lines["/ground_truth/objects"][1] == "vision_msgs/msg/Detection3DArray"
+    assert "/tf_static" in lines
+
+
+def test_unknown_scenario_lists_the_valid_ones(tmp_path):
+    r = run("simulate", "moon", "--out", str(tmp_path / "x.mcap"), "--seconds", "1")
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    for name in ("default", "village", "open"):
+        assert name in r.stderr
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_truncated_log_names_the_file_without_a_traceback(short_log, tmp_path):
+    cut = tmp_path / "cut.mcap"
+    data = short_log.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    r = run("log-info", str(cut))
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr and "cut.mcap" in r.stderr
+    r = run("log-info", "--skip-corrupt", str(cut))
+    assert r.returncode == 0, r.stderr
+    assert "/ladar/points" in r.stdout
+
+
+def test_missing_and_unsupported_paths_are_explained(tmp_path):
+    r = run("log-info", str(tmp_path / "nothing.mcap"))
+    assert r.returncode == 2 and "nothing.mcap" in r.stderr and "Traceback" not in r.stderr
+    odd = tmp_path / "notes.txt"
+    odd.write_text("hello")
+    r = run("log-info", str(odd))
+    assert r.returncode == 2 and "notes.txt" in r.stderr and "MCAP" in r.stderr
+
+
+def test_simulate_refuses_an_output_that_is_not_mcap(tmp_path):
+    r = run("simulate", "default", "--out", str(tmp_path / "x.bag"), "--seconds", "1")
+    assert r.returncode == 2 and ".mcap" in r.stderr
