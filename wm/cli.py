@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_simulate)
 
-    i = sub.add_parser("log-info", help="topics, message types, counts, duration and rates of a log")
+    i = sub.add_parser("log-info", help="topics, types, counts, duration and rates of a log")
     i.add_argument("log", help="MCAP, ROS 1 bag, ROS 2 bag folder, KITTI/7-Scenes/AV2 folder")
     i.add_argument("--skip-corrupt", action="store_true", help="skip and count corrupt records")
     i.set_defaults(func=cmd_log_info)
