@@ -11,8 +11,8 @@
   UUIDs numbered 0, 1, ... in order of first appearance (stable over the log), classes are
   AV2 category names (``REGULAR_VEHICLE``, ``PEDESTRIAN``, ...), sizes are (length, width,
   height), yaw from the cuboid quaternion. AV2 gives no velocities: they are the central
-  differences of each track's city-frame centres over time, rotated into the ego frame
-  (m/s; NaN for a track seen once).
+  differences (one-sided at a track's ends) of each track's city-frame centres over time,
+  rotated into the ego frame (m/s over ground; NaN for a track seen once).
 
 Reading needs only pyarrow (no pandas).
 """
@@ -45,7 +45,10 @@ def _read_feather(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
     return {c: table.column(c).to_numpy() for c in columns}
 
 
-def _quat_wxyz_to_matrices(qw: np.ndarray, qx: np.ndarray, qy: np.ndarray, qz: np.ndarray):
+def _quat_wxyz_to_matrices(
+    qw: np.ndarray, qx: np.ndarray, qy: np.ndarray, qz: np.ndarray
+) -> np.ndarray:
+    """(N, 3, 3) rotations from AV2's quaternion columns (w first)."""
     return np.stack([quat_to_matrix(np.array(q)) for q in zip(qx, qy, qz, qw, strict=True)])
 
 
