@@ -170,6 +170,7 @@ def test_kitti_times_nan_points_and_broken_scans(tmp_path) -> None:
     assert len(list(src.frames())) == 2 and src.stats.skipped_records == 1
 
 
+@pytest.mark.real_data
 def test_damaged_ros1_bag(real_data, tmp_path) -> None:
     original = real_data / "rosbag" / "robot_localization_test2.bag"
     data = bytearray(original.read_bytes())
