@@ -69,3 +69,29 @@ def test_missing_and_unsupported_paths_are_explained(tmp_path):
 def test_simulate_refuses_an_output_that_is_not_mcap(tmp_path):
     r = run("simulate", "default", "--out", str(tmp_path / "x.bag"), "--seconds", "1")
     assert r.returncode == 2 and ".mcap" in r.stderr
+
+
+def test_check_reports_non_finite_points(tmp_path):
+    import numpy as np
+
+    from sp.logs import LadarScan, McapLogWriter
+
+    pts = np.zeros((10, 3), np.float32)
+    pts[:, 0] = np.arange(1, 11)
+    pts[3, 1] = np.nan
+    pts[7, 2] = np.inf
+    path = tmp_path / "nan.mcap"
+    with McapLogWriter(path) as w:
+        for k in range(2):
+            n = len(pts)
+            scan = LadarScan(
+                t_ns=k * 100_000_000,
+                frame_id="ladar",
+                points_xyz=pts,
+                intensity=np.ones(n, np.float32),
+                t_offset_ns=np.zeros(n, np.int64),
+            )
+            w.write(scan)
+    r = run("log-info", "--check", str(path))
+    assert r.returncode == 0, r.stderr
+    assert "4 non-finite points dropped" in r.stdout

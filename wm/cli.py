@@ -1,7 +1,7 @@
 """The ``wm`` command line.
 
     wm simulate SCENARIO --out LOG.mcap [--seconds S] [--seed N]
-    wm log-info LOG [--skip-corrupt]
+    wm log-info LOG [--skip-corrupt] [--check]
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -61,6 +61,9 @@ def cmd_log_info(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"log {path} does not exist")
     source = open_log(path, skip_corrupt=args.skip_corrupt)
     print(format_log_info(source.info()))
+    if args.check:  # decode every frame, so dropped points and backwards times are counted
+        n = sum(1 for _ in source.frames())
+        print(f"checked: {n} frames decoded")
     for name, data in sorted(source.attachments().items()):
         print(f"attachment {name}: {len(data)} bytes")
     for name, values in sorted(source.metadata().items()):
@@ -89,7 +92,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if rc:
         return rc
     print()
-    return cmd_log_info(argparse.Namespace(log=out, skip_corrupt=False))
+    return cmd_log_info(argparse.Namespace(log=out, skip_corrupt=False, check=True))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -108,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     i = sub.add_parser("log-info", help="topics, types, counts, duration and rates of a log")
     i.add_argument("log", help="MCAP, ROS 1 bag, ROS 2 bag folder, KITTI/7-Scenes/AV2 folder")
     i.add_argument("--skip-corrupt", action="store_true", help="skip and count corrupt records")
+    i.add_argument(
+        "--check", action="store_true", help="decode every frame and report what had to be dropped"
+    )
     i.set_defaults(func=cmd_log_info)
 
     d = sub.add_parser("demo", help="simulate the default scenario and show what the log holds")
