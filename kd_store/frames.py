@@ -25,6 +25,10 @@ from kd_store.errors import KDError
 COVARIANCE_ORDER = ("x", "y", "z", "vx", "vy", "vz")
 #: Indices of the 21 upper-triangle entries (row-major) stored on disk as ``cov_pv``.
 TRIU_6 = np.triu_indices(6)
+FLAT_UP = np.ravel_multi_index(TRIU_6, (6, 6))
+_PACKED_AT = {(int(i), int(j)): k for k, (i, j) in enumerate(zip(*TRIU_6, strict=True))}
+#: (36,) index into a packed (21,) covariance giving the full 6x6, row-major.
+UNPACK_FLAT = np.array([_PACKED_AT[(min(i, j), max(i, j))] for i in range(6) for j in range(6)])
 
 
 class Level(IntEnum):
@@ -49,7 +53,7 @@ class Status(StrEnum):
 STATUS_CODES: dict[str, int] = {s.value: i for i, s in enumerate(Status)}
 
 
-_P, _Q, _V, _C, _R = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 46), slice(46, 49)
+_P, _Q, _V, _C, _R = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 31), slice(31, 34)
 _IDENTITY_Q = (0.0, 0.0, 0.0, 1.0)
 
 
@@ -63,10 +67,12 @@ class State:
                          symmetric positive semidefinite.
     orientation_var_rpy: (3,) float64 rad^2, variances of roll, pitch, yaw.
 
-    The arrays are read-only views of one (49,) vector, so a state costs about 560 bytes.
+    The arrays are read-only, taken from one (34,) vector holding the covariance packed to
+    its upper triangle (so a state costs about 450 bytes); ``asymmetry`` keeps how far the
+    covariance given was from symmetric, for the KD's check.
     """
 
-    __slots__ = ("_v", "frame", "t_ns")
+    __slots__ = ("_asym", "_v", "frame", "t_ns")
 
     def __init__(
         self,
@@ -78,27 +84,32 @@ class State:
         covariance: object | None = None,
         orientation_var_rpy: object = (0.0, 0.0, 0.0),
     ) -> None:
-        v = np.zeros(49)
+        v = np.zeros(34)
+        asym = 0.0
         try:
             v[_P] = np.asarray(position_xyz, dtype=np.float64).reshape(3)
             v[_Q] = np.asarray(orientation_xyzw, dtype=np.float64).reshape(4)
             v[_V] = np.asarray(velocity_xyz, dtype=np.float64).reshape(3)
             if covariance is not None:
-                v[_C] = np.asarray(covariance, dtype=np.float64).reshape(36)
+                C = np.asarray(covariance, dtype=np.float64).reshape(6, 6)
+                v[_C] = C.reshape(36)[FLAT_UP]
+                with np.errstate(invalid="ignore"):
+                    asym = float(np.max(np.abs(C - C.T)))
             v[_R] = np.asarray(orientation_var_rpy, dtype=np.float64).reshape(3)
         except (ValueError, TypeError) as e:
             raise KDError(f"state at t_ns={t_ns} in {frame!r}: wrong shape or type ({e})") from None
-        self._init(int(t_ns), str(frame), v)
+        self._init(int(t_ns), str(frame), v, asym)
 
-    def _init(self, t_ns: int, frame: str, v: np.ndarray) -> None:
+    def _init(self, t_ns: int, frame: str, v: np.ndarray, asym: float) -> None:
         v.flags.writeable = False
-        self.t_ns, self.frame, self._v = t_ns, frame, v
+        self.t_ns, self.frame, self._asym, self._v = t_ns, frame, asym, v
 
     @classmethod
     def from_vector(cls, t_ns: int, frame: str, v: np.ndarray) -> State:
-        """From the (49,) layout: position, quaternion, velocity, covariance (36), var_rpy."""
+        """From the (34,) layout: position (3), quaternion (4), velocity (3), covariance packed
+        to its upper triangle (21), var_rpy (3)."""
         s = cls.__new__(cls)
-        s._init(t_ns, frame, v)
+        s._init(t_ns, frame, v, 0.0)
         return s
 
     def __setattr__(self, name: str, value: object) -> None:
@@ -120,7 +131,19 @@ class State:
 
     @property
     def covariance(self) -> np.ndarray:
-        return self._v[_C].reshape(6, 6)
+        c = self._v[_C][UNPACK_FLAT].reshape(6, 6)
+        c.flags.writeable = False
+        return c
+
+    @property
+    def covariance_packed(self) -> np.ndarray:
+        """(21,) upper triangle of the covariance, row-major (the ``cov_pv`` layout)."""
+        return self._v[_C]
+
+    @property
+    def asymmetry(self) -> float:
+        """max |C - C^T| of the covariance this state was made with (0 if made packed)."""
+        return self._asym
 
     @property
     def orientation_var_rpy(self) -> np.ndarray:
@@ -128,7 +151,7 @@ class State:
 
     @property
     def vector(self) -> np.ndarray:
-        """The read-only (49,) vector behind the fields."""
+        """The read-only (34,) vector behind the fields."""
         return self._v
 
     def __eq__(self, other: object) -> bool:
@@ -325,10 +348,7 @@ def check_state(s: State, where: str, cov_tol: float = 1e-9, quat_tol: float = 1
 
     C = s.covariance
     scale = max(1.0, float(np.max(np.abs(C))))
-    if (
-        not np.allclose(C, C.T, rtol=0.0, atol=cov_tol * scale)
-        or not psd_mask(C[TRIU_6][None, :], cov_tol)[0]
-    ):
+    if not s.asymmetry <= cov_tol * scale or not psd_mask(s.covariance_packed[None], cov_tol)[0]:
         raise KDError(
             f"{where}: covariance at t_ns={s.t_ns} is not symmetric positive semidefinite: "
             f"{np.array2string(C, precision=4)}"

@@ -20,7 +20,6 @@ from kd_store.classes import ClassKind, ClassPrototype
 from kd_store.errors import KDError
 from kd_store.frames import (
     ATTRIBUTE_FIELDS,
-    TRIU_6,
     VALUE_FIELDS,
     Attribute,
     EntityFrame,
@@ -101,7 +100,7 @@ def _state_lists(states: list[State | None]) -> dict[str, pa.Array]:
         vals = (*s.position_xyz, *s.orientation_xyzw, *s.velocity_xyz)
         for k, v in zip(_STATE_COLS, vals, strict=True):
             cols[k].append(float(v))
-        cols["cov_pv"].append(s.covariance[TRIU_6].tolist())
+        cols["cov_pv"].append(s.covariance_packed.tolist())
         cols["var_rpy"].append(s.orientation_var_rpy.tolist())
     out = {k: pa.array(v, type=pa.float64()) for k, v in cols.items() if k in _STATE_COLS}
     out["t_ns"] = pa.array(cols["t_ns"], type=pa.int64())

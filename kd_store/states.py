@@ -23,7 +23,6 @@ _UNPACK_INDEX = np.array(
 )
 
 
-_UNPACK_FLAT = _UNPACK_INDEX.reshape(36)
 _FLAT_UP = np.ravel_multi_index(TRIU_6, (6, 6))
 _FLAT_LO = np.ravel_multi_index((TRIU_6[1], TRIU_6[0]), (6, 6))
 _DIAG = [_PACK_INDEX[(i, i)] for i in range(6)]
@@ -142,7 +141,7 @@ class StateColumns:
                 self.position_xyz[i],
                 self.orientation_xyzw[i],
                 self.velocity_xyz[i],
-                self.cov21[i][_UNPACK_FLAT],
+                self.cov21[i],
                 self.orientation_var_rpy[i],
             )
         )
@@ -163,7 +162,7 @@ class StateColumns:
                     np.array([s.position_xyz for s in sel]).reshape(-1, 3),
                     np.array([s.orientation_xyzw for s in sel]).reshape(-1, 4),
                     np.array([s.velocity_xyz for s in sel]).reshape(-1, 3),
-                    pack_covariance(np.array([s.covariance for s in sel]).reshape(-1, 6, 6)),
+                    np.array([s.covariance_packed for s in sel]).reshape(-1, 21),
                     np.array([s.orientation_var_rpy for s in sel]).reshape(-1, 3),
                 )
             )

@@ -43,7 +43,7 @@ from kd_store.frames import (
 from kd_store.memory import ImmediateExperience, ShortTermMemory
 from kd_store.relations import Relation, RelationGraph, RelationKind
 from kd_store.spatial import GridIndex, Region, check_region
-from kd_store.states import _UNPACK_FLAT, StateBatch, StateColumns, check_batch
+from kd_store.states import StateBatch, StateColumns, check_batch
 
 NO_TIME = np.iinfo(np.int64).min
 K = RelationKind
@@ -78,7 +78,7 @@ class _Columns:
     def grow(self) -> None:
         for k, v in vars(self).items():
             if isinstance(v, np.ndarray):
-                extra = np.zeros((v.shape[0], *v.shape[1:]), v.dtype)
+                extra = np.zeros((v.shape[0] // 2, *v.shape[1:]), v.dtype)  # grow by 1.5
                 if k == "t_ns":
                     extra[:] = NO_TIME
                 elif k in ("frame", "klass"):
@@ -384,7 +384,7 @@ class KnowledgeDatabase:
                 cols.pos[slot],
                 cols.quat[slot],
                 cols.vel[slot],
-                cols.cov21[slot][_UNPACK_FLAT],
+                cols.cov21[slot],
                 cols.var_rpy[slot],
             )
         )
