@@ -28,7 +28,9 @@ def flat_world(speed_mps: float = 0.0, objects=None, agents=None, route_y: float
         objects = [ObjectSpec(ObjectClass.BUILDING, (15.0, 5.0), (4.0, 6.0, 3.0), 0.0)]
     scenario = Scenario(
         name="flat",
-        terrain=TerrainSpec(size_m=100.0, resolution_m=2.0, hills_amplitude_m=0.0),
+        terrain=TerrainSpec(
+            size_m=100.0, resolution_m=2.0, hills_amplitude_m=0.0, roughness_rms_m=0.0
+        ),
         route=RouteSpec(waypoints=[(0.0, route_y), (45.0, route_y)], speed_mps=speed_mps),
         objects=objects,
         agents=agents or [],
