@@ -38,6 +38,7 @@ FUSION_LAYERS = (
     "elevation_max",
     "count",
     "obstacle_count",
+    "z_weight",
     "z_mean",
     "z_m2",
     "roughness",
@@ -79,8 +80,8 @@ class CellBatch:
 
     ``ix, iy`` global cell indices (int64) of the level that made the batch, at
     ``resolution_m``; ground points give ``w = sum 1/var``, ``wz = sum (z - z_ref)/var``,
-    ``n``, ``s1 = sum (z - z_ref)``, ``s2 = sum (z - z_ref)^2``; all points give
-    ``z_min, z_max``; obstacle points ``n_obstacle``. ``z_ref`` (m) is one scalar per sweep.
+    ``wzz = sum (z - z_ref)^2/var`` and their number ``n``; all points give ``z_min, z_max``;
+    obstacle points their number ``n_obstacle``. ``z_ref`` (m) is one scalar per sweep.
     """
 
     resolution_m: float
@@ -89,12 +90,11 @@ class CellBatch:
     iy: np.ndarray
     w: np.ndarray
     wz: np.ndarray
+    wzz: np.ndarray
     n: np.ndarray
-    s1: np.ndarray
-    s2: np.ndarray
+    n_obstacle: np.ndarray
     z_min: np.ndarray
     z_max: np.ndarray
-    n_obstacle: np.ndarray
 
     def __len__(self) -> int:
         return int(self.ix.shape[0])
@@ -142,10 +142,9 @@ def clean_points(
     var = np.asarray(variance_m2, dtype=np.float64)
     if var.ndim and var.shape != (n,):
         raise FusionError(f"variance_m2 must be a scalar or ({n},), got shape {var.shape}")
-    cols = PointColumns(
-        *(np.ascontiguousarray(pts[:, k], dtype=np.float64) for k in range(3)),
-        np.ascontiguousarray(np.broadcast_to(var, (n,))),
-    )
+    xyz = np.array(pts.T, dtype=np.float64, order="C")  # one transposing copy
+    var = np.full(n, float(var)) if var.ndim == 0 else np.ascontiguousarray(var)
+    cols = PointColumns(xyz[0], xyz[1], xyz[2], var)
     stats.points_in += n
     ok = np.isfinite(cols.x + cols.y + cols.z + cols.var) & (cols.var > 0)  # nan/inf propagate
     if not ok.all():
@@ -154,29 +153,42 @@ def clean_points(
     return cols
 
 
+def window_cells(
+    level: MapLevel, points: PointColumns
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Global cells ``(ix, iy)`` (int64) of ``points`` and the mask of those in the window."""
+    size = level.size
+    ix = np.floor(points.x / level.resolution_m).astype(np.int64)
+    iy = np.floor(points.y / level.resolution_m).astype(np.int64)
+    inside = ((ix - level.origin_cell[0]).view(np.uint64) < size) & (
+        (iy - level.origin_cell[1]).view(np.uint64) < size
+    )  # negative offsets wrap to huge unsigned values
+    return ix, iy, inside
+
+
 def summarise(
     level: MapLevel,
     points: PointColumns,
     config: FusionConfig,
     z_ref: float,
     child: CellBatch | None = None,
+    cells: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> CellBatch:
     """Per-cell statistics of ``points`` (those inside the window) plus a finer level's batch.
 
-    Points must be finite; points outside the window are ignored. The child batch's cells are
-    attributed to the cell holding their centre (exact when resolutions nest by an integer
-    ratio).
+    Points must be finite; points outside the window are ignored, unless ``cells`` gives
+    their global cells ``(ix, iy)`` from :func:`window_cells`, all inside. The child batch's
+    cells are attributed to the cell holding their centre (exact when resolutions nest by an
+    integer ratio).
     """
     size = level.size
-    res = level.resolution_m
-    ix = np.floor(points.x / res).astype(np.int64)
-    iy = np.floor(points.y / res).astype(np.int64)
-    inside = ((ix - level.origin_cell[0]).view(np.uint64) < size) & (
-        (iy - level.origin_cell[1]).view(np.uint64) < size
-    )  # negative offsets wrap to huge unsigned values
     z, var = points.z, points.var
-    if not inside.all():
-        ix, iy, z, var = ix[inside], iy[inside], z[inside], var[inside]
+    if cells is None:
+        ix, iy, inside = window_cells(level, points)
+        if not inside.all():
+            ix, iy, z, var = ix[inside], iy[inside], z[inside], var[inside]
+    else:
+        ix, iy = cells
     flat = storage_flat(level, ix, iy)
     z = z - z_ref
     ncell = size * size
@@ -185,56 +197,48 @@ def summarise(
     # in the cell or, lower still, in a neighbouring cell (+ a slope allowance)
     z_lo = np.full(ncell, np.inf)
     np.minimum.at(z_lo, flat, z)
-    elev_l = level.storage("elevation").reshape(-1)
-    elev = elev_l[flat].astype(np.float64) - z_ref
-    known = np.isfinite(elev)
-    ref = _new_cell_reference(level, z_lo, z_ref, config)[flat]
-    if known.any():
-        sigma = np.sqrt(level.storage("elevation_var").reshape(-1)[flat].astype(np.float64))
-        ref = np.where(known, elev + 3.0 * np.nan_to_num(sigma), ref)
-    ground = z <= ref + config.obstacle_height_m
+    ground = z <= _ground_gate(level, z_lo, z_ref, config)[flat]
     w = np.where(ground, 1.0 / var, 0.0)
-    g = ground.astype(np.float64)
-
-    idx, parts = flat, [w, w * z, g, g * z, g * z * z, 1.0 - g]
+    wz = w * z
+    parts = [w, wz, wz * z]
+    idx, counts = flat, None  # counts: ground and obstacle points, interleaved per cell
+    kind = flat * 2 + (~ground)
     z_all = z
     if child is not None and len(child):
         cflat = _child_flat(level, child)
         ok = cflat >= 0
         cflat = cflat[ok]
         idx = np.concatenate([flat, cflat])
-        cz = child.z_ref - z_ref
-        cn = child.n[ok].astype(np.float64)
-        cs1 = child.s1[ok] + cn * cz
-        cs2 = child.s2[ok] + 2.0 * cz * child.s1[ok] + cn * cz * cz
-        cw = child.w[ok]
-        extra = [cw, child.wz[ok] + cw * cz, cn, cs1, cs2, child.n_obstacle[ok].astype(np.float64)]
+        cz = child.z_ref - z_ref  # re-centre the child's sums on this sweep's z_ref
+        cw, cwz = child.w[ok], child.wz[ok]
+        extra = [cw, cwz + cw * cz, child.wzz[ok] + 2.0 * cz * cwz + cw * cz * cz]
         parts = [np.concatenate([a, b]) for a, b in zip(parts, extra, strict=True)]
-        z_lo_child, z_hi_child = child.z_min[ok] - z_ref, child.z_max[ok] - z_ref
-        np.minimum.at(z_lo, cflat, z_lo_child)
-        z_all = np.concatenate([z, z_hi_child])
+        kind = np.concatenate([kind, cflat * 2, cflat * 2 + 1])
+        cn = np.concatenate([np.ones(len(flat)), child.n[ok], child.n_obstacle[ok]])
+        counts = np.bincount(kind, weights=cn, minlength=2 * ncell)
+        np.minimum.at(z_lo, cflat, child.z_min[ok] - z_ref)
+        z_all = np.concatenate([z, child.z_max[ok] - z_ref])
+    if counts is None:
+        counts = np.bincount(kind, minlength=2 * ncell)
     sums = [np.bincount(idx, weights=p, minlength=ncell) for p in parts]
     z_hi = np.full(ncell, -np.inf)
     np.maximum.at(z_hi, idx, z_all)
 
-    n_all = sums[2] + sums[5]
-    cells = np.flatnonzero(n_all > 0)
+    counts = counts.reshape(ncell, 2)
+    cells = np.flatnonzero(counts[:, 0] + counts[:, 1])
     s_row, s_col = np.divmod(cells, size)
-    ix = level.origin_cell[0] + (s_col - level.origin_cell[0]) % size
-    iy = level.origin_cell[1] + (s_row - level.origin_cell[1]) % size
     return CellBatch(
         resolution_m=level.resolution_m,
         z_ref=z_ref,
-        ix=ix,
-        iy=iy,
+        ix=level.origin_cell[0] + (s_col - level.origin_cell[0]) % size,
+        iy=level.origin_cell[1] + (s_row - level.origin_cell[1]) % size,
         w=sums[0][cells],
         wz=sums[1][cells],
-        n=np.rint(sums[2][cells]).astype(np.int64),
-        s1=sums[3][cells],
-        s2=sums[4][cells],
+        wzz=sums[2][cells],
+        n=np.rint(counts[cells, 0]).astype(np.int64),
+        n_obstacle=np.rint(counts[cells, 1]).astype(np.int64),
         z_min=z_lo[cells] + z_ref,
         z_max=z_hi[cells] + z_ref,
-        n_obstacle=np.rint(sums[5][cells]).astype(np.int64),
     )
 
 
@@ -246,34 +250,44 @@ def storage_flat(level: MapLevel, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
     return (iy % size) * size + ix % size
 
 
-def _new_cell_reference(
+def _ground_gate(
     level: MapLevel, z_lo: np.ndarray, z_ref: float, config: FusionConfig
 ) -> np.ndarray:
-    """Dense (size*size,) ground reference for cells with points this sweep and no estimate:
-    ``min(own lowest point, lowest neighbour + slope allowance)`` over the 8 neighbours
-    (their estimate if known, else their lowest point this sweep). A cell whose every point
-    lies on an object face is then not mistaken for ground when a neighbour saw the ground."""
+    """Dense (size*size,) height (relative to ``z_ref``) above which a point is an obstacle,
+    valid at the cells with points this sweep (``z_lo`` finite), computed once per cell.
+
+    Reference: the estimate + 3 sigma where the cell has one; else ``min(own lowest point,
+    lowest neighbour + slope allowance)`` over the 8 neighbours (their estimate if known, else
+    their lowest point this sweep), so a cell whose every point lies on an object face is not
+    taken for ground when a neighbour saw the ground. The gate adds ``obstacle_height_m``.
+    """
     size = level.size
     elev = level.storage("elevation").reshape(-1)
-    cells = np.flatnonzero(np.isfinite(z_lo) & np.isnan(elev))
-    ref = z_lo.copy()
-    if cells.size == 0:
-        return ref
-    base = np.where(np.isnan(elev), z_lo, elev.astype(np.float64) - z_ref)
-    srow, scol = np.divmod(cells, size)
-    wrow = (srow - level.origin_cell[1]) % size  # window row/col: no neighbours across the seam
-    wcol = (scol - level.origin_cell[0]) % size
-    nb = np.full(cells.shape, np.inf)
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            if dr == 0 and dc == 0:
-                continue
-            ok = (wrow + dr >= 0) & (wrow + dr < size) & (wcol + dc >= 0) & (wcol + dc < size)
-            nflat = ((srow + dr) % size) * size + (scol + dc) % size
-            nb = np.where(ok, np.minimum(nb, base[nflat]), nb)
-    allowance = config.max_ground_slope * np.sqrt(2.0) * level.resolution_m
-    ref[cells] = np.minimum(z_lo[cells], nb + allowance)
-    return ref
+    cells = np.flatnonzero(z_lo < np.inf)
+    e = elev[cells].astype(np.float64) - z_ref
+    known = np.isfinite(e)
+    sigma = np.sqrt(level.storage("elevation_var").reshape(-1)[cells].astype(np.float64))
+    ref = np.where(known, e + 3.0 * np.nan_to_num(sigma), z_lo[cells])
+    new = cells[~known]
+    if new.size:
+        srow, scol = np.divmod(new, size)
+        wrow = (srow - level.origin_cell[1]) % size  # window row/col: nothing across the seam
+        wcol = (scol - level.origin_cell[0]) % size
+        nb = np.full(new.shape, np.inf)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr == 0 and dc == 0:
+                    continue
+                ok = (wrow + dr >= 0) & (wrow + dr < size) & (wcol + dc >= 0) & (wcol + dc < size)
+                nflat = ((srow + dr) % size) * size + (scol + dc) % size
+                en = elev[nflat]
+                base = np.where(np.isnan(en), z_lo[nflat], en.astype(np.float64) - z_ref)
+                nb = np.where(ok, np.minimum(nb, base), nb)
+        allowance = config.max_ground_slope * np.sqrt(2.0) * level.resolution_m
+        ref[~known] = np.minimum(z_lo[new], nb + allowance)
+    gate = np.empty(z_lo.shape)  # only the touched cells are ever read
+    gate[cells] = ref + config.obstacle_height_m
+    return gate
 
 
 def _child_flat(level: MapLevel, child: CellBatch) -> np.ndarray:
@@ -296,13 +310,11 @@ def apply(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns: int) ->
     ok = (col >= 0) & (col < size) & (row >= 0) & (row < size)
     if not ok.all():
         batch = _subset(batch, ok)
-        col, row = col[ok], row[ok]
-    srow, scol = (row + level.origin_cell[1]) % size, (col + level.origin_cell[0]) % size
-    cell = (srow, scol)
-    lay = {name: level.storage(name) for name in FUSION_LAYERS}
+    cell = storage_flat(level, batch.ix, batch.iy)
+    lay = {name: level.storage(name).reshape(-1) for name in FUSION_LAYERS}  # flat views
 
     g = batch.n > 0
-    gcell = (srow[g], scol[g])
+    gcell = cell[g]
     _kalman(lay, gcell, batch, g, config)
     _moments(lay, gcell, batch, g)
 
@@ -316,7 +328,7 @@ def apply(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns: int) ->
     return len(batch)
 
 
-def _kalman(lay: dict, gcell: tuple, batch: CellBatch, g: np.ndarray, config: FusionConfig):
+def _kalman(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray, config: FusionConfig):
     """Scalar Kalman update of elevation / elevation_var in the cells with ground points."""
     R = 1.0 / batch.w[g]
     z_bar = batch.z_ref + batch.wz[g] * R
@@ -332,29 +344,29 @@ def _kalman(lay: dict, gcell: tuple, batch: CellBatch, g: np.ndarray, config: Fu
     lay["confidence"][gcell] = config.confidence_var_m2 / (config.confidence_var_m2 + P)
 
 
-def _moments(lay: dict, gcell: tuple, batch: CellBatch, g: np.ndarray) -> None:
-    """Merge the sweep's height moments into count / z_mean / z_m2 (Chan et al.) -> roughness."""
-    n_b = batch.n[g].astype(np.float64)
-    mean_b = batch.s1[g] / n_b
-    m2_b = np.maximum(batch.s2[g] - batch.s1[g] * mean_b, 0.0)
+def _moments(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray) -> None:
+    """Merge the sweep's weighted height moments into z_weight / z_mean / z_m2 (the weighted
+    form of Chan et al.'s parallel update) -> roughness = sqrt(M2 / W); count += n."""
+    w_b = batch.w[g]
+    mean_b = batch.wz[g] / w_b
+    m2_b = np.maximum(batch.wzz[g] - batch.wz[g] * mean_b, 0.0)
     mean_b = mean_b + batch.z_ref
-    n_a = lay["count"][gcell].astype(np.float64)
-    mean_a = np.where(n_a > 0, lay["z_mean"][gcell], mean_b)
-    m2_a = lay["z_m2"][gcell]
-    n = n_a + n_b
+    w_a = lay["z_weight"][gcell]
+    mean_a = np.where(w_a > 0, lay["z_mean"][gcell], mean_b)
+    w = w_a + w_b
     delta = mean_b - mean_a
-    mean = mean_a + delta * n_b / n
-    m2 = m2_a + m2_b + delta * delta * n_a * n_b / n
-    lay["count"][gcell] = n.astype(np.int32)
-    lay["z_mean"][gcell] = mean
+    m2 = lay["z_m2"][gcell] + m2_b + delta * delta * w_a * w_b / w
+    lay["z_weight"][gcell] = w
+    lay["z_mean"][gcell] = mean_a + delta * w_b / w
     lay["z_m2"][gcell] = m2
-    lay["roughness"][gcell] = np.sqrt(m2 / n)
+    lay["roughness"][gcell] = np.sqrt(m2 / w)
+    lay["count"][gcell] += batch.n[g].astype(np.int32)
 
 
 def _subset(batch: CellBatch, keep: np.ndarray) -> CellBatch:
     arrays = {
         k: getattr(batch, k)[keep]
-        for k in ("ix", "iy", "w", "wz", "n", "s1", "s2", "z_min", "z_max", "n_obstacle")
+        for k in ("ix", "iy", "w", "wz", "wzz", "n", "n_obstacle", "z_min", "z_max")
     }
     return CellBatch(resolution_m=batch.resolution_m, z_ref=batch.z_ref, **arrays)
 

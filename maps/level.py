@@ -18,6 +18,7 @@ come back from it when they re-enter, so a loop route restores the old map.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,7 +75,18 @@ class MapLevel:
         self.store = store if self.config.keep_tiles else None
         shape = (self.size, self.size)
         self._data = {name: spec.empty(shape) for name, spec in self.specs.items()}
-        self.origin_cell = np.array([-(self.size // 2), -(self.size // 2)], dtype=np.int64)
+        self._fills = [(arr, self.specs[name].fill) for name, arr in self._data.items()]
+        self._origin = (-(self.size // 2), -(self.size // 2))  # (ix0, iy0) as Python ints
+
+    @property
+    def origin_cell(self) -> np.ndarray:
+        """Global cell ``(ix0, iy0)`` (int64 (2,)) of window row 0, column 0."""
+        return np.array(self._origin, dtype=np.int64)
+
+    @origin_cell.setter
+    def origin_cell(self, cell: np.ndarray) -> None:
+        """Put the window's lower-left cell at ``cell`` without clearing (for aligned copies)."""
+        self._origin = (int(cell[0]), int(cell[1]))
 
     # --- names and shapes ------------------------------------------------------------------
 
@@ -204,10 +216,18 @@ class MapLevel:
 
     # --- moving ----------------------------------------------------------------------------
 
-    def origin_for(self, center_xy: np.ndarray) -> np.ndarray:
-        """The ``origin_cell`` that puts world point ``center_xy`` in the window's middle."""
-        xy = self._xy(np.asarray(center_xy, dtype=np.float64).reshape(1, 2), "center_xy")
-        return np.floor(xy[0] / self.resolution_m).astype(np.int64) - self.size // 2
+    def origin_for(self, center_xy: np.ndarray) -> tuple[int, int]:
+        """The ``origin_cell`` ``(ix0, iy0)`` that puts world ``center_xy`` in the middle."""
+        try:
+            x, y = float(center_xy[0]), float(center_xy[1])
+        except (TypeError, IndexError, ValueError):
+            x = y = math.nan
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise LevelError(
+                f"level {self.name!r}: center_xy must be a finite (x, y), got {center_xy!r}"
+            )
+        half = self.size // 2
+        return math.floor(x / self.resolution_m) - half, math.floor(y / self.resolution_m) - half
 
     def move_to(self, center_xy: np.ndarray) -> tuple[int, int]:
         """Scroll the window so ``center_xy`` (world metres) is in its middle cell.
@@ -216,37 +236,44 @@ class MapLevel:
         cells entering come back from the store. A jump of a whole window or more (a teleport)
         clears the level. Returns the move ``(dx, dy)`` in cells.
         """
-        new_origin = self.origin_for(center_xy)
-        d = new_origin - self.origin_cell
-        dx, dy = int(d[0]), int(d[1])
+        (ox, oy), new = self._origin, self.origin_for(center_xy)
+        dx, dy = new[0] - ox, new[1] - oy
         if dx == 0 and dy == 0:
             return 0, 0
-        if abs(dx) >= self.size or abs(dy) >= self.size:
-            self._teleport(new_origin)
+        size = self.size
+        if abs(dx) >= size or abs(dy) >= size:
+            self._teleport(new)
             return dx, dy
-        old_x = (int(self.origin_cell[0]), self.size)
-        old_y = (int(self.origin_cell[1]), self.size)
-        leave_x, enter_x, keep_x = _split(old_x[0], dx, self.size)
-        leave_y, enter_y, _ = _split(old_y[0], dy, self.size)
+        if self.store is None:  # the hot path: clear the slots of the entering strips only
+            if dx:
+                self._clear_slots((ox + size if dx > 0 else ox + dx, abs(dx)), axis=1)
+            if dy:
+                self._clear_slots((oy + size if dy > 0 else oy + dy, abs(dy)), axis=0)
+            self._origin = new
+            return dx, dy
+        leave_x, enter_x, keep_x = _split(ox, dx, size)
+        leave_y, enter_y, _ = _split(oy, dy, size)
         if self.store is not None:
-            self._save(leave_x, old_y)
+            self._save(leave_x, (oy, size))
             self._save(keep_x, leave_y)
-        self._clear_slots(enter_x, axis=1)
-        self._clear_slots(enter_y, axis=0)
-        self.origin_cell = new_origin
+        if dx:
+            self._clear_slots(enter_x, axis=1)
+        if dy:
+            self._clear_slots(enter_y, axis=0)
+        self._origin = new
         if self.store is not None:
-            new_y = (int(new_origin[1]), self.size)
-            self._load(enter_x, new_y)
+            self._load(enter_x, (new[1], size))
             self._load(keep_x, enter_y)
         return dx, dy
 
-    def _teleport(self, new_origin: np.ndarray) -> None:
+    def _teleport(self, new: tuple[int, int]) -> None:
+        (ox, oy), size = self._origin, self.size
         if self.store is not None:
-            self._save((int(self.origin_cell[0]), self.size), (int(self.origin_cell[1]), self.size))
+            self._save((ox, size), (oy, size))
         self.clear()
-        self.origin_cell = new_origin
+        self._origin = new
         if self.store is not None:
-            self._load((int(new_origin[0]), self.size), (int(new_origin[1]), self.size))
+            self._load((new[0], size), (new[1], size))
 
     def _slot_slices(self, rng: Range) -> list[slice]:
         """Storage slices (at most two) holding global indices ``rng``."""
@@ -261,8 +288,8 @@ class MapLevel:
     def _clear_slots(self, rng: Range, axis: int) -> None:
         for sl in self._slot_slices(rng):
             key = (slice(None), sl) if axis == 1 else sl
-            for name, arr in self._data.items():
-                arr[key] = self.specs[name].fill
+            for arr, fill in self._fills:
+                arr[key] = fill
 
     # --- long-term memory ------------------------------------------------------------------
 

@@ -27,6 +27,7 @@ from maps.fusion import (
     clean_points,
     range_variance,
     summarise,
+    window_cells,
 )
 from maps.level import LevelConfig, MapLevel
 from maps.terrain import TerrainConfig, update_terrain
@@ -144,9 +145,9 @@ class MapStack:
         z_ref = float(pts.z.mean()) if len(pts) else 0.0
         child = None
         for lvl in self.levels:  # finest first: each point goes raw to the finest level holding it
-            lo, hi = lvl.bounds_xy
-            mine = (pts.x >= lo[0]) & (pts.x < hi[0]) & (pts.y >= lo[1]) & (pts.y < hi[1])
-            batch = summarise(lvl, pts.subset(mine), self.config.fusion, z_ref, child)
+            ix, iy, mine = window_cells(lvl, pts)
+            cells = (ix[mine], iy[mine])
+            batch = summarise(lvl, pts.subset(mine), self.config.fusion, z_ref, child, cells)
             pts = pts.subset(~mine)
             stats.cells_updated[lvl.name] = apply(lvl, batch, self.config.fusion, t_ns)
             stats.ground[lvl.name] = int(batch.n.sum())

@@ -50,10 +50,11 @@ def _reference(batches, res: float, cfg: FusionConfig) -> dict:
                 K = c["P"] / (c["P"] + v)
                 c["x"] += K * (p[2] - c["x"])
                 c["P"] *= 1 - K
-            c["n"] += 1  # Welford
+            c["n"] += 1
+            c["W"] = c.get("W", 0.0) + 1.0 / v  # weighted Welford (West 1979)
             d = p[2] - c["mean"]
-            c["mean"] += d / c["n"]
-            c["m2"] += d * (p[2] - c["mean"])
+            c["mean"] += d / v / c["W"]
+            c["m2"] += d * (p[2] - c["mean"]) / v
         for k, hit in hits.items():
             c = cells[k]
             c["occ"] = float(np.clip(c.get("occ", 0.0) + (cfg.l_hit if hit else cfg.l_miss), -4, 4))
@@ -96,7 +97,7 @@ def test_fusion_equals_slow_reference(seed: int, n_batches: int) -> None:
     keys = np.array(list(ref), dtype=np.int64)
     xy = level.cell_to_world(keys)
     got = {name: level.read(name, xy) for name in level.layer_names}
-    fields = ("x", "P", "n", "nob", "lo", "hi", "m2", "occ", "seen")
+    fields = ("x", "P", "n", "nob", "lo", "hi", "m2", "W", "occ", "seen")
     exp = {f: np.array([c.get(f, np.nan) for c in ref.values()]) for f in fields}
     np.testing.assert_allclose(got["elevation"], exp["x"], rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(got["elevation_var"], exp["P"], rtol=1e-5)
@@ -104,7 +105,7 @@ def test_fusion_equals_slow_reference(seed: int, n_batches: int) -> None:
     np.testing.assert_array_equal(got["obstacle_count"], exp["nob"])
     np.testing.assert_allclose(got["elevation_min"], exp["lo"], rtol=1e-6)
     np.testing.assert_allclose(got["elevation_max"], exp["hi"], rtol=1e-6)
-    rough = np.where(exp["n"] > 0, np.sqrt(exp["m2"] / np.maximum(exp["n"], 1)), np.nan)
+    rough = np.where(exp["n"] > 0, np.sqrt(np.maximum(exp["m2"], 0) / exp["W"]), np.nan)
     np.testing.assert_allclose(got["roughness"], rough, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(got["occupancy"], exp["occ"], rtol=1e-6)
     np.testing.assert_array_equal(got["last_seen_ns"], exp["seen"])
