@@ -83,6 +83,7 @@ def bench_ingest(tmp: Path) -> tuple[float, duckdb.DuckDBPyConnection, kd_store.
         if con is not None:
             con.close()
         con = duckdb.connect(str(tmp / f"base{r}.duckdb"))
+        con.execute("SET enable_progress_bar = false")
         con.execute(kd_store.persist.resources.files("kd_store").joinpath("schema.sql").read_text())
         gc.collect()
         t0 = time.perf_counter()
