@@ -216,3 +216,24 @@ def test_bad_points_are_refused_or_counted() -> None:
     stats = fuse_points(level, pts, 0.01, t_ns=0)
     assert stats.dropped_nonfinite == 2 and stats.outside == 1
     assert level.window("count").sum() == 1
+
+
+def test_stack_refuses_bad_levels_and_survives_a_teleport() -> None:
+    from maps.stack import StackError
+
+    with pytest.raises(StackError, match="increasing"):
+        MapStack(StackConfig(levels=(LevelConfig("a", 1.0, 8), LevelConfig("b", 0.5, 8))))
+    with pytest.raises(StackError, match="unique"):
+        MapStack(StackConfig(levels=(LevelConfig("a", 1.0, 8), LevelConfig("a", 2.0, 8))))
+    stack = MapStack()
+    with pytest.raises(StackError, match=r"no level 'nope'; levels: .*subsystem"):
+        stack.level("nope")
+    with pytest.raises(FusionError, match="variance_m2 or sensor_xyz"):
+        stack.fuse(np.zeros((3, 3)), t_ns=0)
+    stack.fuse(np.array([[0.1, 0.1, 0.0]]), sensor_xyz=[0.0, 0.0, 2.0], t_ns=0)
+    assert stack.level("subsystem").window("count").sum() == 1
+    stack.move_to(np.array([5e5, 5e5]))  # a jump far beyond every window
+    assert all(lvl.window("count").sum() == 0 for lvl in stack.levels)
+    stack.move_to(np.zeros(2))  # and back: the tile store restores the kept levels
+    assert stack.level("subsystem").window("count").sum() == 1
+    assert stack.level("primitive").window("count").sum() == 0  # level 2 keeps no tiles
