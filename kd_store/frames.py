@@ -19,16 +19,11 @@ from enum import IntEnum, StrEnum
 
 import numpy as np
 
+from kd_store.covariance import FLAT_UP, UNPACK_FLAT, psd_mask
 from kd_store.errors import KDError
 
 #: Order of the 6x6 state covariance: position then velocity.
 COVARIANCE_ORDER = ("x", "y", "z", "vx", "vy", "vz")
-#: Indices of the 21 upper-triangle entries (row-major) stored on disk as ``cov_pv``.
-TRIU_6 = np.triu_indices(6)
-FLAT_UP = np.ravel_multi_index(TRIU_6, (6, 6))
-_PACKED_AT = {(int(i), int(j)): k for k, (i, j) in enumerate(zip(*TRIU_6, strict=True))}
-#: (36,) index into a packed (21,) covariance giving the full 6x6, row-major.
-UNPACK_FLAT = np.array([_PACKED_AT[(min(i, j), max(i, j))] for i in range(6) for j in range(6)])
 
 
 class Level(IntEnum):
@@ -344,7 +339,6 @@ def check_state(s: State, where: str, cov_tol: float = 1e-9, quat_tol: float = 1
         )
     if np.any(s.orientation_var_rpy < 0):
         raise KDError(f"{where}: orientation_var_rpy {s.orientation_var_rpy.tolist()} < 0")
-    from kd_store.states import psd_mask  # one PSD test for single states and batches
 
     C = s.covariance
     scale = max(1.0, float(np.max(np.abs(C))))

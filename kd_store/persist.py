@@ -17,6 +17,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from kd_store.classes import ClassKind, ClassPrototype
+from kd_store.covariance import unpack_covariance
 from kd_store.errors import KDError
 from kd_store.frames import (
     ATTRIBUTE_FIELDS,
@@ -30,7 +31,7 @@ from kd_store.frames import (
     Value,
 )
 from kd_store.relations import Relation, RelationKind
-from kd_store.states import StateColumns, unpack_covariance
+from kd_store.states import StateColumns
 
 SCHEMA_VERSION = 1
 TABLES = (

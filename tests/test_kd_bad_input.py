@@ -102,7 +102,7 @@ def test_psd_check_matches_eigenvalues() -> None:
     A = rng.normal(size=(2000, 6, 6))
     C = A @ A.transpose(0, 2, 1) - rng.uniform(0, 2, (2000, 1, 1)) * np.eye(6)
     truth = np.linalg.eigvalsh(C)[:, 0] >= -1e-9 * np.maximum(1, np.abs(C).max(axis=(1, 2)))
-    from kd_store.states import pack_covariance, psd_mask
+    from kd_store.covariance import pack_covariance, psd_mask
 
     got = psd_mask(pack_covariance(C))
     margin = np.abs(np.linalg.eigvalsh(C)[:, 0]) > 1e-6  # away from the tolerance edge

@@ -1,0 +1,88 @@
+"""The 6x6 state covariance over (x, y, z, vx, vy, vz): packing and the checks the KD makes.
+
+Packed form: the 21 upper-triangle entries, row-major (the ``cov_pv`` column on disk). The
+positive-semidefinite test is an unrolled Cholesky over many matrices at once, pure numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+TRIU_6 = np.triu_indices(6)
+PACK_INDEX = {(int(i), int(j)): k for k, (i, j) in enumerate(zip(*TRIU_6, strict=True))}
+#: (36,) indices: full 6x6 (row-major) -> packed upper / its mirror in the lower triangle.
+FLAT_UP = np.ravel_multi_index(TRIU_6, (6, 6))
+FLAT_LO = np.ravel_multi_index((TRIU_6[1], TRIU_6[0]), (6, 6))
+#: (36,) index into a packed (21,) covariance giving the full 6x6, row-major.
+UNPACK_FLAT = np.array([PACK_INDEX[(min(i, j), max(i, j))] for i in range(6) for j in range(6)])
+DIAG = [PACK_INDEX[(i, i)] for i in range(6)]
+
+
+def pack_covariance(cov: np.ndarray) -> np.ndarray:
+    """(N, 6, 6) symmetric -> (N, 21) upper triangle, row-major (C-contiguous)."""
+    return np.take(cov.reshape(-1, 36), FLAT_UP, axis=1)
+
+
+def unpack_covariance(cov21: np.ndarray) -> np.ndarray:
+    """(N, 21) upper triangle -> (N, 6, 6) symmetric."""
+    return cov21[:, UNPACK_FLAT].reshape(-1, 6, 6)
+
+
+_BLOCK = 8192  # rows per block: keeps the unrolled factorisation's temporaries in cache
+
+
+def psd_mask(cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = None) -> np.ndarray:
+    """Which packed 6x6 covariances are positive semidefinite: (N, 21) -> (N,) bool.
+
+    Cholesky of ``C + tol * scale * I`` succeeds exactly when the smallest
+    eigenvalue of C exceeds ``-tol * scale``; the factorisation is unrolled over
+    columns so a batch of a million matrices costs a few dozen vector operations.
+    The scale is ``max(1, largest diagonal entry)`` (bounds every entry of a PSD matrix);
+    pass it as ``scale`` (N,) when the caller has it already.
+    """
+    cov21 = np.asarray(cov21, dtype=np.float64)
+    if len(cov21) > _BLOCK:
+        return np.concatenate(
+            [
+                psd_mask(
+                    cov21[i : i + _BLOCK], tol, None if scale is None else scale[i : i + _BLOCK]
+                )
+                for i in range(0, len(cov21), _BLOCK)
+            ]
+        )
+    A = np.ascontiguousarray(np.asarray(cov21, dtype=np.float64).T)  # (21, N)
+    if scale is None:
+        scale = np.maximum(1.0, np.maximum.reduce([A[PACK_INDEX[(i, i)]] for i in range(6)]))
+    shift = tol * scale
+    ok = np.ones(A.shape[1], dtype=bool)
+    L: list[list[np.ndarray | None]] = [[None] * 6 for _ in range(6)]
+    for j in range(6):
+        s = A[PACK_INDEX[(j, j)]] + shift
+        for k in range(j):
+            s = s - L[j][k] ** 2
+        ok &= s > 0
+        d = np.sqrt(np.where(s > 0, s, 1.0))
+        L[j][j] = d
+        for i in range(j + 1, 6):
+            t = A[PACK_INDEX[(j, i)]]
+            for k in range(j):
+                t = t - L[i][k] * L[j][k]
+            L[i][j] = t / d
+    return ok
+
+
+def pack_checked(flat: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(N, 36) covariances -> packed (N, 21), scale (N,) and whether all are symmetric within
+    ``tol * scale``; in cache-sized blocks, exact symmetry (the usual case) skips the rest."""
+    n = len(flat)
+    cov21 = np.empty((n, 21))
+    symmetric = True
+    for i in range(0, n, _BLOCK):
+        block = flat[i : i + _BLOCK]
+        up = cov21[i : i + _BLOCK] = np.take(block, FLAT_UP, axis=1)
+        lo = np.take(block, FLAT_LO, axis=1)
+        if symmetric and not np.array_equal(up, lo):
+            sc = np.maximum(1.0, np.maximum.reduce([up[:, k] for k in DIAG]))
+            symmetric = not (np.abs(up - lo) > (tol * sc)[:, None]).any()
+    scale = np.maximum(1.0, np.maximum.reduce([cov21[:, k] for k in DIAG]))
+    return cov21, scale, symmetric
