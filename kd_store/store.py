@@ -42,7 +42,7 @@ from kd_store.frames import (
 )
 from kd_store.memory import ImmediateExperience, ShortTermMemory
 from kd_store.relations import Relation, RelationGraph, RelationKind
-from kd_store.spatial import GridIndex, Region, check_region
+from kd_store.spatial import Box, GridIndex, Region, check_region
 from kd_store.states import StateBatch, StateColumns, check_batch
 
 NO_TIME = np.iinfo(np.int64).min
@@ -806,21 +806,19 @@ class KnowledgeDatabase:
         statuses: Iterable[Status | str] | None = None,
         levels: Iterable[int] | None = None,
         min_confidence: float = 0.0,
+        poses: dict[str, np.ndarray] | None = None,
     ) -> np.ndarray:
-        """Ids (sorted int64) of entities whose current position, held in ``region.frame``, lies
-        in the region and which pass the filters (class includes its is_a descendants)."""
+        """Ids (sorted int64) of entities whose current position lies in the region and which
+        pass the filters (a class includes its is_a descendants).
+
+        Entities held in ``region.frame`` are always searched. ``poses`` adds entities held in
+        other frames: ``{name: T_region_name}`` (4x4 float64, ``p_region = T @ p_name``)."""
         check_region(region)
-        code = self._frame_code.get(region.frame)
-        if code is None:
-            return np.zeros(0, np.int64)
-        grid = self._grid.get(code)
-        if grid is None:
-            cols = self._cols
-            slots = np.flatnonzero(cols.alive[: cols.n] & (cols.frame[: cols.n] == code))
-            grid = self._grid[code] = GridIndex(slots, cols.pos[slots], self.config.grid_cell_m)
-        cand = grid.candidates(region)
+        frames = {region.frame: None, **(poses or {})}
+        found = [self._region_in(region, name, T) for name, T in frames.items()]
+        cand = np.concatenate(found) if found else np.zeros(0, np.int64)
         cols = self._cols
-        keep = region.contains(cols.pos[cand])
+        keep = np.ones(len(cand), bool)
         if min_confidence > 0:
             keep &= cols.confidence[cand] >= min_confidence
         if statuses is not None:
@@ -833,6 +831,36 @@ class KnowledgeDatabase:
             codes = [self._class_code[n] for n in names if n in self._class_code]
             keep &= np.isin(cols.klass[cand], codes)
         return np.sort(cols.id[cand[keep]])
+
+    def _region_in(
+        self, region: Region, frame: str, T_region_frame: np.ndarray | None
+    ) -> np.ndarray:
+        """Slots of entities held in ``frame`` whose position lies in ``region``."""
+        code = self._frame_code.get(frame)
+        if code is None:
+            return np.zeros(0, np.int64)
+        cols = self._cols
+        grid = self._grid.get(code)
+        if grid is None:
+            slots = np.flatnonzero(cols.alive[: cols.n] & (cols.frame[: cols.n] == code))
+            grid = self._grid[code] = GridIndex(slots, cols.pos[slots], self.config.grid_cell_m)
+        if T_region_frame is None:
+            cand = grid.candidates(region)
+            return cand[region.contains(cols.pos[cand])]
+        T = np.asarray(T_region_frame, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise KDError(f"region query: pose of frame {frame!r} is not a finite 4x4 matrix")
+        R, t = T[:3, :3], T[:3, 3]
+        if abs(R[0, 2]) > 1e-9 or abs(R[1, 2]) > 1e-9:
+            cand = grid.slots  # a tilted frame: its heights smear into x-y, so test them all
+        else:  # the region's x-y bounds seen from ``frame`` (heights do not matter)
+            lo_x, lo_y, hi_x, hi_y = region.bounds_xy()
+            corners = np.array([[x, y, 0.0] for x in (lo_x, hi_x) for y in (lo_y, hi_y)])
+            xy = ((corners - t) @ R)[:, :2]  # R^T (p - t), row-wise
+            lo, hi = xy.min(axis=0), xy.max(axis=0)
+            cand = grid.candidates(Box(frame, (lo[0], lo[1], 0.0), (hi[0], hi[1], 0.0)))
+        p_region = cols.pos[cand] @ R.T + t
+        return cand[region.contains(p_region)]
 
     def sql(self, query: str, flush: bool = True) -> pa.Table:
         """Run one read-only SELECT over the documented views (docs/kd.md); returns Arrow.

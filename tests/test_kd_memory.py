@@ -194,3 +194,43 @@ def test_region_queries_match_brute_force() -> None:
     assert kd.region(Circle("map", (0.0, 0.0), 10.0)).tolist() == []
     with pytest.raises(kd_store.KDError, match="empty or not finite"):
         kd.region(Circle("world", (0.0, float("nan")), 1.0))
+
+
+def _pose(yaw: float, roll: float, t_xyz: tuple[float, float, float]) -> np.ndarray:
+    cy, sy, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(roll), np.sin(roll)
+    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rz @ Rx, t_xyz
+    return T
+
+
+def test_region_in_another_frame_matches_brute_force() -> None:
+    rng = np.random.default_rng(5)
+    kd = kd_store.open(config=KDConfig(grid_cell_m=4.0))
+    n = 2000
+    for i in range(n):
+        kd.add_entity(f"e{i}", Level.OBJECT, id=i)
+    pos = rng.uniform(-60, 60, (n, 3))
+    world = np.arange(n) % 3 != 0
+    kd.ingest(
+        StateBatch(np.flatnonzero(world), np.ones(world.sum(), np.int64), "world", pos[world])
+    )
+    kd.ingest(
+        StateBatch(np.flatnonzero(~world), np.ones((~world).sum(), np.int64), "odom", pos[~world])
+    )
+    poses = {"world": _pose(0.7, 0.0, (5.0, -3.0, 1.0)), "odom": _pose(-1.2, 0.2, (0.0, 4.0, 0.0))}
+    p_body = np.where(
+        world[:, None],
+        pos @ poses["world"][:3, :3].T + poses["world"][:3, 3],
+        pos @ poses["odom"][:3, :3].T + poses["odom"][:3, 3],
+    )
+    for _ in range(20):
+        c, r = rng.uniform(-40, 40, 2), float(rng.uniform(2, 30))
+        got = kd.region(Circle("base_link", tuple(c), r), poses=poses)
+        want = np.flatnonzero(np.hypot(*(p_body[:, :2] - c).T) <= r)
+        assert got.tolist() == want.tolist()
+        box = Box("base_link", (c[0] - r, c[1] - r, -5.0), (c[0] + r, c[1] + r, 5.0))
+        got = kd.region(box, poses={"world": poses["world"]})
+        inside = np.all((p_body >= box.min_xyz) & (p_body <= box.max_xyz), axis=1)
+        assert got.tolist() == np.flatnonzero(inside & world).tolist()
