@@ -25,6 +25,7 @@ hands them to the next coarser one (see :mod:`maps.stack`) and no point is count
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -191,19 +192,16 @@ def summarise(
         ix, iy = cells
     flat = storage_flat(level, ix, iy)
     z = z - z_ref
-    ncell = size * size
 
     # ground reference: the current estimate (+3 sigma), else the lowest point of this sweep
     # in the cell or, lower still, in a neighbouring cell (+ a slope allowance)
-    z_lo = np.full(ncell, np.inf)
-    np.minimum.at(z_lo, flat, z)
-    ground = z <= _ground_gate(level, z_lo, z_ref, config)[flat]
+    sc = _scratch(level)
+    np.minimum.at(sc.z_lo, flat, z)
+    ground = z <= _ground_gate(level, sc.z_lo, z_ref, config)[flat]
     w = np.where(ground, 1.0 / var, 0.0)
     wz = w * z
-    parts = [w, wz, wz * z]
-    idx, counts = flat, None  # counts: ground and obstacle points, interleaved per cell
-    kind = flat * 2 + (~ground)
-    z_all = z
+    parts = [w, wz, wz * z, ground.astype(np.float64), (~ground).astype(np.float64)]
+    idx, z_all = flat, z
     if child is not None and len(child):
         cflat = _child_flat(level, child)
         ok = cflat >= 0
@@ -211,35 +209,67 @@ def summarise(
         idx = np.concatenate([flat, cflat])
         cz = child.z_ref - z_ref  # re-centre the child's sums on this sweep's z_ref
         cw, cwz = child.w[ok], child.wz[ok]
-        extra = [cw, cwz + cw * cz, child.wzz[ok] + 2.0 * cz * cwz + cw * cz * cz]
+        extra = [
+            cw,
+            cwz + cw * cz,
+            child.wzz[ok] + 2.0 * cz * cwz + cw * cz * cz,
+            child.n[ok].astype(np.float64),
+            child.n_obstacle[ok].astype(np.float64),
+        ]
         parts = [np.concatenate([a, b]) for a, b in zip(parts, extra, strict=True)]
-        kind = np.concatenate([kind, cflat * 2, cflat * 2 + 1])
-        cn = np.concatenate([np.ones(len(flat)), child.n[ok], child.n_obstacle[ok]])
-        counts = np.bincount(kind, weights=cn, minlength=2 * ncell)
-        np.minimum.at(z_lo, cflat, child.z_min[ok] - z_ref)
+        np.minimum.at(sc.z_lo, cflat, child.z_min[ok] - z_ref)
         z_all = np.concatenate([z, child.z_max[ok] - z_ref])
-    if counts is None:
-        counts = np.bincount(kind, minlength=2 * ncell)
-    sums = [np.bincount(idx, weights=p, minlength=ncell) for p in parts]
-    z_hi = np.full(ncell, -np.inf)
-    np.maximum.at(z_hi, idx, z_all)
+    # scatter-sums into zeroed scratch rows (np.add.at: no fresh (size*size,) arrays)
+    for k, p in enumerate(parts):
+        np.add.at(sc.sums[k], idx, p)
+    np.maximum.at(sc.z_hi, idx, z_all)
 
-    counts = counts.reshape(ncell, 2)
-    cells = np.flatnonzero(counts[:, 0] + counts[:, 1])
+    cells = np.flatnonzero(sc.z_hi > -np.inf)
+    vals = sc.sums[:, cells]
+    z_lo, z_hi = sc.z_lo[cells] + z_ref, sc.z_hi[cells] + z_ref
+    sc.reset(cells)
     s_row, s_col = np.divmod(cells, size)
+    ox, oy = level.origin_cell
     return CellBatch(
         resolution_m=level.resolution_m,
         z_ref=z_ref,
-        ix=level.origin_cell[0] + (s_col - level.origin_cell[0]) % size,
-        iy=level.origin_cell[1] + (s_row - level.origin_cell[1]) % size,
-        w=sums[0][cells],
-        wz=sums[1][cells],
-        wzz=sums[2][cells],
-        n=np.rint(counts[cells, 0]).astype(np.int64),
-        n_obstacle=np.rint(counts[cells, 1]).astype(np.int64),
-        z_min=z_lo[cells] + z_ref,
-        z_max=z_hi[cells] + z_ref,
+        ix=ox + (s_col - ox) % size,
+        iy=oy + (s_row - oy) % size,
+        w=vals[0],
+        wz=vals[1],
+        wzz=vals[2],
+        n=np.rint(vals[3]).astype(np.int64),
+        n_obstacle=np.rint(vals[4]).astype(np.int64),
+        z_min=z_lo,
+        z_max=z_hi,
     )
+
+
+class _Scratch:
+    """Per-level accumulators, kept filled with their neutral values between sweeps so a
+    sweep touches only its own cells: running min / max height, and 5 sum rows."""
+
+    def __init__(self, ncell: int) -> None:
+        self.z_lo = np.full(ncell, np.inf)
+        self.z_hi = np.full(ncell, -np.inf)
+        self.sums = np.zeros((5, ncell))
+
+    def reset(self, cells: np.ndarray) -> None:
+        self.z_lo[cells] = np.inf
+        self.z_hi[cells] = -np.inf
+        self.sums[:, cells] = 0.0
+
+
+_SCRATCH: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _scratch(level: MapLevel) -> _Scratch:
+    """The level's accumulators (one set per level; fusing one level from two threads at
+    once is not supported, as for every other write to a level)."""
+    sc = _SCRATCH.get(level)
+    if sc is None:
+        sc = _SCRATCH[level] = _Scratch(level.size * level.size)
+    return sc
 
 
 def storage_flat(level: MapLevel, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
