@@ -25,6 +25,7 @@ from maps.fusion import (
     FusionStats,
     apply,
     clean_points,
+    fuse_labels,
     range_variance,
     summarise,
     window_cells,
@@ -155,6 +156,15 @@ class MapStack:
             child = batch
         stats.outside = len(pts)
         return stats
+
+    def fuse_labels(
+        self, points_world: np.ndarray, entity_id: np.ndarray, class_id: np.ndarray | None = None
+    ) -> dict[str, int]:
+        """Write SP labels (see :func:`~maps.fusion.fuse_labels`) into every level whose window
+        holds the points; returns points written per level."""
+        return {
+            lvl.name: fuse_labels(lvl, points_world, entity_id, class_id) for lvl in self.levels
+        }
 
     def update_terrain(self) -> None:
         """Recompute slope, step height and traversability on every level."""

@@ -206,6 +206,10 @@ def test_labels_arrive_from_an_entity_image_through_its_range() -> None:
     assert np.count_nonzero(level.window("entity_id") == 42) == 6
     got = level.read("class_id", np.array([[1.2, 1.2], [0.2, 1.2]]))
     assert got.tolist() == [7, -1]
+    stack = MapStack()
+    written = stack.fuse_labels(pts, ids, classes)
+    assert written == {"primitive": 6, "subsystem": 6, "vehicle": 6, "section": 6}
+    assert stack.level("vehicle").read("entity_id", pts[:1])[0] == 42
 
 
 def test_bad_points_are_refused_or_counted() -> None:
