@@ -16,6 +16,8 @@ FLAT_LO = np.ravel_multi_index((TRIU_6[1], TRIU_6[0]), (6, 6))
 #: (36,) index into a packed (21,) covariance giving the full 6x6, row-major.
 UNPACK_FLAT = np.array([PACK_INDEX[(min(i, j), max(i, j))] for i in range(6) for j in range(6)])
 DIAG = [PACK_INDEX[(i, i)] for i in range(6)]
+_OFF = np.array([k for k, (i, j) in enumerate(zip(*TRIU_6, strict=True)) if i != j])
+_OFF_UP, _OFF_LO = FLAT_UP[_OFF], FLAT_LO[_OFF]
 
 
 def pack_covariance(cov: np.ndarray) -> np.ndarray:
@@ -72,17 +74,19 @@ def psd_mask(cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = No
 
 
 def pack_checked(flat: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(N, 36) covariances -> packed (N, 21), scale (N,) and whether all are symmetric within
-    ``tol * scale``; in cache-sized blocks, exact symmetry (the usual case) skips the rest."""
+    """(N, 36) covariances -> packed (N, 21), scale (N,) = max(1, largest diagonal entry), and
+    whether every one is symmetric within ``tol * scale``. Works in cache-sized blocks."""
     n = len(flat)
     cov21 = np.empty((n, 21))
+    scale = np.empty(n)
     symmetric = True
     for i in range(0, n, _BLOCK):
         block = flat[i : i + _BLOCK]
         up = cov21[i : i + _BLOCK] = np.take(block, FLAT_UP, axis=1)
-        lo = np.take(block, FLAT_LO, axis=1)
-        if symmetric and not np.array_equal(up, lo):
-            sc = np.maximum(1.0, np.maximum.reduce([up[:, k] for k in DIAG]))
-            symmetric = not (np.abs(up - lo) > (tol * sc)[:, None]).any()
-    scale = np.maximum(1.0, np.maximum.reduce([cov21[:, k] for k in DIAG]))
+        sc = scale[i : i + _BLOCK] = np.maximum(1.0, np.maximum.reduce([up[:, k] for k in DIAG]))
+        if symmetric:
+            d = np.take(block, _OFF_UP, axis=1)
+            np.subtract(d, np.take(block, _OFF_LO, axis=1), out=d)
+            np.abs(d, out=d)
+            symmetric = not (d > (tol * sc)[:, None]).any()
     return cov21, scale, symmetric
