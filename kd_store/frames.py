@@ -341,7 +341,7 @@ def check_state(s: State, where: str, cov_tol: float = 1e-9, quat_tol: float = 1
         raise KDError(f"{where}: orientation_var_rpy {s.orientation_var_rpy.tolist()} < 0")
 
     C = s.covariance
-    scale = max(1.0, float(np.max(np.abs(C))))
+    scale = max(1.0, float(np.max(np.diag(C))))  # as for batches (see covariance.psd_mask)
     if not s.asymmetry <= cov_tol * scale or not psd_mask(s.covariance_packed[None], cov_tol)[0]:
         raise KDError(
             f"{where}: covariance at t_ns={s.t_ns} is not symmetric positive semidefinite: "
