@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from fixtures.scenario import Scenario, load_scenario
-from fixtures.sensors import CameraConfig, LadarConfig, SensorSuiteConfig
+from fixtures.sensors import CameraConfig, LadarConfig, OdometryConfig, SensorSuiteConfig
 from fixtures.simulate import Simulator, simulate, simulate_to_log
 from maps.frames import BODY, CAMERA, LADAR, NS_PER_S, WORLD
 from sp.logs.types import (
     CameraFrame,
     GroundTruthPose,
+    ImuFrame,
     LadarScan,
     ObjectBoxes,
     OdometryFrame,
@@ -26,7 +27,9 @@ from sp.logs.types import (
 def small(name: str = "default") -> Scenario:
     """A built-in scenario with small sensors, so a few frames simulate quickly."""
     sensors = SensorSuiteConfig(
-        ladar=LadarConfig(n_beams=8, n_azimuth=256), camera=CameraConfig(width=48, height=32)
+        ladar=LadarConfig(n_beams=8, n_azimuth=256),
+        camera=CameraConfig(width=48, height=32),
+        odometry=OdometryConfig(imu=True),
     )
     return dataclasses.replace(load_scenario(name), sensors=sensors)
 
@@ -43,13 +46,13 @@ def test_frames_come_in_time_order_with_the_right_kinds_and_topics() -> None:
     kinds = Counter(type(f) for f in frames)
     # 0.35 s: odometry + truth at 50 Hz (t = 0 .. 0.34), sweeps that complete (0.0 .. 0.2),
     # camera at 0.05 .. 0.35
-    assert kinds[OdometryFrame] == kinds[GroundTruthPose] == 18
+    assert kinds[OdometryFrame] == kinds[GroundTruthPose] == kinds[ImuFrame] == 18
     assert kinds[LadarScan] == kinds[ObjectBoxes] == 3
     assert kinds[CameraFrame] == 4
     topics = {type(f): f.topic for f in frames}
     assert topics[LadarScan] == "/ladar/points" and topics[CameraFrame] == "/camera"
     assert topics[OdometryFrame] == "/odom" and topics[GroundTruthPose] == "/ground_truth/pose"
-    assert topics[ObjectBoxes] == "/ground_truth/objects"
+    assert topics[ObjectBoxes] == "/ground_truth/objects" and topics[ImuFrame] == "/imu"
 
 
 def test_ground_truth_matches_the_world() -> None:
