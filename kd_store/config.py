@@ -37,7 +37,8 @@ class MemoryConfig:
 
 @dataclass(slots=True)
 class PromotionRule:
-    """Which short-term frames long-term memory receives at each flush (4.4.11).
+    """Which short-term frames long-term memory receives (4.4.11), judged at each
+    ``flush`` and ``advance``.
 
     Value judgment sets it (``KnowledgeDatabase.promotion_rule``). An entity is promoted when
     it is flagged noteworthy, or its status is in ``statuses`` with confidence at least

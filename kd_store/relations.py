@@ -114,6 +114,10 @@ class RelationGraph:
         """Every relation (open or closed) whose source is ``node``."""
         return list(self._out.get(node, ()))
 
+    def relations_into(self, node: int) -> list[Relation]:
+        """Every relation (open or closed) whose destination is ``node``."""
+        return list(self._in.get(node, ()))
+
     def __iter__(self) -> Iterator[Relation]:
         for rels in self._out.values():
             yield from rels

@@ -669,12 +669,23 @@ class KnowledgeDatabase:
         with self._lock:
             return persist.read_states(self._con, entity_id)
 
-    def as_of(self, t_ns: int) -> dict[int, State]:
-        """State of every entity at ``t_ns``: its latest remembered state at or before ``t_ns``
-        (short-term memory; for older times use the ``entity_states_as_of`` SQL macro)."""
+    def as_of(self, t_ns: int, long_term: bool = False) -> dict[int, State]:
+        """State of every entity at ``t_ns``: its latest remembered state at or before ``t_ns``.
+
+        Short-term memory only by default (fast, no I/O); ``long_term=True`` also searches the
+        long-term histories on disk (after a flush), for times older than the horizons."""
         out: dict[int, State] = {}
-        for h in self.stm.history.values():
-            for k, s in h.as_of(t_ns).items():
+        sources = [h.as_of(t_ns) for h in self.stm.history.values()]
+        if long_term:
+            self.flush()
+            with self._lock:
+                table = self._con.sql(
+                    "SELECT * FROM entity_states_as_of($1)", params=[int(t_ns)]
+                ).to_arrow_table()
+            chunks = StateColumns.from_arrow(table)
+            sources.append({int(c.entity_id[i]): c.state(i) for c in chunks for i in range(len(c))})
+        for states in sources:
+            for k, s in states.items():
                 if k in self._slot and (k not in out or s.t_ns > out[k].t_ns):
                     out[k] = s
         return out
@@ -682,7 +693,9 @@ class KnowledgeDatabase:
     def advance(self, t_now_ns: int) -> list[int]:
         """Let short-term memory move on to ``t_now_ns``: trim histories to each level's
         horizon and forget frames older than it that long-term memory did not take and
-        attention does not hold (4.4.11). Returns the ids forgotten."""
+        attention does not hold (4.4.11). Frames the promotion rule admits are moved to
+        long-term memory first, so their histories are kept. Returns the ids forgotten."""
+        self._promote()
         self.stm.trim(t_now_ns)
         keep = self.stm.attended()
         cols, n = self._cols, self._cols.n
@@ -714,15 +727,22 @@ class KnowledgeDatabase:
         if self._read_only:
             return 0
         with self._lock:
-            w, newly, new_events = self._collect()
+            self._promote()
+            w = self._collect()
             if not w:
                 return 0
-            persist.write(self._con, w)
-            self._after_flush(newly, new_events)
+            persist.write(self._con, w)  # on failure nothing is cleared: the next flush retries
+            self._cols.dirty[: self._cols.n] = False
+            self._event_dirty.clear()
+            self.graph.dirty.clear()
+            self.classes.dirty.clear()
+            self._pending = []
             return sum(len(c) for c in w.states)
 
-    def _collect(self) -> tuple[persist.Write, np.ndarray, set[int]]:
-        """What the next flush writes, the entity slots it promotes and the events it promotes."""
+    def _promote(self) -> None:
+        """Move the frames the promotion rule admits into long-term memory (in RAM; the next
+        flush writes them): their short-term histories join the pending rows, and pointers
+        touching them are marked for writing."""
         cols, rule, n = self._cols, self.promotion_rule, self._cols.n
         codes = [STATUS_CODES[Status(s).value] for s in rule.statuses]
         admit = (np.isin(cols.status[:n], codes) & (cols.confidence[:n] >= rule.min_confidence)) | (
@@ -730,13 +750,30 @@ class KnowledgeDatabase:
         )
         newly = np.flatnonzero(admit & cols.alive[:n] & ~cols.ltm[:n])
         new_ids = cols.id[newly]
-        states = list(self._pending)
         for h in self.stm.history.values():
-            states += h.rows_of(new_ids)
-        is_new = np.zeros(n, bool)
-        is_new[newly] = True
-        write_slots = np.flatnonzero(cols.alive[:n] & ((cols.ltm[:n] & cols.dirty[:n]) | is_new))
-        entities = [self._frames[s] for s in write_slots]
+            self._pending += h.rows_of(new_ids)
+        cols.ltm[newly] = True
+        cols.dirty[newly] = True
+        new_events = {
+            i
+            for i, e in self._events.items()
+            if i not in self._event_ltm
+            and (e.noteworthy or e.confidence >= rule.min_event_confidence)
+        }
+        self._event_ltm |= new_events
+        self._event_dirty |= new_events
+        for node in (*new_ids.tolist(), *new_events):  # pointers from and into new frames
+            self.graph.dirty.update(r.key for r in self.graph.relations_of(node))
+            self.graph.dirty.update(r.key for r in self.graph.relations_into(node))
+
+    def _in_ltm(self, frame_id: int) -> bool:
+        slot = self._slot.get(frame_id)
+        return bool(self._cols.ltm[slot]) if slot is not None else frame_id in self._event_ltm
+
+    def _collect(self) -> persist.Write:
+        """Everything the next flush writes (promotion done)."""
+        cols, n = self._cols, self._cols.n
+        write_slots = np.flatnonzero(cols.alive[:n] & cols.ltm[:n] & cols.dirty[:n])
         has = cols.t_ns[write_slots] != NO_TIME
         entity_states = persist.current_states_to_arrow(
             cols.t_ns[write_slots],
@@ -750,52 +787,16 @@ class KnowledgeDatabase:
             cols.cov21[write_slots],
             cols.var_rpy[write_slots],
         )
-        new_events = {
-            i
-            for i, e in self._events.items()
-            if i not in self._event_ltm
-            and (e.noteworthy or e.confidence >= rule.min_event_confidence)
-        }
-        ltm_events = self._event_ltm | new_events
-        events = [self._events[i] for i in sorted((self._event_dirty & ltm_events) | new_events)]
-
-        def in_ltm(frame_id: int) -> bool:
-            slot = self._slot.get(frame_id)
-            if slot is None:
-                return frame_id in ltm_events
-            return bool(cols.ltm[slot] or is_new[slot])
-
-        touched = set(new_ids.tolist()) | new_events
-        rel_keys = set(self.graph.dirty)
-        for node in touched:
-            rel_keys.update(r.key for r in self.graph.relations_of(node))
-            rel_keys.update(
-                r.key
-                for r in self.graph._in.get(node, ())  # pointers into new frames
-            )
-        rels = [r for k in rel_keys if (r := self.graph.find(k)) is not None]
-        rels = [r for r in rels if in_ltm(r.src) and in_ltm(r.dst)]
-        classes = [self.classes.get(c) for c in self.classes.dirty if c in self.classes]
-        w = persist.Write(
-            entities=entities,  # type: ignore[arg-type]
+        rels = [r for k in self.graph.dirty if (r := self.graph.find(k)) is not None]
+        return persist.Write(
+            entities=[self._frames[s] for s in write_slots],  # type: ignore[misc]
             entity_states=entity_states,
-            states=[c for c in states if len(c)],
-            events=events,
-            relations=rels,
-            classes=classes,
+            states=[c for c in self._pending if len(c)],
+            events=[self._events[i] for i in sorted(self._event_dirty & self._event_ltm)],
+            relations=[r for r in rels if self._in_ltm(r.src) and self._in_ltm(r.dst)],
+            classes=[self.classes.get(c) for c in self.classes.dirty if c in self.classes],
             next_id=self._next_id,
         )
-        return w, newly, new_events
-
-    def _after_flush(self, newly: np.ndarray, new_events: set[int]) -> None:
-        cols = self._cols
-        cols.ltm[newly] = True
-        cols.dirty[: cols.n] = False
-        self._event_ltm |= new_events
-        self._event_dirty.clear()
-        self.graph.dirty.clear()
-        self.classes.dirty.clear()
-        self._pending = []
 
     # ================================================================ queries
 

@@ -234,3 +234,15 @@ def test_region_in_another_frame_matches_brute_force() -> None:
         got = kd.region(box, poses={"world": poses["world"]})
         inside = np.all((p_body >= box.min_xyz) & (p_body <= box.max_xyz), axis=1)
         assert got.tolist() == np.flatnonzero(inside & world).tolist()
+
+
+def test_as_of_reaches_into_long_term_memory_after_the_horizon() -> None:
+    kd = kd_store.open(config=KDConfig(memory=TINY))  # vehicle level keeps 30 ns
+    a = kd.add_entity("a", Level.OBJECT, status="confirmed", confidence=1.0)
+    b = kd.add_entity("b", Level.OBJECT)  # short-term only
+    for t in (10, 20, 30, 40, 100):
+        kd.ingest(StateBatch(np.array([a.id, b.id]), np.array([t, t]), "world", np.full((2, 3), t)))
+    kd.advance(100)  # short-term memory now holds t >= 70 only
+    assert _x(kd.as_of(25)) == {}
+    assert _x(kd.as_of(25, long_term=True)) == {a.id: 20.0}
+    assert _x(kd.as_of(100, long_term=True)) == {a.id: 100.0, b.id: 100.0}
