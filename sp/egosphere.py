@@ -182,20 +182,20 @@ def _pixel_of(
     rng: np.ndarray,
 ) -> np.ndarray:
     """Flat pixel index (N,) int64 of every point; -1 for points that are dropped."""
-    col = ((np.pi - np.arctan2(y, x)) * (config.n_cols / (2 * np.pi))).astype(np.int64)
+    col = ((np.pi - np.arctan2(y, x)) * np.float32(config.n_cols / (2 * np.pi))).astype(np.int32)
     np.clip(col, 0, config.n_cols - 1, out=col)
     if config.use_ring and scan.ring is not None:
-        ring = scan.ring.astype(np.int64)
+        ring = scan.ring.astype(np.int32)
         row = config.n_rows - 1 - ring if config.ring_zero_at_bottom else ring
         ok = (row >= 0) & (row < config.n_rows)
     else:
-        el_hi = np.deg2rad(config.elevation_max_deg)
-        scale = config.n_rows / (el_hi - np.deg2rad(config.elevation_min_deg))
+        el_hi = np.float32(np.deg2rad(config.elevation_max_deg))
+        scale = np.float32(config.n_rows / (el_hi - np.deg2rad(config.elevation_min_deg)))
         row_f = (el_hi - np.arctan2(z, np.sqrt(horiz2))) * scale
         ok = (row_f >= 0) & (row_f < config.n_rows)
-        row = row_f.astype(np.int64)
+        row = row_f.astype(np.int32)
     ok &= rng >= config.min_range_m
-    pix = row * config.n_cols + col
+    pix = row * np.int32(config.n_cols) + col
     pix[~ok] = -1
     return pix
 
@@ -234,20 +234,27 @@ def to_egosphere(
     # Layer k holds, per pixel, the sweep index and range of its k-th nearest return.
     index = np.full((K, n_pix), -1, dtype=np.int64)
     range_m = np.full((K, n_pix), np.nan, dtype=np.float32)
-    remaining = np.flatnonzero(pix >= 0)
-    n_dropped = int(pix.size - remaining.size)
-    p, r = pix[remaining], rng[remaining]
+    ok = pix >= 0
+    n_ok = int(np.count_nonzero(ok))
+    n_dropped = int(pix.size - n_ok)
+    if n_dropped:
+        remaining = np.flatnonzero(ok)
+        p, r = pix[remaining], rng[remaining]
+    else:
+        remaining, p, r = np.arange(pix.size), pix, rng
     for k in range(K):
         if remaining.size == 0:
             break
         nearest = np.full(n_pix, np.inf, dtype=np.float32)
         np.minimum.at(nearest, p, r)
         first = r == nearest[p]
-        index[k, p[first]] = remaining[first]  # ties at equal range: one of them wins
-        range_m[k, p[first]] = r[first]
-        lost = index[k, p] != remaining
-        remaining, p, r = remaining[lost], p[lost], r[lost]
-    n_overflow = int(remaining.size)
+        # Points at exactly equal range in one pixel: one of them is kept.
+        index[k, p[first]] = remaining[first]
+        np.copyto(range_m[k], nearest, where=nearest < np.inf)
+        if k < K - 1:
+            lost = ~first
+            remaining, p, r = remaining[lost], p[lost], r[lost]
+    n_overflow = n_ok - int(np.count_nonzero(index >= 0))
     shape = (cfg.n_rows, cfg.n_cols, K)
     index = np.moveaxis(index.reshape(K, cfg.n_rows, cfg.n_cols), 0, -1)
     range_m = np.moveaxis(range_m.reshape(K, cfg.n_rows, cfg.n_cols), 0, -1)
