@@ -116,6 +116,9 @@ def test_simulate_to_log_writes_frames_terrain_and_scenario(tmp_path) -> None:
     assert (int(terrain["rows"]), int(terrain["cols"])) == raster.shape
     assert terrain["frame"] == "world"
     assert metadata["scenario"] == {"name": "default", "seed": "3", "seconds": "0.25"}
+    groups = {g: [int(i) for i in ids.split(",")] for g, ids in metadata["agent_groups"].items()}
+    assert groups == {str(g): ids for g, ids in sim.world.groups().items()}
+    assert max(len(ids) for ids in groups.values()) == 3  # the walking group
     written = Counter(type(f).__name__ for f in sim.frames(0.25))
     read = list(log.frames())
     assert Counter(type(f).__name__ for f in read) == written
