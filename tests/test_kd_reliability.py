@@ -59,6 +59,8 @@ def _run_and_kill(path: Path, after_batches: int, delay_s: float) -> tuple[int, 
     p = subprocess.Popen(
         [sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, text=True, env=env
     )
+    guard = threading.Timer(60.0, p.kill)  # a hung writer fails the test instead of hanging it
+    guard.start()
     try:
         first = int(p.stdout.readline().split()[1])
         last = -1
@@ -69,6 +71,7 @@ def _run_and_kill(path: Path, after_batches: int, delay_s: float) -> tuple[int, 
         time.sleep(delay_s)
         p.send_signal(signal.SIGKILL)
     finally:
+        guard.cancel()
         p.kill()
         p.wait()
     assert p.returncode == -signal.SIGKILL
