@@ -95,3 +95,36 @@ def test_check_reports_non_finite_points(tmp_path):
     r = run("log-info", "--check", str(path))
     assert r.returncode == 0, r.stderr
     assert "4 non-finite points dropped" in r.stdout
+
+
+def test_query_reads_a_kd_file_read_only(tmp_path):
+    import kd_store
+    from kd_store.frames import Level, State, Status
+
+    path = tmp_path / "run.duckdb"
+    with kd_store.open(path) as kd:
+        for i, (cls, x) in enumerate([("tree", 1.0), ("tree", 2.0), ("rock", 5.0)]):
+            kd.add_entity(
+                f"{cls}{i}",
+                Level.OBJECT,
+                status=Status.CONFIRMED,
+                confidence=0.9,
+                generic_classes=(cls,),
+                state=State(t_ns=1_000, frame="world", position_xyz=(x, 0.0, 0.0)),
+            )
+    r = run(
+        "query",
+        str(path),
+        "SELECT class_name, count(*) AS n, sum(x) AS sx FROM entities GROUP BY 1 ORDER BY 1",
+    )
+    assert r.returncode == 0, r.stderr
+    rows = [ln.split() for ln in r.stdout.splitlines()]
+    assert ["rock", "1", "5"] in rows and ["tree", "2", "3"] in rows
+    r = run("query", str(path), "DELETE FROM entities")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    out = tmp_path / "q.parquet"
+    r = run("query", str(path), "SELECT id FROM entities", "--parquet", str(out))
+    assert r.returncode == 0, r.stderr
+    import pyarrow.parquet as pq
+
+    assert pq.read_table(out).num_rows == 3

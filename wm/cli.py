@@ -2,6 +2,7 @@
 
     wm simulate SCENARIO --out LOG.mcap [--seconds S] [--seed N]
     wm log-info LOG [--skip-corrupt] [--check]
+    wm query KD.duckdb "SELECT ..." [--parquet OUT]
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -25,10 +26,17 @@ class UserError(Exception):
 
 def _user_error_types() -> tuple[type[BaseException], ...]:
     """Exception types that describe bad input, each module's own (imported lazily)."""
+    from kd_store.errors import KDError
     from maps.frames import GeometryError
     from sp.logs.types import LogError
 
-    types: list[type[BaseException]] = [UserError, LogError, GeometryError, FileNotFoundError]
+    types: list[type[BaseException]] = [
+        UserError,
+        LogError,
+        GeometryError,
+        KDError,
+        FileNotFoundError,
+    ]
     try:
         from fixtures.scenario import ScenarioError
 
@@ -80,6 +88,43 @@ def cmd_log_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def format_table(table, max_rows: int = 50) -> str:
+    """A pyarrow Table as aligned text, at most ``max_rows`` rows (says how many were left out)."""
+    cols = table.column_names
+    rows = table.slice(0, max_rows).to_pylist()
+    cells = [cols] + [[_cell(r[c]) for c in cols] for r in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(cols))]
+    lines = ["  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)) for row in cells]
+    if table.num_rows > max_rows:
+        lines.append(f"... {table.num_rows - max_rows} more rows")
+    lines.append(f"({table.num_rows} rows)")
+    return "\n".join(lines)
+
+
+def _cell(v: object) -> str:
+    text = f"{v:.6g}" if isinstance(v, float) else str(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    """Read-only SQL over a KD file's documented views (entities, entity_states, events, ...)."""
+    import kd_store
+
+    path = Path(args.kd)
+    if not path.exists():
+        raise FileNotFoundError(f"KD file {path} does not exist")
+    with kd_store.open(path, read_only=True) as kd:
+        table = kd.sql(args.sql)
+    if args.parquet:
+        import pyarrow.parquet as pq
+
+        pq.write_table(table, args.parquet)
+        print(f"wrote {table.num_rows} rows to {args.parquet}")
+    else:
+        print(format_table(table, args.max_rows))
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the embedded default: simulate the default scenario, then read it back."""
     out = Path(args.out) / "default.mcap"
@@ -115,6 +160,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--check", action="store_true", help="decode every frame and report what had to be dropped"
     )
     i.set_defaults(func=cmd_log_info)
+
+    q = sub.add_parser("query", help="read-only SQL over a KD file (views: see README)")
+    q.add_argument("kd", help="KD file (DuckDB)")
+    q.add_argument("sql", help="one SELECT over the views (entities, events, ...)")
+    q.add_argument("--max-rows", type=int, default=50, help="rows to print (default 50)")
+    q.add_argument("--parquet", default=None, help="write the result to this Parquet file")
+    q.set_defaults(func=cmd_query)
 
     d = sub.add_parser("demo", help="simulate the default scenario and show what the log holds")
     d.add_argument("--out", default="out", help="folder for the demo's files (default: out/)")
