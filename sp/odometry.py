@@ -18,9 +18,12 @@ Per sweep (one :class:`~sp.logs.types.LadarScan`):
    ``K = P / (P + R)``, ``P`` the wheel odometry's variance and ``R`` the registration's, which
    grows as the quality falls.
 
-Poses: the sensor's pose at the sweep stamp ``t_ns`` (KISS-ICP deskews to the sweep's start when
-given normalised per-point times), ``T_world_body = T_world_sensor @ inv(T_body_sensor)``; the
-world is the body frame at the first sweep unless ``T_world_body0`` says otherwise.
+Poses: KISS-ICP deskews a sweep to the end of its per-point times once the motion is known; a
+sweep taken as it is (no per-point times, deskew off, or the first sweeps before any motion is
+known) stands for its middle. So an estimate is the pose at the sweep's *reference time*, its
+end or its middle, which :class:`OdometryEstimate` carries as ``t_ns``.
+``T_world_body = T_world_sensor @ inv(T_body_sensor)``; the world is the body frame at the middle
+of the first sweep unless ``T_world_body0`` (the body pose at that time) says otherwise.
 """
 
 from __future__ import annotations
@@ -206,7 +209,9 @@ class LadarOdometry:
         T0 = np.eye(4) if T_world_body0 is None else check_pose(T_world_body0, "T_world_body0")
         self.T_world_map = T0 @ self.T_body_sensor  # KISS-ICP's map frame: first sensor pose
         self.wheel = WheelOdometry()
-        self.last_t_ns: int | None = None
+        self.last_t_ns: int | None = None  # reference time of the last sweep
+        self.last_stamp_ns: int | None = None  # its stamp
+        self.last_interval_ns = 0  # between the last two reference times
         self.n_lost = 0
         self._previous_voxels: np.ndarray | None = None
         self.last_gain = np.zeros(6)  # per-axis weight of the registration in the last fusion
@@ -220,11 +225,16 @@ class LadarOdometry:
     def _predicted_delta(self, t_ns: int) -> tuple[np.ndarray, bool]:
         """Sensor motion since the last sweep: from wheel odometry if it covers the interval,
         else KISS-ICP's constant-velocity model (scaled to the interval)."""
-        if self.last_t_ns is not None:
-            body = self.wheel.motion(self.last_t_ns, t_ns)
-            if body is not None:
-                return self.T_sensor_body @ body @ self.T_body_sensor, True
-        return self.kiss.last_delta, False
+        if self.last_t_ns is None:
+            return np.eye(4), False
+        body = self.wheel.motion(self.last_t_ns, t_ns)
+        if body is not None:
+            return self.T_sensor_body @ body @ self.T_body_sensor, True
+        if self.last_interval_ns <= 0:
+            return self.kiss.last_delta, False
+        return scale_motion(
+            self.kiss.last_delta, (t_ns - self.last_t_ns) / self.last_interval_ns
+        ), False
 
     def _voxels(self, points: np.ndarray) -> np.ndarray:
         keys = np.floor(points / self.config.voxel_m).astype(np.int64)
@@ -233,20 +243,28 @@ class LadarOdometry:
     def update(self, scan: LadarScan) -> OdometryEstimate:
         """Register one sweep; returns its pose, quality and status."""
         cfg, kiss = self.config, self.kiss
-        t_ns = int(scan.t_ns)
-        if self.last_t_ns is not None and t_ns <= self.last_t_ns:
+        if self.last_stamp_ns is not None and scan.t_ns <= self.last_stamp_ns:
             raise OdometryError(
-                f"sweep at t_ns={t_ns} is not after the last one ({self.last_t_ns})"
+                f"sweep at t_ns={scan.t_ns} is not after the last one ({self.last_stamp_ns})"
             )
+        self.last_stamp_ns = int(scan.t_ns)
+        t_mid, t_end = sweep_times_ns(scan)
         pts = np.asarray(scan.points_xyz, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1:] != (3,):
-            raise OdometryError(f"sweep at t_ns={t_ns}: points_xyz shape {pts.shape}, not (N, 3)")
+            raise OdometryError(
+                f"sweep at t_ns={scan.t_ns}: points_xyz shape {pts.shape}, not (N, 3)"
+            )
         finite = np.all(np.isfinite(pts), axis=1)
         rng = np.linalg.norm(pts, axis=1)
         usable = finite & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
         times = _normalised_times(scan.t_offset_ns, usable) if cfg.deskew else np.zeros(0)
         pts = pts[usable]
+        # A sweep deskewed with a known motion refers to its end (KISS-ICP's deskew reference);
+        # one taken as it is (no times, or no motion known yet) to its middle.
+        t_ns = t_end if times.size else t_mid
         delta_pred, from_wheel = self._predicted_delta(t_ns)
+        if times.size and np.allclose(delta_pred, np.eye(4), atol=1e-12):
+            t_ns = t_mid
         if pts.shape[0] < cfg.min_points:
             return self._reject(
                 t_ns, delta_pred, f"{pts.shape[0]} usable points < {cfg.min_points}"
@@ -254,7 +272,11 @@ class LadarOdometry:
 
         first = kiss.local_map.empty()
         # KISS-ICP's register_frame, step by step, so a bad result never reaches the map.
-        frame = kiss.preprocessor.preprocess(pts, times, delta_pred)
+        # The deskew takes the motion over the sweep's own span of point times.
+        span = sweep_span_ns(scan)
+        interval = t_ns - self.last_t_ns if self.last_t_ns is not None else 0
+        sweep_motion = scale_motion(delta_pred, span / interval) if interval > 0 else delta_pred
+        frame = kiss.preprocessor.preprocess(pts, times, sweep_motion)
         source, frame_down = kiss.voxelize(frame)
         sigma = kiss.adaptive_threshold.get_threshold()
         guess = kiss.last_pose @ delta_pred
@@ -282,6 +304,7 @@ class LadarOdometry:
             else (TrackStatus.RECOVERED if self.n_lost else TrackStatus.TRACKING)
         )
         self.n_lost = 0
+        self.last_interval_ns = t_ns - self.last_t_ns if self.last_t_ns is not None else 0
         self.last_t_ns = t_ns
         return OdometryEstimate(
             t_ns, self._T_world_body(pose), quality, status, "", pts.shape[0], delta_icp
@@ -350,11 +373,34 @@ class LadarOdometry:
         if not kiss.local_map.empty():
             kiss.last_pose = kiss.last_pose @ delta_pred
         self.n_lost += 1
+        if self.last_t_ns is not None and not kiss.local_map.empty():
+            self.last_interval_ns = t_ns - self.last_t_ns
+            kiss.last_delta = delta_pred
         self.last_t_ns = t_ns
         message = f"sweep at t_ns={t_ns} rejected: {why}; pose follows the prediction"
         return OdometryEstimate(
             t_ns, self._T_world_body(kiss.last_pose), quality, TrackStatus.LOST, message, n_points
         )
+
+
+def scale_motion(T: np.ndarray, factor: float) -> np.ndarray:
+    """The motion ``T`` continued at constant velocity for ``factor`` times as long."""
+    return from_vector(to_vector(T) * factor)
+
+
+def sweep_span_ns(scan: LadarScan) -> int:
+    """Time from a sweep's first to its last point (0 without per-point times)."""
+    t = np.asarray(scan.t_offset_ns)
+    return int(t.max() - t.min()) if t.size else 0
+
+
+def sweep_times_ns(scan: LadarScan) -> tuple[int, int]:
+    """Middle and end of a sweep's per-point times (both the stamp when it has none)."""
+    t = np.asarray(scan.t_offset_ns)
+    if t.size == 0:
+        return int(scan.t_ns), int(scan.t_ns)
+    lo, hi = int(t.min()), int(t.max())
+    return int(scan.t_ns) + (lo + hi) // 2, int(scan.t_ns) + hi
 
 
 def _normalised_times(t_offset_ns: np.ndarray, usable: np.ndarray) -> np.ndarray:

@@ -170,3 +170,43 @@ def test_bad_input_is_refused():
         od.update(scan_at(0))
     with pytest.raises(OdometryError, match="min_range_m"):
         OdometryConfig(min_range_m=5.0, max_range_m=2.0)
+
+
+def swept_scan(k: int, n_cols: int = 64, seed: int = 5) -> LadarScan:
+    """A sweep taken while moving: column j is measured at ``j / n_cols`` of the period."""
+    rng = np.random.default_rng(seed + k)
+    pts, offsets = [], []
+    for j in range(n_cols):
+        dt = j * PERIOD_NS // n_cols
+        p = transform_points(se3_inverse(_pose_at(k * PERIOD_NS + dt) @ T_BODY_SENSOR), WORLD)
+        az = np.arctan2(p[:, 1], p[:, 0])
+        lo = -np.pi + 2 * np.pi * j / n_cols
+        m = (az >= lo) & (az < lo + 2 * np.pi / n_cols) & (np.linalg.norm(p, axis=1) < 40)
+        m &= rng.random(len(p)) < 0.5
+        pts.append(p[m])
+        offsets.append(np.full(m.sum(), dt))
+    p, t = np.vstack(pts), np.concatenate(offsets)
+    return LadarScan(
+        k * PERIOD_NS,
+        "ladar",
+        p.astype(np.float32),
+        np.ones(len(p), np.float32),
+        t.astype(np.int64),
+    )
+
+
+def test_deskewed_poses_refer_to_the_end_of_the_sweep():
+    mid = PERIOD_NS // 2 - PERIOD_NS // 128  # middle of the column times
+    end = PERIOD_NS - PERIOD_NS // 64  # the last column's time
+    od = LadarOdometry(
+        OdometryConfig(max_range_m=40.0, voxel_size_m=0.4),
+        T_body_sensor=T_BODY_SENSOR,
+        T_world_body0=_pose_at(mid),
+    )
+    first = od.update(swept_scan(0))
+    assert first.t_ns == mid  # taken as it is: it stands for its middle
+    for k in range(1, 8):
+        est = od.update(swept_scan(k))
+    assert est.t_ns == 7 * PERIOD_NS + end
+    # 1 m of motion within each sweep: without deskewing the error would be ~0.5 m.
+    assert np.linalg.norm(est.T_world_body[:3, 3] - _pose_at(est.t_ns)[:3, 3]) < 0.05
