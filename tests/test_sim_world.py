@@ -148,3 +148,35 @@ def test_agent_culling_never_loses_a_hit(world: World) -> None:
     assert on_agent.sum() > 100
     assert np.allclose(hits.range_m[on_agent], brute[on_agent])
     assert np.all(hits.cls[on_agent] >= 0)
+
+
+def test_ladar_hits_lie_inside_their_objects_ground_truth_boxes(world: World) -> None:
+    """Every ray that hits an object ends inside that object's box (agents: at the ray's time)."""
+    from fixtures.sensors import Ladar, LadarConfig
+
+    ladar = Ladar(LadarConfig(n_beams=32, n_azimuth=512), world, np.random.default_rng(0))
+    seen: set[str] = set()
+    for t_ns in (8 * NS_PER_S, 30 * NS_PER_S, 41 * NS_PER_S):
+        times, origins, dirs = ladar.rays_world(t_ns)
+        hits = world.cast_rays(origins, dirs, times, 120.0)
+        ti, bi = np.nonzero(hits.object_id > 0)
+        p = origins[ti] + dirs[ti, bi] * hits.range_m[ti, bi][:, None]
+        for oid in np.unique(hits.object_id[ti, bi]):
+            sel = hits.object_id[ti, bi] == oid
+            boxes = world.object_boxes(int(times[ti[sel][0]]))  # statics: any time will do
+            k = int(np.flatnonzero(boxes.ids == oid)[0])
+            seen.add(boxes.classes[k])
+            if boxes.classes[k] in ("vehicle", "person"):  # place the box at each ray's time
+                agent = [a.object_id for a in world.agents].index(oid)
+                states = world.agent_states(times[ti[sel]])
+                centers, yaws = states.centers[:, agent], states.yaws[:, agent]
+            else:
+                centers, yaws = boxes.centers[k][None], np.full(sel.sum(), boxes.yaws[k])
+            c, s = np.cos(yaws), np.sin(yaws)
+            d = p[sel] - centers
+            local = np.column_stack([c * d[:, 0] + s * d[:, 1], c * d[:, 1] - s * d[:, 0], d[:, 2]])
+            half = boxes.sizes[k] / 2 + 1e-3
+            # below the box is the part sunk into the ground: only x, y and the top are bounded
+            inside = np.all(np.abs(local[:, :2]) <= half[:2], axis=1) & (local[:, 2] <= half[2])
+            assert inside.all(), (boxes.classes[k], oid, np.abs(local).max(axis=0), half)
+    assert {"building", "tree", "vehicle"} <= seen
