@@ -83,6 +83,7 @@ class CellBatch:
     ``resolution_m``; ground points give ``w = sum 1/var``, ``wz = sum (z - z_ref)/var``,
     ``wzz = sum (z - z_ref)^2/var`` and their number ``n``; all points give ``z_min, z_max``;
     obstacle points their number ``n_obstacle``. ``z_ref`` (m) is one scalar per sweep.
+    ``reset`` marks cells of this level whose ground estimate the sweep refuted.
     """
 
     resolution_m: float
@@ -96,6 +97,7 @@ class CellBatch:
     n_obstacle: np.ndarray
     z_min: np.ndarray
     z_max: np.ndarray
+    reset: np.ndarray | None = None  # (M,) bool: the level's estimate there was refuted
 
     def __len__(self) -> int:
         return int(self.ix.shape[0])
@@ -197,7 +199,8 @@ def summarise(
     # in the cell or, lower still, in a neighbouring cell (+ a slope allowance)
     sc = _scratch(level)
     np.minimum.at(sc.z_lo, flat, z)
-    ground = z <= _ground_gate(level, sc.z_lo, z_ref, config)[flat]
+    gate, stale = _ground_gate(level, sc.z_lo, z_ref, config)
+    ground = z <= gate[flat]
     w = np.where(ground, 1.0 / var, 0.0)
     wz = w * z
     parts = [w, wz, wz * z, ground.astype(np.float64), (~ground).astype(np.float64)]
@@ -230,6 +233,8 @@ def summarise(
     sc.reset(cells)
     s_row, s_col = np.divmod(cells, size)
     ox, oy = level.origin_cell
+    reset = np.zeros(len(cells), dtype=bool)
+    reset[np.searchsorted(cells, stale)] = True  # stale cells are among the touched ones
     return CellBatch(
         resolution_m=level.resolution_m,
         z_ref=z_ref,
@@ -242,6 +247,7 @@ def summarise(
         n_obstacle=np.rint(vals[4]).astype(np.int64),
         z_min=z_lo,
         z_max=z_hi,
+        reset=reset,
     )
 
 
@@ -282,23 +288,30 @@ def storage_flat(level: MapLevel, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
 
 def _ground_gate(
     level: MapLevel, z_lo: np.ndarray, z_ref: float, config: FusionConfig
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Dense (size*size,) height (relative to ``z_ref``) above which a point is an obstacle,
-    valid at the cells with points this sweep (``z_lo`` finite), computed once per cell.
+    valid at the cells with points this sweep (``z_lo`` finite), computed once per cell; and
+    the flat indices of cells whose estimate this sweep refutes.
 
     Reference: the estimate + 3 sigma where the cell has one; else ``min(own lowest point,
     lowest neighbour + slope allowance)`` over the 8 neighbours (their estimate if known, else
     their lowest point this sweep), so a cell whose every point lies on an object face is not
     taken for ground when a neighbour saw the ground. The gate adds ``obstacle_height_m``.
+    A cell whose lowest point this sweep lies more than ``obstacle_height_m`` + 3 sigma below
+    its estimate held an object's top (or something that has moved away): the hypothesis is
+    denied (001, 4.5.3 hypothesize and test), and the cell starts again like a new one.
     """
     size = level.size
     elev = level.storage("elevation").reshape(-1)
     cells = np.flatnonzero(z_lo < np.inf)
     e = elev[cells].astype(np.float64) - z_ref
-    known = np.isfinite(e)
     sigma = np.sqrt(level.storage("elevation_var").reshape(-1)[cells].astype(np.float64))
-    ref = np.where(known, e + 3.0 * np.nan_to_num(sigma), z_lo[cells])
-    new = cells[~known]
+    spread = 3.0 * np.nan_to_num(sigma)
+    known = np.isfinite(e)
+    stale = known & (z_lo[cells] < e - spread - config.obstacle_height_m)
+    fresh = ~known | stale
+    ref = np.where(fresh, z_lo[cells], e + spread)
+    new = cells[fresh]
     if new.size:
         srow, scol = np.divmod(new, size)
         wrow = (srow - level.origin_cell[1]) % size  # window row/col: nothing across the seam
@@ -314,10 +327,10 @@ def _ground_gate(
                 base = np.where(np.isnan(en), z_lo[nflat], en.astype(np.float64) - z_ref)
                 nb = np.where(ok, np.minimum(nb, base), nb)
         allowance = config.max_ground_slope * np.sqrt(2.0) * level.resolution_m
-        ref[~known] = np.minimum(z_lo[new], nb + allowance)
+        ref[fresh] = np.minimum(z_lo[new], nb + allowance)
     gate = np.empty(z_lo.shape)  # only the touched cells are ever read
     gate[cells] = ref + config.obstacle_height_m
-    return gate
+    return gate, cells[stale]
 
 
 def _child_flat(level: MapLevel, child: CellBatch) -> np.ndarray:
@@ -344,6 +357,12 @@ def apply(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns: int) ->
     lay = {name: level.storage(name).reshape(-1) for name in FUSION_LAYERS}  # flat views
 
     g = batch.n > 0
+    if batch.reset is not None:  # refuted and no ground seen now: the cell's height is unknown
+        gone = cell[batch.reset & ~g]
+        for name in ("elevation", "elevation_var", "z_mean", "roughness"):
+            lay[name][gone] = np.nan
+        for name in ("z_weight", "z_m2", "count"):
+            lay[name][gone] = 0
     gcell = cell[g]
     _kalman(lay, gcell, batch, g, config)
     _moments(lay, gcell, batch, g)
@@ -365,6 +384,8 @@ def _kalman(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray, confi
     x = lay["elevation"][gcell].astype(np.float64)
     P = lay["elevation_var"][gcell].astype(np.float64) + config.process_var_m2
     new = ~np.isfinite(x) | ~np.isfinite(P)  # first observation: the estimate is the measurement
+    if batch.reset is not None:
+        new |= batch.reset[g]
     P = np.where(new, 1.0, P)
     K = np.where(new, 1.0, P / (P + R))
     x = np.where(new, z_bar, x + K * (z_bar - x))
@@ -381,11 +402,15 @@ def _moments(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray) -> N
     mean_b = batch.wz[g] / w_b
     m2_b = np.maximum(batch.wzz[g] - batch.wz[g] * mean_b, 0.0)
     mean_b = mean_b + batch.z_ref
-    w_a = lay["z_weight"][gcell]
+    w_a, m2_a = lay["z_weight"][gcell], lay["z_m2"][gcell]
+    if batch.reset is not None:
+        keep = ~batch.reset[g]
+        w_a, m2_a = np.where(keep, w_a, 0.0), np.where(keep, m2_a, 0.0)
+        lay["count"][gcell] *= keep
     mean_a = np.where(w_a > 0, lay["z_mean"][gcell], mean_b)
     w = w_a + w_b
     delta = mean_b - mean_a
-    m2 = lay["z_m2"][gcell] + m2_b + delta * delta * w_a * w_b / w
+    m2 = m2_a + m2_b + delta * delta * w_a * w_b / w
     lay["z_weight"][gcell] = w
     lay["z_mean"][gcell] = mean_a + delta * w_b / w
     lay["z_m2"][gcell] = m2
@@ -398,6 +423,7 @@ def _subset(batch: CellBatch, keep: np.ndarray) -> CellBatch:
         k: getattr(batch, k)[keep]
         for k in ("ix", "iy", "w", "wz", "wzz", "n", "n_obstacle", "z_min", "z_max")
     }
+    arrays["reset"] = None if batch.reset is None else batch.reset[keep]
     return CellBatch(resolution_m=batch.resolution_m, z_ref=batch.z_ref, **arrays)
 
 

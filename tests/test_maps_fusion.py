@@ -31,6 +31,10 @@ def _reference(batches, res: float, cfg: FusionConfig) -> dict:
         for k, p in zip(keys, pts, strict=True):
             lowest[k] = min(lowest.get(k, np.inf), p[2])
         start = {k: (c["x"], c["P"]) for k, c in cells.items()}
+        for k in set(keys):  # a lowest point far below the estimate refutes it: start again
+            x0, P0 = start.get(k, (np.nan, np.nan))
+            if np.isfinite(x0) and lowest[k] < x0 - 3 * np.sqrt(P0) - cfg.obstacle_height_m:
+                cells[k].update(x=np.nan, P=np.nan, n=0, W=0.0, mean=0.0, m2=0.0, stale=True)
         hits: dict = {}
         for k, p, v in zip(keys, pts, var, strict=True):
             c = cells.setdefault(
@@ -38,7 +42,10 @@ def _reference(batches, res: float, cfg: FusionConfig) -> dict:
             )
             c.update(lo=min(c["lo"], p[2]), hi=max(c["hi"], p[2]), seen=t_ns)
             x0, P0 = start.get(k, (np.nan, np.nan))
-            ref = x0 + 3 * np.sqrt(P0) if np.isfinite(x0) else _new_ref(k, lowest, start, res, cfg)
+            if np.isfinite(x0) and not c.get("stale"):
+                ref = x0 + 3 * np.sqrt(P0)
+            else:
+                ref = _new_ref(k, lowest, start, res, cfg)
             if p[2] > ref + cfg.obstacle_height_m:
                 c["nob"] += 1
                 hits[k] = True
@@ -55,6 +62,8 @@ def _reference(batches, res: float, cfg: FusionConfig) -> dict:
             d = p[2] - c["mean"]
             c["mean"] += d / v / c["W"]
             c["m2"] += d * (p[2] - c["mean"]) / v
+        for c in cells.values():
+            c.pop("stale", None)
         for k, hit in hits.items():
             c = cells[k]
             c["occ"] = float(np.clip(c.get("occ", 0.0) + (cfg.l_hit if hit else cfg.l_miss), -4, 4))
@@ -87,6 +96,9 @@ def test_fusion_equals_slow_reference(seed: int, n_batches: int) -> None:
         xy = rng.uniform([0.0, -3.0], [4.0, 1.0], size=(n, 2))  # ~ 8 x 8 cells, many per cell
         z = 0.3 * xy[:, 0] + rng.normal(0, 0.05, n)
         z[rng.random(n) < 0.1] += rng.uniform(0.5, 2.0)  # some obstacle points
+        if b == 0:  # a table top hides the ground of a 3 x 3 cell patch in the first sweep
+            top = (xy[:, 0] >= 2.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] < 1.0)
+            z[top] += 1.0
         pts = np.column_stack([xy, z])
         pts[rng.random(n) < 0.05, rng.integers(0, 3)] = np.nan
         var = rng.uniform(1e-4, 1e-2, n)
@@ -139,6 +151,21 @@ def test_fused_elevation_matches_a_known_height_function() -> None:
     assert 0.5 < float(np.std(err / sd)) < 3.0
     assert level.window("count")[rows, cols].sum() == 200000
     assert np.all(level.window("occupancy")[rows, cols] < 0)  # ground only
+
+
+def test_an_estimate_refuted_by_lower_points_starts_again() -> None:
+    """A patch first seen only on an object's top (nothing lower around) is taken for ground;
+    when the object has gone and the ground shows 1 m below, the cells start again."""
+    rng = np.random.default_rng(2)
+    level = MapLevel(LevelConfig("t", 0.5, 32))
+    xy = rng.uniform(-2, 2, size=(5000, 2))
+    fuse_points(level, np.column_stack([xy, np.full(len(xy), 1.0)]), 1e-4, t_ns=1)
+    assert np.nanmax(np.abs(level.window("elevation") - 1.0)) < 1e-6
+    z = rng.normal(0.0, 0.01, len(xy))
+    fuse_points(level, np.column_stack([xy, z]), 1e-4, t_ns=2)
+    known = np.isfinite(level.window("elevation"))
+    assert np.abs(level.window("elevation")[known]).max() < 0.05
+    assert level.window("count").sum() == len(xy)  # the refuted sweep no longer counts
 
 
 def test_obstacles_raise_occupancy_not_elevation() -> None:
