@@ -203,3 +203,25 @@ def egosphere_attributes(
         out.dr_dt = range_rate(r, previous.range_m, dt)
         out.dI_dt = temporal_gradient(I, previous.intensity, dt)
     return out
+
+
+def attribute_pyramids(
+    attributes: Level1Attributes, levels: int = 4
+) -> dict[str, list[np.ndarray]]:
+    """Pyramids of scale (4.5.5) of every attribute image present: level 0 as computed, each
+    next level half the size by averaging 2x2 blocks of known (finite) pixels, NaN where a block
+    holds none. A 256x256 image gives 256, 128, 64 and 32; normals (H, W, 3) are averaged per
+    component and scaled back to unit length."""
+    from maps.pyramid import build_pyramid
+
+    out: dict[str, list[np.ndarray]] = {}
+    for name in attributes.names():
+        a = getattr(attributes, name)
+        if a.ndim == 2:
+            out[name] = build_pyramid(a, levels, valid=np.isfinite(a))
+            continue
+        comps = [build_pyramid(a[..., i], levels, valid=np.isfinite(a[..., i])) for i in range(3)]
+        stacked = [np.stack(level, axis=-1) for level in zip(*comps, strict=True)]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[name] = [v / np.linalg.norm(v, axis=-1, keepdims=True) for v in stacked]
+    return out

@@ -110,3 +110,20 @@ def test_image_attributes_chain():
     second = image_attributes(50_000_000, (4 * cols + 1).astype(np.uint8), first)
     assert np.allclose(second.dI_dx, 4.0) and np.allclose(second.dI_dt, 20.0)
     assert set(second.names()) == {"intensity", "dI_dx", "dI_dy", "dI_dt"}
+
+
+def test_attribute_pyramids_average_known_pixels():
+    from sp.attributes import Level1Attributes, attribute_pyramids
+
+    rng = np.random.default_rng(0)
+    r = rng.uniform(5, 50, (256, 256)).astype(np.float32)
+    r[:8, :8] = np.nan  # an unknown 8x8 corner: one level-3 pixel has nothing under it
+    r[8, 8] = np.nan
+    n = np.zeros((256, 256, 3), np.float32)
+    n[..., 2] = 1.0
+    pyr = attribute_pyramids(Level1Attributes(0, range_m=r, normals=n), levels=4)
+    assert [p.shape for p in pyr["range_m"]] == [(256, 256), (128, 128), (64, 64), (32, 32)]
+    assert np.isnan(pyr["range_m"][3][0, 0])
+    block = r[8:16, 8:16]
+    assert pyr["range_m"][3][1, 1] == pytest.approx(np.nanmean(block), rel=1e-5)
+    assert np.allclose(pyr["normals"][2], [0.0, 0.0, 1.0])
