@@ -83,7 +83,9 @@ def _as_weight(valid: np.ndarray | None, shape: tuple[int, ...], name: str) -> n
 
 def _centred(image: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
     """float32 image minus its (weighted) mean, so float32 correlation sums keep precision
-    even for attributes far from zero (ranges of 50 m varying by centimetres)."""
+    even for attributes far from zero (ranges of 50 m varying by centimetres). The plain path
+    needs no centring: its window variances come from float64 summed-area tables and its
+    template is centred."""
     if weight is None:
         mean = float(np.einsum("ij->", image, dtype=np.float64)) / image.size
     else:
@@ -157,16 +159,29 @@ def build_pyramid(
     ]
 
 
-def _box_sums(region: np.ndarray, shape: tuple[int, int], reach: int) -> np.ndarray:
-    """Sums of every (h, w) = ``shape`` window of ``region`` ((h + 2 reach, w + 2 reach)), as a
-    (2 reach + 1, 2 reach + 1) float64 array indexed by the window's top-left corner, from one
-    integral image (summed-area table) instead of a pass per window."""
+def _integrals(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Summed-area tables (H + 1, W + 1) float64 of an image and of its square."""
     import cv2
 
+    a = np.ascontiguousarray(image, dtype=np.float32)
+    return cv2.integral(a, sdepth=cv2.CV_64F), cv2.integral(a * a, sdepth=cv2.CV_64F)
+
+
+def _box_sums(
+    ii: np.ndarray, top_left: tuple[int, int], shape: tuple[int, int], reach: int
+) -> np.ndarray:
+    """Sums of the (h, w) = ``shape`` windows whose top-left corners lie in the
+    (2 reach + 1)^2 square from ``top_left``, from a summed-area table: a (2 reach + 1,
+    2 reach + 1) float64 array indexed by corner offset."""
     h, w = shape
     k = 2 * reach + 1
-    ii = cv2.integral(np.ascontiguousarray(region, dtype=np.float32), sdepth=cv2.CV_64F)
-    return ii[h : h + k, w : w + k] - ii[:k, w : w + k] - ii[h : h + k, :k] + ii[:k, :k]
+    r, c = top_left
+    return (
+        ii[r + h : r + h + k, c + w : c + w + k]
+        - ii[r : r + k, c + w : c + w + k]
+        - ii[r + h : r + h + k, c : c + k]
+        + ii[r : r + k, c : c + k]
+    )
 
 
 class _Window:
@@ -187,6 +202,7 @@ class _Window:
         reach: int,
         w_ref: np.ndarray | None,
         w_mov: np.ndarray | None,
+        tables: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         h, w = mov.shape
         cr, cc = center_rc
@@ -218,9 +234,11 @@ class _Window:
                 self.done[:] = True  # no texture: every offset correlates as NaN
                 return
             # Box sums come indexed by window top-left corner; flip to offset order.
-            s = _box_sums(self.region, t.shape, reach)[::-1, ::-1]
-            ss = _box_sums(self.region * self.region, t.shape, reach)[::-1, ::-1]
-            self.multiply_adds += self.region.size + self.n  # squares for ss, template norm
+            ii, ii2 = tables if tables is not None else _integrals(ref)
+            corner = (rows.start, cols.start)
+            s = _box_sums(ii, corner, t.shape, reach)[::-1, ::-1]
+            ss = _box_sums(ii2, corner, t.shape, reach)[::-1, ::-1]
+            self.multiply_adds += self.n  # template norm (the tables are counted per level)
             var = ss - s * s / self.n
             self.denominator = np.where(
                 var > (FLAT_STD**2) * self.n, self.t_norm * np.sqrt(np.maximum(var, 0.0)), np.nan
@@ -314,12 +332,16 @@ def _climb(
     Returns the integer peak, its (3, 3) correlation surface indexed ``[dr + 1, dc + 1]``, the
     window coverage, the multiply-adds spent and whether the climb ran out of steps."""
     center, ops = start_rc, 0
-    win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
+    tables = None
+    if w_ref is None and w_mov is None:
+        tables = _integrals(ref)  # window sums for every window of this level
+        ops += ref.size  # the squares
+    win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov, tables)
     steps = np.array([-1, 0, 1])
     for _ in range(MAX_CLIMB_STEPS):
         if not win.covers(center):
             ops += win.multiply_adds
-            win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
+            win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov, tables)
         surface = win.surface(center)
         if limit_px is not None:
             rows = np.abs(center[0] + steps)[:, None] > limit_px
@@ -439,8 +461,11 @@ def register(
     """
     wref = _as_weight(valid_reference, np.shape(reference), "valid_reference")
     wmov = _as_weight(valid_moving, np.shape(moving), "valid_moving")
-    ref = _centred(_as_image(reference, "reference"), wref)
-    mov = _centred(_as_image(moving, "moving"), wmov)
+    ref = _as_image(reference, "reference").astype(np.float32, copy=False)
+    mov = _as_image(moving, "moving").astype(np.float32, copy=False)
+    if wref is not None or wmov is not None or rotations_rad is not None:
+        # The weighted sums are float32: take the mean out first so they keep their precision.
+        ref, mov = _centred(ref, wref), _centred(mov, wmov)
     if levels < 1:
         raise PyramidError(f"levels must be >= 1, got {levels}")
     if max_shift_px is not None and max_shift_px < 0:
