@@ -18,6 +18,7 @@ returns the original points bit for bit; the pixel's own ray (its bin centre) is
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,7 +70,7 @@ class EgosphereImage:
     """A range image on the sensor egosphere; arrays are (n_rows, n_cols, max_returns[, 3]).
 
     range_m:      float32 metres from the sensor origin, NaN where empty.
-    point_index:  int64 index of the point in the sweep, -1 where empty.
+    point_index:  int32 index of the point in the sweep, -1 where empty.
     valid:        bool, ``point_index >= 0``.
     intensity:    float32 sensor units, NaN where empty.
     xyz:          float32 metres, sensor frame, NaN where empty.
@@ -231,29 +232,30 @@ def to_egosphere(
     rng = np.sqrt(horiz2 + z * z)
     pix = _pixel_of(scan, cfg, x, y, z, horiz2, rng)
     n_pix, K = cfg.n_rows * cfg.n_cols, cfg.max_returns
-    # Layer k holds, per pixel, the sweep index and range of its k-th nearest return.
-    index = np.full((K, n_pix), -1, dtype=np.int64)
-    range_m = np.full((K, n_pix), np.nan, dtype=np.float32)
     ok = pix >= 0
     n_ok = int(np.count_nonzero(ok))
     n_dropped = int(pix.size - n_ok)
-    if n_dropped:
-        remaining = np.flatnonzero(ok)
-        p, r = pix[remaining], rng[remaining]
-    else:
-        remaining, p, r = np.arange(pix.size), pix, rng
+    remaining = np.flatnonzero(ok) if n_dropped else np.arange(pix.size)
+    p = pix[remaining] if n_dropped else pix
+    # One key orders a pixel's returns by range and names the point: the bits of a positive
+    # float32 sort as the number does, so (range bits << 32 | index) is least for the nearest.
+    keys = rng[remaining].view(np.uint32).astype(np.uint64) << np.uint64(32)
+    keys |= remaining.astype(np.uint64)
+    empty = np.iinfo(np.uint64).max
+    layers = np.full((K, n_pix), empty, dtype=np.uint64)
     for k in range(K):
-        if remaining.size == 0:
+        if keys.size == 0:
             break
-        nearest = np.full(n_pix, np.inf, dtype=np.float32)
-        np.minimum.at(nearest, p, r)
-        first = r == nearest[p]
-        # Points at exactly equal range in one pixel: one of them is kept.
-        index[k, p[first]] = remaining[first]
-        np.copyto(range_m[k], nearest, where=nearest < np.inf)
+        np.minimum.at(layers[k], p, keys)
         if k < K - 1:
-            lost = ~first
-            remaining, p, r = remaining[lost], p[lost], r[lost]
+            lost = layers[k][p] != keys
+            keys, p = keys[lost], p[lost]
+    # Decode by viewing each key as two 32-bit halves (the index, the range bits). An
+    # empty key is all ones: index -1 as int32 and a NaN as float32, as wanted.
+    halves = layers.view(np.uint32).reshape(K, n_pix, 2)
+    low, high = (0, 1) if sys.byteorder == "little" else (1, 0)
+    index = np.ascontiguousarray(halves[..., low]).view(np.int32)
+    range_m = np.ascontiguousarray(halves[..., high]).view(np.float32)
     n_overflow = n_ok - int(np.count_nonzero(index >= 0))
     shape = (cfg.n_rows, cfg.n_cols, K)
     index = np.moveaxis(index.reshape(K, cfg.n_rows, cfg.n_cols), 0, -1)
