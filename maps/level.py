@@ -275,18 +275,18 @@ class MapLevel:
         if self.store is not None:
             self._load((new[0], size), (new[1], size))
 
-    def _slot_slices(self, rng: Range) -> list[slice]:
-        """Storage slices (at most two) holding global indices ``rng``."""
+    def _clear_slots(self, rng: Range, axis: int) -> None:
+        """Fill the storage rows (axis 0) or columns (axis 1) of global indices ``rng``."""
         lo, n = rng
         if n <= 0:
-            return []
-        s = lo % self.size
-        if s + n <= self.size:
-            return [slice(s, s + n)]
-        return [slice(s, self.size), slice(0, s + n - self.size)]
-
-    def _clear_slots(self, rng: Range, axis: int) -> None:
-        for sl in self._slot_slices(rng):
+            return
+        size = self.size
+        s = lo % size
+        if s + n <= size:
+            slices = (slice(s, s + n),)
+        else:  # the strip wraps round the storage edge
+            slices = (slice(s, size), slice(0, s + n - size))
+        for sl in slices:
             key = (slice(None), sl) if axis == 1 else sl
             for arr, fill in self._fills:
                 arr[key] = fill
