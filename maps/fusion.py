@@ -18,7 +18,8 @@ the cell's max height but not the ground estimate. A cell with ground points and
 point this sweep lowers its log-odds (no ray casting: cells the beams pass over are not
 updated).
 
-Everything is vectorised with ``np.bincount`` / ``np.minimum.at`` over flat cell indices; the
+Everything is vectorised: ``np.add.at`` / ``np.minimum.at`` scatter into per-level scratch
+rows over flat cell indices (only the touched cells are read back and reset); the
 per-sweep sufficient statistics of a level (:class:`CellBatch`) are additive, so a finer level
 hands them to the next coarser one (see :mod:`maps.stack`) and no point is counted twice.
 """
@@ -105,7 +106,10 @@ class CellBatch:
 
 @dataclass
 class FusionStats:
-    """What one fusion call did, per level name and in total."""
+    """What one fusion call did. ``points_in`` given, ``dropped_nonfinite`` NaN/inf points
+    (or non-positive variances) left out, ``outside`` points beyond every window; per level
+    name: ``ground`` / ``obstacle`` points in that level's window (raw or via finer levels)
+    and ``cells_updated``."""
 
     points_in: int = 0
     dropped_nonfinite: int = 0
