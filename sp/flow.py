@@ -1,7 +1,8 @@
 """Image flow by pyramid correlation, with recursive estimation (reference 001, 4.5.6 Level 1
 Filtering, Figure 41; 4.5.5 Pyramids of Scale).
 
-* :func:`correlation_flow` is the windowed form of :func:`maps.pyramid.register`: at every pixel
+* :func:`correlation_flow` is the dense, windowed form of :func:`maps.pyramid.register` (the
+  same pyramids and the same 9-offset search with a parabola peak fit): at every pixel
   the normalised correlation over a ``window_px`` square is evaluated at the 9 offsets zero and
   plus or minus one pixel around the current flow, on each pyramid level from coarse to fine,
   the best offset moves the flow, and a parabola through the 3x3 values gives the sub-pixel
@@ -39,7 +40,8 @@ class FlowError(ValueError):
 class FlowConfig:
     """Image-flow settings (defaults in one place).
 
-    levels:            pyramid levels; 0 picks as many as keep the coarsest >= 12 px a side.
+    levels:            pyramid levels; 0 picks as many as keep the coarsest level at least
+                       max(24, 2 window_px + 2) px a side.
     window_px:         side of the square correlation window at every level (odd).
     steps_per_level:   9-offset correlation steps at each level (each moves up to 1 px).
     finest_level:      the finest pyramid level correlated (0 = full size); the flow is then
