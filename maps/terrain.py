@@ -27,6 +27,22 @@ class TerrainConfig:
     occupied_log_odds: float = 1.0  # at or above this occupancy a cell is impassable
 
 
+def step_heights(elevation: np.ndarray) -> np.ndarray:
+    """Largest absolute height difference (m) of each cell to its 8 neighbours (H, W), in
+    window order; NaN where the cell or all its neighbours are unknown."""
+    e = np.asarray(elevation, dtype=np.float64)
+    pad = np.pad(e, 1, constant_values=np.nan)
+    step = np.full(e.shape, np.nan)
+    with np.errstate(invalid="ignore"):
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr == 0 and dc == 0:
+                    continue
+                nb = pad[1 + dr : 1 + dr + e.shape[0], 1 + dc : 1 + dc + e.shape[1]]
+                step = np.fmax(step, np.abs(nb - e))
+    return step
+
+
 def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None:
     """Recompute slope, step_height and traversability over the whole window of ``level``."""
     config = config or TerrainConfig()
@@ -37,14 +53,7 @@ def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None
     gx = (pad[1:-1, 2:] - pad[1:-1, :-2]) / (2.0 * res)
     gy = (pad[2:, 1:-1] - pad[:-2, 1:-1]) / (2.0 * res)
     slope = np.arctan(np.hypot(gx, gy))
-    step = np.full(e.shape, np.nan)
-    with np.errstate(invalid="ignore"):
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if dr == 0 and dc == 0:
-                    continue
-                nb = pad[1 + dr : 1 + dr + e.shape[0], 1 + dc : 1 + dc + e.shape[1]]
-                step = np.fmax(step, np.abs(nb - e))
+    step = step_heights(e)
     rough = level.window("roughness").astype(np.float64)
     badness = np.fmax(
         np.fmax(slope / config.max_slope_rad, step / config.max_step_m),

@@ -61,13 +61,15 @@ def test_fused_local_map_registers_against_the_raster(av2_raster: ElevationRaste
     local.move_to(centre)
     xy = centre + rng.uniform(-45, 45, size=(150000, 2))
     z = av2_raster.sample(xy) + rng.normal(0, 0.03, len(xy))
-    drift = np.array([-1.3, 2.2])
+    drift = np.array([-1.3, 2.0])
     fuse_points(local, np.column_stack([xy + drift, z]), 0.03**2, t_ns=0)
     got = register_to_raster(local, av2_raster)
-    # within one 0.6 m cell: the raster's steepest steps (> 0.7 m between cells) are gated as
-    # obstacles by fusion, and those holes in the local map only pull the peak by ~0.5 cell
-    assert np.all(np.abs(got.offset_xy_m - drift) < 0.6), got
-    assert got.confidence > 0.5
+    assert np.all(np.abs(got.offset_xy_m - drift) < 0.3), got  # half a 0.6 m cell
+    assert got.peak > 0.9  # (the pyramid's confidence can be 0 here: see its aperture test)
+    # without leaving steep steps out of both maps, the holes fusion leaves on them (points
+    # gated as obstacles) pull the peak off by most of a cell
+    off = register_to_raster(local, av2_raster, max_step_m=None)
+    assert np.max(np.abs(off.offset_xy_m - drift)) > np.max(np.abs(got.offset_xy_m - drift))
 
 
 def test_stack_takes_apriori_terrain_at_the_coarse_end(av2_raster: ElevationRaster) -> None:
