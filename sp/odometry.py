@@ -149,10 +149,11 @@ def from_vector(v: np.ndarray) -> np.ndarray:
 class WheelOdometry:
     """Buffer of wheel-odometry poses ``T_odom_body``; gives the body motion between times."""
 
-    def __init__(self, horizon: int = 2000) -> None:
+    def __init__(self, horizon: int = 2000, max_extrapolate_ns: int = 50_000_000) -> None:
         self.t_ns: list[int] = []
         self.poses: list[np.ndarray] = []
         self.horizon = horizon
+        self.max_extrapolate_ns = max_extrapolate_ns
 
     def add(self, frame: OdometryFrame) -> None:
         if self.t_ns and frame.t_ns <= self.t_ns[-1]:
@@ -163,9 +164,16 @@ class WheelOdometry:
             del self.t_ns[0], self.poses[0]
 
     def pose_at(self, t_ns: int) -> np.ndarray | None:
-        """``T_odom_body`` at ``t_ns`` (interpolated; None outside the buffered span)."""
-        if not self.t_ns or not self.t_ns[0] <= t_ns <= self.t_ns[-1]:
+        """``T_odom_body`` at ``t_ns``: interpolated inside the buffered span, continued at
+        constant velocity up to ``max_extrapolate_ns`` past its end, else None."""
+        if not self.t_ns or t_ns < self.t_ns[0]:
             return None
+        if t_ns > self.t_ns[-1]:
+            if len(self.t_ns) < 2 or t_ns - self.t_ns[-1] > self.max_extrapolate_ns:
+                return None
+            step = se3_inverse(self.poses[-2]) @ self.poses[-1]
+            ratio = (t_ns - self.t_ns[-1]) / (self.t_ns[-1] - self.t_ns[-2])
+            return self.poses[-1] @ scale_motion(step, ratio)
         i = int(np.searchsorted(self.t_ns, t_ns))
         if self.t_ns[i] == t_ns:
             return self.poses[i]
