@@ -39,8 +39,9 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
     ]
     try:
         from fixtures.scenario import ScenarioError
+        from fixtures.sensors import SensorError
 
-        types.append(ScenarioError)
+        types += [ScenarioError, SensorError]
     except ImportError:
         pass
     return tuple(types)
