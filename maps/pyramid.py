@@ -44,12 +44,15 @@ class Match:
     shift_rc:    (2,) float64, pixels: ``moving[r, c] ~= reference[r - shift_r, c - shift_c]``
                  (moving is reference translated by +shift, after rotation when one was searched).
     peak:        normalised correlation at the integer peak, -1..1.
-    confidence:  0..1; the peak correlation scaled by the fraction of the window that overlapped
-                 and by how distinct the peak is from its 8 neighbours; 0 when a window has no
-                 texture or the peak sits on the border of the allowed search.
+    confidence:  0..1; the peak correlation (clipped at 0) times the fraction of the image the
+                 correlation window covered; 0 when the window has no texture, the peak is not
+                 a peak along both axes (an edge or a flat patch: the aperture problem) or it
+                 sits on the border of the allowed search.
     rotation_rad: rotation of moving against reference about the image centre (counter-clockwise
                  in the (col right, row up) sense, i.e. x right / y up), 0 unless searched.
     multiply_adds: multiply-add operations spent on correlation sums (for cost comparisons).
+    levels_used: pyramid levels searched.
+    surface:     (3, 3) correlation around the integer peak, indexed ``[dr + 1, dc + 1]``.
     """
 
     shift_rc: np.ndarray
