@@ -227,7 +227,8 @@ def to_egosphere(
     """
     cfg = config or EgosphereConfig()
     check_scan(scan)
-    x, y, z = np.ascontiguousarray(np.asarray(scan.points_xyz, dtype=np.float32).T)
+    pts = np.asarray(scan.points_xyz, dtype=np.float32)
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
     horiz2 = x * x + y * y
     rng = np.sqrt(horiz2 + z * z)
     pix = _pixel_of(scan, cfg, x, y, z, horiz2, rng)
@@ -235,34 +236,50 @@ def to_egosphere(
     ok = pix >= 0
     n_ok = int(np.count_nonzero(ok))
     n_dropped = int(pix.size - n_ok)
-    remaining = np.flatnonzero(ok) if n_dropped else np.arange(pix.size)
-    p = pix[remaining] if n_dropped else pix
-    # One key orders a pixel's returns by range and names the point: the bits of a positive
-    # float32 sort as the number does, so (range bits << 32 | index) is least for the nearest.
-    keys = rng[remaining].view(np.uint32).astype(np.uint64) << np.uint64(32)
-    keys |= remaining.astype(np.uint64)
-    empty = np.iinfo(np.uint64).max
-    layers = np.full((K, n_pix), empty, dtype=np.uint64)
-    for k in range(K):
-        if keys.size == 0:
-            break
-        np.minimum.at(layers[k], p, keys)
-        if k < K - 1:
-            lost = layers[k][p] != keys
-            keys, p = keys[lost], p[lost]
-    # Decode by viewing each key as two 32-bit halves (the index, the range bits). An
-    # empty key is all ones: index -1 as int32 and a NaN as float32, as wanted.
-    halves = layers.view(np.uint32).reshape(K, n_pix, 2)
+    index = np.full((K, n_pix), -1, dtype=np.int32)
+    range_m = np.full((K, n_pix), np.nan, dtype=np.float32)
     low, high = (0, 1) if sys.byteorder == "little" else (1, 0)
-    index = np.ascontiguousarray(halves[..., low]).view(np.int32)
-    range_m = np.ascontiguousarray(halves[..., high]).view(np.float32)
+    # Layer 0 takes every point: dropped ones go to a spare pixel past the image's end.
+    pix[~ok] = n_pix
+    points = np.arange(pix.size, dtype=np.uint32)
+    taken = ~ok  # points placed in a layer so far, or dropped
+    for k in range(K):
+        if k:
+            rest = np.flatnonzero(~taken)
+            if rest.size == 0:
+                break
+            i, r = _nearest(pix[rest], rng[rest], rest.astype(np.uint32), n_pix, low, high)
+        else:
+            i, r = _nearest(pix, rng, points, n_pix, low, high)
+        index[k], range_m[k] = i[:n_pix], r[:n_pix]
+        if k < K - 1:
+            placed = index[k]
+            taken[placed[placed >= 0]] = True
     n_overflow = n_ok - int(np.count_nonzero(index >= 0))
-    shape = (cfg.n_rows, cfg.n_cols, K)
     index = np.moveaxis(index.reshape(K, cfg.n_rows, cfg.n_cols), 0, -1)
     range_m = np.moveaxis(range_m.reshape(K, cfg.n_rows, cfg.n_cols), 0, -1)
-    assert index.shape == shape
     T = np.eye(4) if T_body_sensor is None else check_pose(T_body_sensor, "T_body_sensor")
     return EgosphereImage(scan, cfg, index, range_m, T, n_dropped, n_overflow)
+
+
+def _nearest(
+    pix: np.ndarray, rng: np.ndarray, point: np.ndarray, n_pix: int, low: int, high: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel (and a spare last one), the index (int32, -1 for none) and range (float32, NaN
+    for none) of the nearest of the given points.
+
+    One key orders a pixel's returns by range and names the point: the bits of a positive
+    float32 sort as the number does, so the key (range bits, index) is least for the nearest,
+    and one ``minimum.at`` finds it. Keys are built and read as pairs of 32-bit halves; an empty
+    pixel keeps the all-ones key, which reads as index -1 and a NaN range."""
+    keys = np.empty(point.size, dtype=np.uint64)
+    halves = keys.view(np.uint32).reshape(-1, 2)
+    halves[:, low] = point
+    halves[:, high] = rng.view(np.uint32)
+    best = np.full(n_pix + 1, np.iinfo(np.uint64).max, dtype=np.uint64)
+    np.minimum.at(best, pix, keys)
+    out = best.view(np.uint32).reshape(-1, 2)
+    return out[:, low].view(np.int32), out[:, high].view(np.float32)
 
 
 def T_inertial_body(T_world_body: np.ndarray) -> np.ndarray:
