@@ -1,0 +1,678 @@
+"""Sensory processing levels 2 to 5: one LADAR sweep in, entity and event frames into the KD.
+
+Reference 001, 4.5.1-4.5.4 (the five SP functions: windowing, grouping, computation,
+filtering, classification; hypothesize and test; recursive estimation), 4.4.4-4.4.5 (entity
+images whose pixels hold frame ids, frames that point back to their images), 4.5.6 (levels 2
+to 5). One call of :meth:`SensoryProcessor.process` is one cycle:
+
+1. egosphere image of the sweep (level 1, :mod:`sp.egosphere`), points to the world frame;
+2. level 3: the ground surface (:mod:`sp.ground`), one persistent ground entity;
+3. level 4: object hypotheses grouped from the rest (:mod:`sp.segments`), their attributes
+   (:mod:`sp.computation`), association with the predicted tracks and Kalman updates,
+   confirm / deny (:mod:`sp.tracking`), classification (:mod:`sp.classify`);
+4. level 2: range-edge pixels, as one boundary list per confirmed object (and the ground);
+5. level 5: groups of objects (:mod:`sp.groups`);
+6. entity images per level, entity frames, pointers and events (:mod:`sp.events`) in the KD.
+
+Deskewing: the sweep's points are taken as they are, at the one pose ``T_world_ladar`` of the
+sweep's stamp (no deskew here: a caller that deskews passes deskewed points). Each object's
+state is stamped at the mean time of its own returns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import kd_store
+from kd_store import Attribute, Level, StateBatch, Status
+from maps.frames import check_pose, matrix_to_quat, rot_z
+from sp.classify import Classifier, ClassifyConfig
+from sp.computation import SegmentAttributes, ground_below, segment_attributes
+from sp.egosphere import EgosphereConfig, EgosphereImage, to_egosphere
+from sp.events import EventClass, emit
+from sp.ground import GroundConfig, ground_mask
+from sp.groups import GroupConfig, group_labels, match_groups
+from sp.logs.types import CameraFrame, LadarScan
+from sp.segments import SegmentConfig, label_objects, range_edges
+from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
+from sp.windowing import WindowConfig, window_mask
+
+log = logging.getLogger(__name__)
+
+IMAGE_NAMES = {2: "sp2_lists", 3: "sp3_surfaces", 4: "sp4_objects", 5: "sp5_groups"}
+_STATUS = {
+    TrackStatus.HYPOTHESIZED: Status.HYPOTHESIZED,
+    TrackStatus.CONFIRMED: Status.CONFIRMED,
+    TrackStatus.DENIED: Status.DENIED,
+    TrackStatus.GONE: Status.GONE,
+}
+
+
+class PipelineError(ValueError):
+    """A sweep or pose the pipeline cannot use; names the value and the sweep's time."""
+
+
+@dataclass(frozen=True)
+class SPConfig:
+    """Every parameter of SP levels 2-5, with its default, in one place."""
+
+    egosphere: EgosphereConfig = field(
+        default_factory=lambda: EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1)
+    )
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    segments: SegmentConfig = field(default_factory=SegmentConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    classify: ClassifyConfig = field(default_factory=ClassifyConfig)
+    groups: GroupConfig = field(default_factory=GroupConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)
+    min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
+    max_object_range_m: float = 80.0  # farther segments are left ungrouped
+    reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
+    found_specific: bool = True  # a confirmed object matching nothing founds a specific class
+    lists: bool = True  # level-2 boundary lists of confirmed objects
+
+
+@dataclass
+class SPResult:
+    """What one cycle produced (arrays on the LADAR egosphere image grid, (H, W)).
+
+    entity_images:     SP level -> (H, W) int64 frame ids, -1 none.
+    ground_mask:       (H, W) bool.
+    points_world:      (N, 3) float32 world points of the image's valid pixels (row-major).
+    point_entity_ids:  (N,) int64 level-4 object id per point, -1 none.
+    point_class_ids:   (N,) int32 index into ``class_names`` (-1 none); ground points get
+                       the ground class.
+    objects:           ids of the level-4 entities observed this cycle.
+    events:            ids of the event frames emitted this cycle.
+    timings_s:         seconds per stage.
+    point_pixel:       (N,) int64 flat pixel index of each point; point_index (N,) its index
+                       in the sweep.
+    attention_mask:    (H, W) bool windows used this cycle.
+    class_names:       the class names ``point_class_ids`` index.
+    ok:                False when the sweep failed and was skipped (tracks kept).
+    """
+
+    t_ns: int
+    entity_images: dict[int, np.ndarray]
+    ground_mask: np.ndarray
+    points_world: np.ndarray
+    point_entity_ids: np.ndarray
+    point_class_ids: np.ndarray
+    objects: list[int]
+    events: list[int]
+    timings_s: dict[str, float]
+    point_pixel: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    point_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    attention_mask: np.ndarray | None = None
+    class_names: list[str] = field(default_factory=list)
+    ok: bool = True
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = time.perf_counter()
+        self.laps: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = self.laps.get(name, 0.0) + now - self.t
+        self.t = now
+
+
+def _row_elevations(img: EgosphereImage) -> np.ndarray:
+    """(H,) mean elevation of each row's returns (rad), NaN for empty rows."""
+    xyz = img.xyz[..., 0, :].astype(np.float64)
+    el = np.arctan2(xyz[..., 2], np.hypot(xyz[..., 0], xyz[..., 1]))
+    v = img.valid_first
+    n = v.sum(axis=1)
+    s = np.where(v, el, 0.0).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, s / np.maximum(n, 1), np.nan)
+
+
+def _row_step(row_el: np.ndarray) -> float:
+    ok = np.flatnonzero(np.isfinite(row_el))
+    if ok.size < 2:
+        return math.radians(1.0)
+    d = -np.diff(row_el[ok]) / np.diff(ok)
+    d = d[d > 0]
+    return float(np.median(d)) if d.size else math.radians(1.0)
+
+
+class SensoryProcessor:
+    """SP levels 2-5 over LADAR sweeps, writing entity and event frames into ``kd``."""
+
+    def __init__(self, kd: kd_store.KnowledgeDatabase, config: SPConfig | None = None) -> None:
+        self.kd = kd
+        self.config = config or SPConfig()
+        self.tracker = Tracker(self.config.tracker)
+        self.classifier = Classifier(kd.classes, Level.OBJECT, self.config.classify)
+        self.class_names = [p.name for p in kd.classes]
+        self._class_index = {n: i for i, n in enumerate(self.class_names)}
+        self.ground_id: int | None = None
+        self.track_class: dict[int, tuple[str | None, float]] = {}
+        self.track_list: dict[int, int] = {}  # object id -> its boundary list id
+        self.groups: dict[int, frozenset[int]] = {}
+        self._attention = np.zeros((0, 0), dtype=bool)
+        self.n_failed = 0
+
+    # ------------------------------------------------------------------ the cycle
+
+    def process(
+        self,
+        scan: LadarScan,
+        T_world_ladar: np.ndarray,
+        *,
+        camera: CameraFrame | None = None,
+        T_world_camera: np.ndarray | None = None,
+        attention_world_xyz: np.ndarray | None = None,
+    ) -> SPResult:
+        """One cycle on one sweep (points in the sensor frame, ``T_world_ladar`` the sensor pose
+        at ``scan.t_ns``). A sweep that fails is logged and skipped; the tracks are kept.
+        The camera is accepted for the interface and not used yet."""
+        try:
+            T = check_pose(np.asarray(T_world_ladar, dtype=np.float64), "T_world_ladar")
+            return self._process(scan, T, attention_world_xyz)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
+            self.n_failed += 1
+            log.warning("SP skipped the sweep at t_ns=%s: %s", getattr(scan, "t_ns", "?"), e)
+            H, W = self.config.egosphere.n_rows, self.config.egosphere.n_cols
+            return SPResult(
+                t_ns=int(getattr(scan, "t_ns", 0)),
+                entity_images={k: np.full((H, W), -1, np.int64) for k in IMAGE_NAMES},
+                ground_mask=np.zeros((H, W), bool),
+                points_world=np.zeros((0, 3), np.float32),
+                point_entity_ids=np.zeros(0, np.int64),
+                point_class_ids=np.zeros(0, np.int32),
+                objects=[],
+                events=[],
+                timings_s={},
+                class_names=self.class_names,
+                ok=False,
+            )
+
+    def _process(
+        self, scan: LadarScan, T_world_ladar: np.ndarray, attention_world_xyz: np.ndarray | None
+    ) -> SPResult:
+        cfg = self.config
+        clock = _Clock()
+        t_ns = int(scan.t_ns)
+        events: list[int] = []
+        # level 1: the egosphere image and its points in the world and gravity-aligned frames
+        img = to_egosphere(scan, cfg.egosphere)
+        valid = img.valid_first
+        H, W = valid.shape
+        xyz_s = np.where(valid[..., None], img.xyz[..., 0, :], 0.0).astype(np.float64)
+        R, t = T_world_ladar[:3, :3], T_world_ladar[:3, 3]
+        xyz_g = xyz_s @ R.T
+        xyz_w = xyz_g + t
+        rng = np.where(valid, img.range_first, np.inf)
+        row_el = _row_elevations(img)
+        clock.lap("egosphere")
+
+        # level 3: the ground
+        ground, _h = ground_mask(xyz_g, valid, cfg.ground)
+        clock.lap("ground")
+
+        # windowing: predicted tracks (window by uncertainty), attention points, last cycle's
+        # unexplained pixels
+        attention = self._windows((H, W), T_world_ladar, row_el, t_ns, attention_world_xyz)
+        clock.lap("windowing")
+
+        # level 4 grouping
+        cand = valid & ~ground & (rng <= cfg.max_object_range_m)
+        seg_cfg = cfg.segments
+        labels = label_objects(
+            xyz_s, rng, cand, _row_step(row_el), 2 * math.pi / W, _with_min(seg_cfg, 1)
+        )
+        labels = _drop_small(labels, attention, seg_cfg.min_pixels, cfg.min_pixels_attended)
+        clock.lap("grouping")
+
+        gz = ground_below(ground, xyz_w[..., 2])
+        attrs = segment_attributes(
+            labels,
+            xyz_w,
+            np.nan_to_num(img.intensity[..., 0]),
+            np.where(valid, img.range_first, 0.0),
+            img.t_offset_ns[..., 0],
+            gz,
+        )
+        clock.lap("computation")
+
+        # filtering: associate with the predictions, update, confirm or deny
+        obj_ids, events_f = self._filter(attrs, t_ns)
+        events += events_f
+        clock.lap("filtering")
+
+        # classification
+        events += self._classify(t_ns)
+        clock.lap("classification")
+
+        # entity images and frames
+        image4 = np.full((H, W), -1, dtype=np.int64)
+        has = labels >= 0
+        image4[has] = obj_ids[labels[has]]
+        denied = self._denied_ids
+        if denied.size:
+            image4[np.isin(image4, denied)] = -1  # a denied hypothesis releases its pixels
+        image3 = np.full((H, W), -1, dtype=np.int64)
+        image3[ground] = self._ground_entity(t_ns, xyz_w[ground], T_world_ladar)
+        image2 = self._lists(t_ns, image4, image3, rng, valid) if cfg.lists else image3 * 0 - 1
+        clock.lap("level3+2")
+        image5, events_g = self._groups(t_ns, image4)
+        events += events_g
+        clock.lap("groups")
+
+        self._attention = has & np.isin(image4, self._born_ids)  # unexplained: new hypotheses
+        flat = np.flatnonzero(valid.reshape(-1))
+        pe = image4.reshape(-1)[flat]
+        class_img = self._class_image(image4, ground)
+        result = SPResult(
+            t_ns=t_ns,
+            entity_images={2: image2, 3: image3, 4: image4, 5: image5},
+            ground_mask=ground,
+            points_world=xyz_w.reshape(-1, 3)[flat].astype(np.float32),
+            point_entity_ids=pe,
+            point_class_ids=class_img.reshape(-1)[flat],
+            objects=[int(i) for i in np.unique(pe[pe >= 0])],
+            events=events,
+            timings_s={},
+            point_pixel=flat.astype(np.int64),
+            point_index=img.point_index[..., 0].reshape(-1)[flat].astype(np.int64),
+            attention_mask=attention,
+            class_names=self.class_names,
+        )
+        clock.lap("images")
+        result.timings_s = clock.laps
+        return result
+
+    # ------------------------------------------------------------------ windowing
+
+    def _windows(
+        self,
+        shape: tuple[int, int],
+        T_world_ladar: np.ndarray,
+        row_el: np.ndarray,
+        t_ns: int,
+        attention_world_xyz: np.ndarray | None,
+    ) -> np.ndarray:
+        tr = self.tracker.tracks
+        centres, sig = [], []
+        if len(tr):
+            x, P = self.tracker.predicted(t_ns)
+            centres.append(x[:, :3])
+            sig.append(np.sqrt(np.maximum(P[:, 0, 0] + P[:, 1, 1], 0.0)))
+        if attention_world_xyz is not None and len(attention_world_xyz):
+            a = np.asarray(attention_world_xyz, dtype=np.float64).reshape(-1, 3)
+            centres.append(a)
+            sig.append(np.zeros(a.shape[0]))
+        mask = np.zeros(shape, dtype=bool)
+        if centres:
+            c_w = np.concatenate(centres)
+            R, t = T_world_ladar[:3, :3], T_world_ladar[:3, 3]
+            c_s = (c_w - t) @ R  # world -> sensor
+            mask = window_mask(shape, c_s, np.concatenate(sig), row_el, self.config.window)
+        if self._attention.shape == shape:
+            mask |= self._attention
+        return mask
+
+    # ------------------------------------------------------------------ filtering
+
+    def _filter(self, a: SegmentAttributes, t_ns: int) -> tuple[np.ndarray, list[int]]:
+        """Track the segments; returns (object id per segment (K,), event ids)."""
+        kd = self.kd
+        cfg = self.config
+        what = np.stack([a.length_m, a.width_m, a.height_m, a.yaw_rad], axis=1)
+        meas = Measurements(a.center_xyz, t_ns + a.t_offset_ns, what)
+        born: list[int] = []
+
+        def new_ids(n: int) -> np.ndarray:
+            # the KD makes the frames first, so images, tracks and frames share the ids
+            for _ in range(n):
+                f = kd.add_entity(
+                    f"object@{t_ns}",
+                    Level.OBJECT,
+                    images=(IMAGE_NAMES[4],),
+                    confidence=cfg.tracker.confidence0,
+                )
+                born.append(f.id)
+            return np.array(born, dtype=np.int64)
+
+        track_of, prev = self.tracker.step(meas, t_ns, new_ids)
+        tr = self.tracker.tracks
+        self._born_ids = np.array(born, dtype=np.int64)
+        events: list[int] = []
+        for i in born:
+            events.append(emit(kd, EventClass.APPEARED, t_ns, [i], 4, cfg.tracker.confidence0))
+        # states of the tracks updated this cycle
+        upd = np.unique(track_of[track_of >= 0])
+        if upd.size:
+            yaw = tr.w[upd, 3]
+            moving = np.hypot(tr.x[upd, 3], tr.x[upd, 4]) > 1.0
+            yaw = np.where(moving, np.arctan2(tr.x[upd, 4], tr.x[upd, 3]), yaw)
+            q = np.stack([matrix_to_quat(rot_z(float(y))) for y in yaw])
+            var_rpy = np.zeros((upd.size, 3))
+            var_rpy[:, 2] = tr.Pw[upd, 3]
+            kd.ingest(
+                StateBatch(
+                    tr.id[upd].copy(),
+                    tr.t_ns[upd].copy(),
+                    "world",
+                    tr.x[upd, :3].copy(),
+                    q,
+                    tr.x[upd, 3:].copy(),
+                    tr.P[upd].copy(),
+                    var_rpy,
+                )
+            )
+        # frames: status, confidence, attributes
+        seg_of_track = np.full(len(tr), -1, dtype=np.int64)
+        seg_of_track[track_of[track_of >= 0]] = np.flatnonzero(track_of >= 0)
+        for k in range(len(tr)):
+            tid = int(tr.id[k])
+            status = _STATUS[TrackStatus(int(tr.status[k]))]
+            was = int(prev[k])
+            changes: dict[str, object] = {"status": status, "confidence": _unit(tr.confidence[k])}
+            s = seg_of_track[k]
+            if s >= 0:
+                changes["attributes"] = _attributes(a, s, tr.w[k], tr.Pw[k], tr.x[k])
+            kd.update_entity(tid, **changes)
+            if was == int(status_code(status)) or (was < 0 and status == Status.HYPOTHESIZED):
+                continue
+            cls = {
+                Status.CONFIRMED: EventClass.CONFIRMED,
+                Status.DENIED: EventClass.DENIED,
+                Status.GONE: EventClass.VANISHED,
+            }.get(status)
+            if cls is not None:
+                events.append(emit(kd, cls, t_ns, [tid], 4, float(tr.confidence[k])))
+        finished = self.tracker.drop_finished()
+        self._denied_ids = finished.id[finished.status == TrackStatus.DENIED]
+        for tid in finished.id:
+            self.track_class.pop(int(tid), None)
+        # object id per segment
+        ids_all = np.concatenate([tr.id])
+        obj = np.full(len(meas), -1, dtype=np.int64)
+        ok = track_of >= 0
+        obj[ok] = ids_all[track_of[ok]]
+        return obj, events
+
+    # ------------------------------------------------------------------ classification
+
+    def _classify(self, t_ns: int) -> list[int]:
+        kd = self.kd
+        tr = self.tracker.tracks
+        events: list[int] = []
+        for k in range(len(tr)):
+            tid = int(tr.id[k])
+            speed = float(np.hypot(tr.x[k, 3], tr.x[k, 4]))
+            l, w, h = (float(v) for v in tr.w[k, :3])
+            m = self.classifier.classify(
+                {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
+            )
+            old, _ = self.track_class.get(tid, (None, -2.0))
+            confirmed = tr.status[k] == TrackStatus.CONFIRMED
+            if m.name is None:
+                continue
+            if old is not None and m.name != old:
+                if m.score < m.scores.get(old, -2.0) + self.config.reclassify_margin:
+                    continue
+            if m.name == old:
+                self.track_class[tid] = (old, m.score)
+                continue
+            self.track_class[tid] = (m.name, m.score)
+            proto = kd.classes.get(m.name)
+            specific = m.name if proto.kind == kd_store.ClassKind.SPECIFIC else None
+            kd.update_entity(tid, generic_classes=m.generic, specific_class=specific)
+            if old is not None and confirmed:
+                events.append(emit(kd, EventClass.RECLASSIFIED, t_ns, [tid], 4, _unit(m.score)))
+            if (
+                confirmed
+                and self.config.found_specific
+                and m.score < self.config.classify.match
+                and specific is None
+            ):
+                kd.found_specific_class(tid)
+                self.classifier.refresh()
+                self.class_names = [p.name for p in kd.classes]
+                self._class_index = {n: i for i, n in enumerate(self.class_names)}
+        return events
+
+    def _class_image(self, image4: np.ndarray, ground: np.ndarray) -> np.ndarray:
+        out = np.full(image4.shape, -1, dtype=np.int32)
+        if "ground" in self._class_index:
+            out[ground] = self._class_index["ground"]
+        ids = np.unique(image4[image4 >= 0])
+        if ids.size:
+            codes = np.array(
+                [self._class_index.get(self.track_class.get(int(i), (None, 0))[0], -1) for i in ids]
+                if ids.size
+                else [],
+                dtype=np.int32,
+            )
+            has = image4 >= 0
+            out[has] = codes[np.searchsorted(ids, image4[has])]
+        return out
+
+    # ------------------------------------------------------------------ level 3 and 2
+
+    def _ground_entity(self, t_ns: int, pts_w: np.ndarray, T_world_ladar: np.ndarray) -> int:
+        kd = self.kd
+        if self.ground_id is None:
+            self.ground_id = kd.add_entity(
+                "ground",
+                Level.SURFACE,
+                generic_classes=("ground",) if "ground" in kd.classes else (),
+                images=(IMAGE_NAMES[3],),
+                status=Status.CONFIRMED,
+                confidence=1.0,
+            ).id
+        gid = self.ground_id
+        near = pts_w[np.linalg.norm(pts_w[:, :2] - T_world_ladar[:2, 3], axis=1) < 20.0]
+        if near.shape[0] >= 10:
+            A = np.c_[near[:, 0], near[:, 1], np.ones(near.shape[0])].astype(np.float64)
+            coef, *_ = np.linalg.lstsq(A, near[:, 2].astype(np.float64), rcond=None)
+            resid = near[:, 2] - A @ coef
+            slope = float(math.atan(math.hypot(coef[0], coef[1])))
+            rough = float(np.sqrt(np.mean(resid**2)))
+            z0 = float(coef @ [T_world_ladar[0, 3], T_world_ladar[1, 3], 1.0])
+            kd.update_entity(
+                gid,
+                attributes={
+                    "slope_rad": Attribute(observed=slope, observed_var=0.01),
+                    "roughness_m": Attribute(observed=rough, observed_var=0.0001),
+                    "n_pixels": Attribute(observed=float(near.shape[0])),
+                },
+            )
+            last = kd.get(gid).state
+            if last is None or last.t_ns < t_ns:
+                pos = (T_world_ladar[0, 3], T_world_ladar[1, 3], z0)
+                kd.observe(gid, kd_store.State(t_ns, "world", pos))
+        return gid
+
+    def _lists(
+        self,
+        t_ns: int,
+        image4: np.ndarray,
+        image3: np.ndarray,
+        rng: np.ndarray,
+        valid: np.ndarray,
+    ) -> np.ndarray:
+        """Level 2: range-edge pixels, each labelled by the boundary list of the confirmed
+        object (or the ground) it lies on; the list belongs to that object."""
+        kd = self.kd
+        edge = range_edges(np.where(valid, rng, np.nan), valid, self.config.segments)
+        out = np.full(image4.shape, -1, dtype=np.int64)
+        tr = self.tracker.tracks
+        owners = [int(i) for i in tr.id[tr.status == TrackStatus.CONFIRMED]]
+        if self.ground_id is not None:
+            owners.append(self.ground_id)
+        for oid in owners:
+            if oid not in self.track_list:
+                lid = kd.add_entity(
+                    f"boundary of {oid}",
+                    Level.LIST,
+                    images=(IMAGE_NAMES[2],),
+                    status=Status.CONFIRMED,
+                    confidence=1.0,
+                ).id
+                kd.relate(lid, "belongs_to", oid, t_ns=t_ns)
+                self.track_list[oid] = lid
+        if not owners:
+            return out
+        owner_img = np.where(image4 >= 0, image4, image3)
+        on = edge & (owner_img >= 0)
+        keys = np.array(sorted(self.track_list), dtype=np.int64)
+        vals = np.array([self.track_list[int(k)] for k in keys], dtype=np.int64)
+        o = owner_img[on]
+        pos = np.clip(np.searchsorted(keys, o), 0, keys.size - 1)
+        hit = keys[pos] == o
+        lab = np.where(hit, vals[pos], -1)
+        out[on] = lab
+        return out
+
+    # ------------------------------------------------------------------ level 5
+
+    def _groups(self, t_ns: int, image4: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        kd = self.kd
+        tr = self.tracker.tracks
+        conf = np.flatnonzero(tr.status == TrackStatus.CONFIRMED)
+        ids = tr.id[conf]
+        is_tree = np.array(
+            [self.track_class.get(int(i), (None, 0))[0] == "tree" for i in ids], dtype=bool
+        )
+        lab = group_labels(tr.x[conf, :2], tr.x[conf, 3:5], is_tree, self.config.groups)
+        current = [
+            frozenset(int(i) for i in ids[lab == g]) for g in range(int(lab.max(initial=-1)) + 1)
+        ]
+        carried, _, ended = match_groups(self.groups, current)
+        events: list[int] = []
+        groups: dict[int, frozenset[int]] = {}
+        for i, members in enumerate(current):
+            if i in carried:
+                gid = carried[i]
+            else:
+                gid = kd.add_entity(
+                    f"group@{t_ns}",
+                    Level.GROUP,
+                    images=(IMAGE_NAMES[5],),
+                    status=Status.CONFIRMED,
+                    confidence=0.8,
+                ).id
+                events.append(emit(kd, EventClass.GROUP_FORMED, t_ns, [gid, *members], 5))
+            old = self.groups.get(gid, frozenset())
+            for m in members - old:
+                kd.relate(m, "belongs_to", gid, t_ns=t_ns)
+            for m in old - members:
+                if m in kd:
+                    kd.unrelate(m, "belongs_to", gid, t_ns=t_ns)
+            groups[gid] = members
+            self._group_state(gid, members, t_ns)
+        # a previous group whose members now lie in two or more groups has split
+        for gid, old in self.groups.items():
+            into = [g for g, m in groups.items() if m & old]
+            if len(into) >= 2:
+                events.append(emit(kd, EventClass.GROUP_SPLIT, t_ns, [gid, *into], 5))
+        for gid in ended:
+            for m in self.groups[gid]:
+                if m in kd:
+                    kd.unrelate(m, "belongs_to", gid, t_ns=t_ns)
+            kd.update_entity(gid, status=Status.GONE)
+            events.append(emit(kd, EventClass.VANISHED, t_ns, [gid], 5))
+        self.groups = groups
+        image5 = np.full(image4.shape, -1, dtype=np.int64)
+        for gid, members in groups.items():
+            image5[np.isin(image4, np.fromiter(members, np.int64))] = gid
+        return image5, events
+
+    def _group_state(self, gid: int, members: frozenset[int], t_ns: int) -> None:
+        tr = self.tracker.tracks
+        k = np.isin(tr.id, np.fromiter(members, np.int64))
+        p, v = tr.x[k, :3], tr.x[k, 3:]
+        extent = float(np.ptp(p[:, :2], axis=0).max()) if p.shape[0] > 1 else 0.0
+        spread = max(extent, 1.0)
+        speed = float(np.hypot(*v[:, :2].mean(axis=0)))
+        attrs = {
+            "count": Attribute(observed=float(k.sum())),
+            "length_m": Attribute(observed=extent),
+            "speed_mps": Attribute(observed=speed),
+            "density_per_m2": Attribute(observed=float(k.sum()) / (spread * spread)),
+        }
+        m = Classifier(self.kd.classes, Level.GROUP).classify(
+            {n: a.observed for n, a in attrs.items()}
+        )
+        self.kd.update_entity(gid, attributes=attrs, generic_classes=m.generic)
+        last = self.kd.get(gid).state
+        t = max(t_ns, last.t_ns + 1) if last is not None else t_ns
+        self.kd.observe(gid, kd_store.State(t, "world", p.mean(axis=0), velocity_xyz=v.mean(0)))
+
+
+def status_code(s: Status) -> int:
+    return {
+        Status.HYPOTHESIZED: TrackStatus.HYPOTHESIZED,
+        Status.CONFIRMED: TrackStatus.CONFIRMED,
+        Status.DENIED: TrackStatus.DENIED,
+        Status.GONE: TrackStatus.GONE,
+    }[s]
+
+
+def _unit(x: float) -> float:
+    return float(min(max(x, 0.0), 1.0))
+
+
+def _with_min(cfg: SegmentConfig, min_pixels: int) -> SegmentConfig:
+    return dataclasses.replace(cfg, min_pixels=min_pixels)
+
+
+def _drop_small(
+    labels: np.ndarray, attention: np.ndarray, n_min: int, n_min_att: int
+) -> np.ndarray:
+    """Keep segments of at least ``n_min`` pixels, or ``n_min_att`` when inside a window;
+    renumber 0..K-1."""
+    flat = labels.reshape(-1)
+    has = flat >= 0
+    if not has.any():
+        return labels
+    K = int(flat.max()) + 1
+    n = np.bincount(flat[has], minlength=K)
+    att = np.bincount(flat[has], weights=attention.reshape(-1)[has], minlength=K) > 0
+    keep = (n >= n_min) | (att & (n >= n_min_att))
+    new = np.full(K, -1, dtype=np.int64)
+    new[keep] = np.arange(int(keep.sum()))
+    out = np.full_like(flat, -1)
+    out[has] = new[flat[has]]
+    return out.reshape(labels.shape)
+
+
+def _attributes(
+    a: SegmentAttributes, s: int, w: np.ndarray, Pw: np.ndarray, x: np.ndarray
+) -> dict[str, Attribute]:
+    """Observed (this segment) and estimated (the what-filter) attributes of one object."""
+    obs = {
+        "length_m": float(a.length_m[s]),
+        "width_m": float(a.width_m[s]),
+        "height_m": float(a.height_m[s]),
+    }
+    est = {"length_m": (w[0], Pw[0]), "width_m": (w[1], Pw[1]), "height_m": (w[2], Pw[2])}
+    out = {
+        k: Attribute(
+            observed=v,
+            observed_var=0.25,
+            estimated=float(est[k][0]),
+            estimated_var=float(est[k][1]),
+        )
+        for k, v in obs.items()
+    }
+    out["speed_mps"] = Attribute(estimated=float(np.hypot(x[3], x[4])))
+    out["area_m2"] = Attribute(observed=float(a.area_m2[s]))
+    out["volume_m3"] = Attribute(observed=float(a.volume_m3[s]))
+    out["intensity"] = Attribute(observed=float(a.intensity[s]))
+    out["curvature"] = Attribute(observed=float(a.curvature[s]))
+    out["n_pixels"] = Attribute(observed=float(a.n_pixels[s]))
+    return out

@@ -1,0 +1,133 @@
+"""Grouping on the egosphere image: level-4 object hypotheses and level-2 range edges.
+
+Reference 001, 4.5.2 (grouping: "gestalt" hypotheses of contiguity, similarity, proximity),
+4.5.6 (level 2: edges, vertices; level 4: objects as contiguous non-ground surfaces).
+
+Objects: non-ground returns are joined to their image neighbours (right, below, and the
+next-but-one both ways so a dropped return does not split a surface) when the two points are
+closer than a range-scaled distance (proximity and contiguity); the connected components of
+that graph are the object hypotheses. Components with fewer than ``min_pixels`` returns are
+left ungrouped (speckle). Azimuth wraps around.
+
+Edges (level 2): pixels whose range jumps by more than ``edge_jump_m`` (plus a fraction of the
+range) to a neighbour, each labelled by the object or the ground it lies on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+
+class SegmentError(ValueError):
+    """An image or configuration the grouping cannot use; names the value."""
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """Grouping thresholds.
+
+    join_m:          two neighbouring returns closer than this (metres) belong together ...
+    join_per_rad:    ... or closer than this many times the range times their angular spacing
+                     (the sensor's own point spacing grows with range).
+    min_pixels:      smallest object hypothesis (returns).
+    edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
+    """
+
+    join_m: float = 0.6
+    join_per_rad: float = 2.5
+    min_pixels: int = 4
+    edge_jump_m: float = 0.5
+    edge_jump_frac: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.join_m <= 0 or self.join_per_rad < 0 or self.min_pixels < 1:
+            raise SegmentError(
+                f"join_m {self.join_m}, join_per_rad {self.join_per_rad}, "
+                f"min_pixels {self.min_pixels}: need > 0, >= 0, >= 1"
+            )
+
+
+def _pairs(H: int, W: int, di: int, dj: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices of (pixel, neighbour at +di rows, +dj columns), azimuth wrapping."""
+    i, j = np.mgrid[0 : H - di, 0:W]
+    a = i * W + j
+    b = (i + di) * W + (j + dj) % W
+    return a.reshape(-1), b.reshape(-1)
+
+
+def label_objects(
+    xyz: np.ndarray,
+    range_m: np.ndarray,
+    mask: np.ndarray,
+    row_step_rad: float,
+    col_step_rad: float,
+    config: SegmentConfig | None = None,
+) -> np.ndarray:
+    """Object hypotheses: (H, W) int64 segment labels 0..K-1, -1 where not grouped.
+
+    xyz: (H, W, 3) float points (any frame, metres); range_m: (H, W) range from the sensor;
+    mask: (H, W) bool pixels to group (valid, non-ground); row_step_rad, col_step_rad: the
+    angular spacing of rows and columns.
+    """
+    cfg = config or SegmentConfig()
+    H, W = mask.shape
+    if xyz.shape[:2] != (H, W) or range_m.shape != (H, W):
+        raise SegmentError(f"xyz {xyz.shape} / range {range_m.shape} do not match mask {(H, W)}")
+    flat = xyz.reshape(-1, 3)
+    m = mask.reshape(-1)
+    rng = range_m.reshape(-1)
+    src, dst = [], []
+    for di, dj, step in ((0, 1, col_step_rad), (0, 2, 2 * col_step_rad), (1, 0, row_step_rad)):
+        if di >= H:
+            continue
+        a, b = _pairs(H, W, di, dj)
+        ok = m[a] & m[b]
+        a, b = a[ok], b[ok]
+        d = np.linalg.norm(flat[a] - flat[b], axis=1)
+        r = np.minimum(rng[a], rng[b])
+        near = d <= np.maximum(cfg.join_m, cfg.join_per_rad * r * step)
+        src.append(a[near])
+        dst.append(b[near])
+    idx = np.flatnonzero(m)
+    labels = np.full(H * W, -1, dtype=np.int64)
+    if idx.size == 0:
+        return labels.reshape(H, W)
+    # compact the graph to the grouped pixels only
+    pos = np.full(H * W, -1, dtype=np.int64)
+    pos[idx] = np.arange(idx.size)
+    s = pos[np.concatenate(src)] if src else np.zeros(0, np.int64)
+    t = pos[np.concatenate(dst)] if dst else np.zeros(0, np.int64)
+    g = coo_matrix((np.ones(s.size, dtype=np.int8), (s, t)), shape=(idx.size, idx.size))
+    _, comp = connected_components(g, directed=False)
+    counts = np.bincount(comp)
+    keep = counts >= cfg.min_pixels
+    new_id = np.full(counts.size, -1, dtype=np.int64)
+    new_id[keep] = np.arange(int(keep.sum()))
+    labels[idx] = new_id[comp]
+    return labels.reshape(H, W)
+
+
+def range_edges(range_m: np.ndarray, valid: np.ndarray, config: SegmentConfig | None = None):
+    """Level-2 edge pixels: (H, W) bool where the range jumps to a right or lower neighbour
+    (the nearer side of the jump is the edge: it is the occluding boundary)."""
+    cfg = config or SegmentConfig()
+    r = np.where(valid, range_m, np.inf)
+    edge = np.zeros(valid.shape, dtype=bool)
+    for axis in (0, 1):
+        nxt = np.roll(r, -1, axis=axis)
+        if axis == 0:
+            nxt[-1] = np.inf
+        lo = np.minimum(r, nxt)
+        jump = np.abs(r - nxt) > cfg.edge_jump_m + cfg.edge_jump_frac * lo
+        jump &= np.isfinite(lo)
+        near_here = jump & (r <= nxt)
+        near_next = jump & (nxt < r)
+        edge |= near_here
+        edge |= np.roll(near_next, 1, axis=axis) & (
+            np.ones_like(edge) if axis == 1 else np.arange(edge.shape[0])[:, None] > 0
+        )
+    return edge & valid
