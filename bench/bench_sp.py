@@ -106,16 +106,18 @@ def _scan_130k() -> tuple[LadarScan, str]:
 
 def bench_egosphere() -> None:
     scan, source = _scan_130k()
-    cfg = EgosphereConfig()
-    t = median_time(lambda: to_egosphere(scan, cfg), repeat=21, warmup=2)
-    record(
-        "sp_egosphere_projection_ms",
-        t * 1e3,
-        "ms",
-        baseline=None,
-        target=f"<= 3 ms median ({source} to a 64x2048x2 image)",
-        command="make bench",
-    )
+    for returns in (2, 1):
+        cfg = EgosphereConfig(max_returns=returns)
+        t = median_time(lambda cfg=cfg: to_egosphere(scan, cfg), repeat=21, warmup=2)
+        suffix = "" if returns == 2 else "_1_return"
+        record(
+            f"sp_egosphere_projection{suffix}_ms",
+            t * 1e3,
+            "ms",
+            baseline=None,
+            target=f"<= 3 ms median ({source} to a 64x2048x{returns} image)",
+            command="make bench",
+        )
 
 
 def bench_flow() -> None:
