@@ -30,7 +30,9 @@ MIN_LEVEL_SIZE_PX = 8  # a pyramid level smaller than this per side carries no u
 MAX_CLIMB_STEPS = 32  # 9-offset steps allowed per level while the peak is not yet the centre
 EAGER_WINDOW_PX = 64 * 64  # windows up to this size get all their offsets in one call
 CLIMB_REACH_PX = 2  # a correlation window serves offsets this far from where it was built
+CLIMB_MIN_GAIN = 1e-6  # the search moves only for a correlation at least this much better
 FLAT_STD = 1e-9  # an image window with a smaller standard deviation has no texture
+APERTURE_RATIO = 0.02  # least curvature of the peak along its flattest direction vs steepest
 
 
 class PyramidError(ValueError):
@@ -46,8 +48,8 @@ class Match:
     peak:        normalised correlation at the integer peak, -1..1.
     confidence:  0..1; the peak correlation (clipped at 0) times the fraction of the image the
                  correlation window covered; 0 when the window has no texture, the peak is not
-                 a peak along both axes (an edge or a flat patch: the aperture problem) or it
-                 sits on the border of the allowed search.
+                 a peak along every direction (an edge or a flat patch: the aperture problem)
+                 or it sits on the border of the allowed search.
     rotation_rad: rotation of moving against reference about the image centre (counter-clockwise
                  in the (col right, row up) sense, i.e. x right / y up), 0 unless searched.
     multiply_adds: multiply-add operations spent on correlation sums (for cost comparisons).
@@ -334,9 +336,20 @@ def _climb(
 ) -> tuple[tuple[int, int], np.ndarray, float, int, bool]:
     """Move the 9-offset search to its best offset until the centre is the peak.
 
-    Returns the integer peak, its (3, 3) correlation surface indexed ``[dr + 1, dc + 1]``, the
-    window coverage, the multiply-adds spent and whether the climb ran out of steps."""
+    The search stays within ``limit_px`` and within half the image either way (so the window
+    keeps at least half the image); it moves only for a strictly better correlation, so a flat
+    direction (an edge) does not send it wandering. Returns the integer peak, its (3, 3)
+    correlation surface indexed ``[dr + 1, dc + 1]``, the window coverage, the multiply-adds
+    spent and whether the peak is pinned (at a limit, or out of steps)."""
     center, ops = start_rc, 0
+    extent = np.array(mov.shape[:2]) // 2 - CLIMB_REACH_PX
+    if limit_px is not None:
+        extent = np.minimum(extent, np.floor(limit_px))
+    extent = np.maximum(extent, 0)
+    center = (
+        int(np.clip(center[0], -extent[0], extent[0])),
+        int(np.clip(center[1], -extent[1], extent[1])),
+    )
     tables = None
     if w_ref is None and w_mov is None:
         tables = _integrals(ref)  # window sums for every window of this level
@@ -348,35 +361,42 @@ def _climb(
             ops += win.multiply_adds
             win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov, tables)
         surface = win.surface(center)
-        if limit_px is not None:
-            rows = np.abs(center[0] + steps)[:, None] > limit_px
-            cols = np.abs(center[1] + steps)[None, :] > limit_px
-            surface[rows | cols] = np.nan
+        rows = np.abs(center[0] + steps)[:, None] > extent[0]
+        cols = np.abs(center[1] + steps)[None, :] > extent[1]
+        surface[rows | cols] = np.nan
+        done = ops + win.multiply_adds
         if np.all(np.isnan(surface)):
-            return center, surface, win.cover, ops + win.multiply_adds, False
+            return center, surface, win.cover, done, False
         i, j = divmod(int(np.nanargmax(surface)), 3)
-        if i == 1 and j == 1:
-            return center, surface, win.cover, ops + win.multiply_adds, False
+        centre_value = surface[1, 1] if np.isfinite(surface[1, 1]) else -np.inf
+        if (i == 1 and j == 1) or surface[i, j] <= centre_value + CLIMB_MIN_GAIN:
+            pinned = bool(np.any(rows | cols))
+            return center, surface, win.cover, done, pinned
         center = (center[0] + i - 1, center[1] + j - 1)
     return center, surface, win.cover, ops + win.multiply_adds, True
 
 
 def _confidence(surface: np.ndarray, cover: float, pinned: bool) -> float:
     """Peak correlation (clipped to 0..1) times window coverage; 0 when the peak is pinned at
-    the search limit, has no texture, or is not a peak along both axes (aperture problem:
-    an edge or a flat patch correlates equally well along its length)."""
+    the search limit, has no texture, or is not a peak along every direction: the correlation
+    must fall away along rows, columns and both diagonals, and along the flattest of them by at
+    least ``APERTURE_RATIO`` of the steepest (an edge or a flat patch correlates equally well
+    along its length: the aperture problem)."""
     f = surface
-    if pinned or not np.all(np.isfinite(f[:, 1])) or not np.all(np.isfinite(f[1, :])):
+    if pinned or not np.all(np.isfinite(f)):
         return 0.0
-    d_rr = f[0, 1] - 2 * f[1, 1] + f[2, 1]
-    d_cc = f[1, 0] - 2 * f[1, 1] + f[1, 2]
-    if np.all(np.isfinite(f)):
-        d_rc = 0.25 * (f[2, 2] - f[2, 0] - f[0, 2] + f[0, 0])
-    else:
-        d_rc = 0.0
-    if not (d_rr < 0 and d_cc < 0 and d_rr * d_cc - d_rc * d_rc > 0):
+    c = f[1, 1]
+    curvatures = np.array(
+        [
+            f[0, 1] + f[2, 1] - 2 * c,  # rows
+            f[1, 0] + f[1, 2] - 2 * c,  # columns
+            (f[0, 0] + f[2, 2] - 2 * c) / 2,  # diagonals (their steps are sqrt(2) long)
+            (f[0, 2] + f[2, 0] - 2 * c) / 2,
+        ]
+    )
+    if np.any(curvatures >= 0) or curvatures.max() > APERTURE_RATIO * curvatures.min():
         return 0.0
-    return float(np.clip(f[1, 1], 0.0, 1.0) * np.clip(cover, 0.0, 1.0))
+    return float(np.clip(c, 0.0, 1.0) * np.clip(cover, 0.0, 1.0))
 
 
 def _register_translation(
@@ -475,6 +495,12 @@ def register(
         raise PyramidError(f"levels must be >= 1, got {levels}")
     if max_shift_px is not None and max_shift_px < 0:
         raise PyramidError(f"max_shift_px must be >= 0, got {max_shift_px}")
+    half = np.array(mov.shape) / 2
+    if np.any(np.abs(np.asarray(initial_shift_rc, dtype=np.float64)) > half):
+        raise PyramidError(
+            f"initial_shift_rc {tuple(initial_shift_rc)} overlaps less than half of the "
+            f"{mov.shape} image: the correlation window would be larger than the image"
+        )
     n = max(1, min(levels, max_levels(ref.shape), max_levels(mov.shape)))
     ref_pyr, wref_pyr = _weighted_pyramids(ref, wref, n)
     if rotations_rad is None or len(rotations_rad) == 0:

@@ -125,3 +125,13 @@ def test_real_image_integer_shift(real_data):
     m = register(ref, mov)
     assert np.abs(m.shift_rc - [7.0, -11.0]).max() < 0.1
     assert m.confidence > 0.5
+
+
+def test_an_edge_gives_no_confidence_along_its_length():
+    """The aperture problem: stripes along the rows fix the column shift but not the row one."""
+    _, c = np.mgrid[0:H, 0:W].astype(np.float64)
+    stripes = np.sin(c / 7.0) + 0.5 * np.sin(c / 3.1)
+    moved = np.sin((c - 2.5) / 7.0) + 0.5 * np.sin((c - 2.5) / 3.1)
+    m = register(stripes, moved)
+    assert abs(m.shift_rc[1] - 2.5) < 0.1
+    assert m.confidence == 0.0
