@@ -3,6 +3,10 @@
     wm simulate SCENARIO --out LOG.mcap [--seconds S] [--seed N]
     wm log-info LOG [--skip-corrupt] [--check]
     wm query KD.duckdb "SELECT ..." [--parquet OUT]
+    wm run LOG --kd KD.duckdb [--report report.json] [--render DIR] [--poses odometry|truth]
+    wm whatis KD.duckdb [--entity ID] [--t-ns T]
+    wm whatif LOG --kd KD.duckdb --waypoints "t,x,y;t,x,y;..." [--seconds S]
+    wm render LOG --out DIR [--seconds S]
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -17,6 +21,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 EXIT_USER_ERROR = 2
 
 
@@ -29,6 +35,9 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
     from kd_store.errors import KDError
     from maps.frames import GeometryError
     from sp.logs.types import LogError
+    from wm.node import NodeError
+    from wm.whatif import WhatIfError
+    from wm.whatis import WhatIsError
 
     types: list[type[BaseException]] = [
         UserError,
@@ -36,6 +45,9 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
         GeometryError,
         KDError,
         FileNotFoundError,
+        NodeError,
+        WhatIfError,
+        WhatIsError,
     ]
     try:
         from fixtures.scenario import ScenarioError
@@ -126,8 +138,114 @@ def cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _node_config(args: argparse.Namespace):
+    from wm.config import NodeConfig, PoseSource
+
+    return NodeConfig(pose_source=PoseSource(args.poses))
+
+
+def _check_log(path: str) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"log {p} does not exist")
+    return p
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The main job: a log through the world-modeling node into a KD, summary and report."""
+    from wm.run import run_log
+
+    report = run_log(
+        _check_log(args.log),
+        args.kd,
+        config=_node_config(args),
+        report_path=args.report,
+        render_dir=args.render,
+        progress=not args.no_progress,
+        seconds=args.seconds,
+    )
+    print(report.text())
+    if args.report:
+        print(f"report {args.report}")
+    return 0
+
+
+def cmd_whatis(args: argparse.Namespace) -> int:
+    """What Is over a KD file: the self state and one entity (world frame), as of a time."""
+    import kd_store
+    from wm.whatis import WhatIs
+
+    path = Path(args.kd)
+    if not path.exists():
+        raise FileNotFoundError(f"KD file {path} does not exist")
+    with kd_store.open(path, read_only=True) as kd:
+        selves = [f.id for f in kd.entities() if f.name == "self"]
+        wi = WhatIs(kd, self_id=selves[0] if selves else None)
+        ids = [args.entity] if args.entity is not None else selves
+        if not ids:
+            raise UserError(f"{path}: no self entity; give --entity ID")
+        for i in ids:
+            a = wi.entity(i, args.t_ns)
+            print(
+                f"entity {a.entity_id} ({a.class_name}, {a.status}, conf {a.confidence:.2f}) "
+                f"at t_ns={a.t_ns} [{a.source}] in {a.frame}: position "
+                f"{np.round(a.position, 3).tolist()} m, "
+                f"velocity {np.round(a.velocity, 3).tolist()} m/s"
+            )
+    return 0
+
+
+def _parse_waypoints(text: str) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        rows = [[float(v) for v in part.split(",")] for part in text.split(";") if part.strip()]
+        arr = np.array(rows, dtype=np.float64)
+    except ValueError as e:
+        raise UserError(f"--waypoints {text!r}: expected 't,x,y;t,x,y;...' ({e})") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise UserError(f"--waypoints {text!r}: each waypoint needs t,x,y")
+    return arr[:, 0], arr[:, 1:]
+
+
+def cmd_whatif(args: argparse.Namespace) -> int:
+    """Run a log (its first --seconds), then ask What If about one waypoint plan (body frame
+    waypoints relative to the final pose) and print VJ's judgement."""
+    from maps.frames import transform_points
+    from wm import vj
+    from wm.config import VJConfig
+    from wm.run import run_node
+    from wm.whatif import WaypointPlan, WhatIf
+
+    t_s, xy_body = _parse_waypoints(args.waypoints)
+    node = run_node(_check_log(args.log), args.kd, _node_config(args), seconds=args.seconds)
+    T = node.stack.T_world_body
+    xy = transform_points(T, np.column_stack([xy_body, np.zeros(len(xy_body))]))[:, :2]
+    wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
+    res = wi.simulate([WaypointPlan(t_s, xy, "cli")], level=args.level)
+    ev = vj.evaluate(res, xy[-1], VJConfig())
+    hit = int(res.collision_entity[0])
+    print(f"plan over {res.t_s[-1]:.1f} s at level {args.level}: {res.distance_m[0]:.1f} m")
+    when = f"entity {hit} at {res.collision_t_s[0]:.1f} s" if hit >= 0 else "none"
+    print(f"first collision: {when}")
+    print(f"least clearance {res.min_clearance_m[0]:.2f} m; limited steps {res.limited_steps[0]}")
+    print(f"VJ: cost {ev.cost[0]:.2f}, risk {ev.risk[0]:.2f}, benefit {ev.benefit[0]:.2f}")
+    node.kd.close()
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """Run a log (or its first --seconds) and write pictures of every map level."""
+    from wm.render import render_run
+    from wm.run import run_node
+
+    node = run_node(_check_log(args.log), ":memory:", _node_config(args), seconds=args.seconds)
+    for p in render_run(node, Path(args.out)):
+        print(f"picture {p}")
+    node.kd.close()
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
-    """The main job on the embedded default: simulate the default scenario, then read it back."""
+    """The main job on the embedded default: simulate the default scenario, then run it."""
     out = Path(args.out) / "default.mcap"
     print(f"simulating the default scenario ({args.seconds or 'full'} s) into {out}")
     rc = cmd_simulate(
@@ -138,7 +256,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if rc:
         return rc
     print()
-    return cmd_log_info(argparse.Namespace(log=out, skip_corrupt=False, check=True))
+    kd = Path(args.out) / "default.duckdb"
+    for stale in (kd, Path(str(kd) + ".wal")):
+        stale.unlink(missing_ok=True)
+    rc = cmd_run(
+        argparse.Namespace(
+            log=str(out), kd=str(kd), report=str(Path(args.out) / "report.json"),
+            render=str(Path(args.out) / "pictures"), poses=args.poses, no_progress=False,
+            seconds=None,
+        )
+    )  # fmt: skip
+    print(f"\nKD: {kd} (try: wm query {kd} \"SELECT class_name, status, count(*) FROM entities"
+          f" GROUP BY ALL\")")  # fmt: skip
+    print(f"pictures: {Path(args.out) / 'pictures'}; report: {Path(args.out) / 'report.json'}")
+    return rc
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -169,9 +300,48 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--parquet", default=None, help="write the result to this Parquet file")
     q.set_defaults(func=cmd_query)
 
-    d = sub.add_parser("demo", help="simulate the default scenario and show what the log holds")
+    def pose_flag(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument(
+            "--poses", choices=("odometry", "truth"), default="odometry",
+            help="vehicle poses from LADAR+wheel odometry (default) or the log's ground truth",
+        )  # fmt: skip
+
+    r = sub.add_parser("run", help="the main job: a log through the world model into a KD")
+    r.add_argument("log", help="any supported log (see log-info)")
+    r.add_argument("--kd", required=True, help="KD file to write (DuckDB)")
+    r.add_argument("--report", default=None, help="write the summary as JSON here")
+    r.add_argument("--render", default=None, help="write pictures of every map level here")
+    r.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    pose_flag(r)
+    r.set_defaults(func=cmd_run)
+
+    w = sub.add_parser("whatis", help="What Is over a KD file: self state or an entity")
+    w.add_argument("kd", help="KD file (DuckDB)")
+    w.add_argument("--entity", type=int, default=None, help="entity id (default: self)")
+    w.add_argument("--t-ns", type=int, default=None, help="as of this time (ns)")
+    w.set_defaults(func=cmd_whatis)
+
+    f = sub.add_parser("whatif", help="run a log, then simulate a waypoint plan from its end")
+    f.add_argument("log", help="any supported log")
+    f.add_argument("--kd", default=":memory:", help="KD file (default: in memory)")
+    f.add_argument("--waypoints", required=True, help="'t,x,y;...' seconds, body-frame metres")
+    f.add_argument("--level", default="subsystem", help="map level (default subsystem)")
+    f.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
+    pose_flag(f)
+    f.set_defaults(func=cmd_whatif)
+
+    g = sub.add_parser("render", help="run a log and write pictures of every map level")
+    g.add_argument("log", help="any supported log")
+    g.add_argument("--out", required=True, help="folder for the PNG files")
+    g.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
+    pose_flag(g)
+    g.set_defaults(func=cmd_render)
+
+    d = sub.add_parser("demo", help="simulate the default scenario and run the world model on it")
     d.add_argument("--out", default="out", help="folder for the demo's files (default: out/)")
     d.add_argument("--seconds", type=float, default=None, help="duration (default: scenario's)")
+    pose_flag(d)
     d.set_defaults(func=cmd_demo)
     return p
 

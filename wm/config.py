@@ -1,0 +1,144 @@
+"""Typed configuration of the world-modeling node, with every default in one place.
+
+Levels are the map levels of DESIGN.md section 4 (reference 000, Table 2): ``primitive``
+(0.04 m), ``subsystem`` (0.4 m), ``vehicle`` (4 m), ``section`` (30 m). Each node level runs its
+slow work (terrain, value-judgment cost layer) at its own period: "the coarse levels need not
+run every sensor frame" (reference 001, 4.4.10: the planning horizon and replanning interval
+grow by about an order of magnitude per level).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+#: Map levels the node runs, finest first, and the period (s) of each level's slow work.
+DEFAULT_LEVEL_PERIODS_S: dict[str, float] = {
+    "primitive": 0.1,
+    "subsystem": 0.2,
+    "vehicle": 1.0,
+    "section": 5.0,
+}
+
+#: Planning horizon (s) and step (s) of What If rollouts per level (reference 001, 4.1: the
+#: subsystem level plans about 5 s ahead, the vehicle level about a minute).
+DEFAULT_HORIZONS_S: dict[str, float] = {
+    "primitive": 0.5,
+    "subsystem": 5.0,
+    "vehicle": 60.0,
+    "section": 600.0,
+}
+DEFAULT_STEPS_S: dict[str, float] = {
+    "primitive": 0.05,
+    "subsystem": 0.1,
+    "vehicle": 1.0,
+    "section": 10.0,
+}
+
+
+class PoseSource(StrEnum):
+    """Where the node takes the vehicle pose from."""
+
+    ODOMETRY = "odometry"  # LADAR odometry fused with wheel odometry (sp.odometry)
+    TRUTH = "truth"  # the log's ground-truth pose (simulated logs, evaluation)
+
+
+@dataclass(frozen=True)
+class PredictionConfig:
+    """Short-term expectations and the predicted range image (reference 001, 4.2 item 2).
+
+    expectation_steps_s: times ahead (s) of each entity's expected states (the first beyond
+                         the next sweep, so SP's next observation does not meet them).
+    range_image_every:   ray-cast a predicted range image every this many sweeps (0: never).
+    range_image_hw:      its (rows, columns) on the egosphere (a coarse copy of the sensor's).
+    mismatch_m:          an observed range differing by more than this from the prediction
+                         counts as a surprise; surprises feed next cycle's attention.
+    """
+
+    expectation_steps_s: tuple[float, ...] = (0.25, 0.5, 1.0)
+    expect_min_confidence: float = 0.5  # hypotheses below this get no expectations
+    range_image_every: int = 10
+    range_image_hw: tuple[int, int] = (32, 256)
+    mismatch_m: float = 1.0
+    max_attention_points: int = 256
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """The vehicle model of What If: footprint (m) and limits (SI units)."""
+
+    length_m: float = 4.5
+    width_m: float = 2.0
+    height_m: float = 1.8
+    max_speed_mps: float = 15.0
+    max_accel_mps2: float = 3.0
+    max_decel_mps2: float = 6.0
+    max_curvature_1pm: float = 0.2  # 5 m turning radius
+    max_yaw_rate_rps: float = 1.0
+    footprint_samples: tuple[int, int] = (3, 3)  # points along length x width
+
+
+@dataclass(frozen=True)
+class VJConfig:
+    """Value judgment weights (reference 001, 4.3). Costs and risks are dimensionless.
+
+    cost layer: w_traversability * (1 - traversability) + w_unknown * unknown
+                + w_uncertainty * min(1, sqrt(elevation_var) / sigma_ref_m) + class cost.
+    plan evaluation: cost = sum over steps of (map cost + w_time) * dt; risk = collision_risk on a
+    collision, else max over steps of entity risk * exp(-clearance / clearance_scale_m);
+    benefit = w_progress * progress towards the goal (m).
+    attention priority: w_proximity / (1 + d/proximity_scale_m) + w_danger * risk
+                        + w_novelty * (not confirmed) + w_relevance * (near the plan).
+    """
+
+    w_traversability: float = 1.0
+    w_unknown: float = 0.5
+    w_uncertainty: float = 0.2
+    sigma_ref_m: float = 0.5
+    w_time: float = 0.1
+    collision_risk: float = 100.0
+    clearance_scale_m: float = 1.0
+    w_progress: float = 1.0
+    w_proximity: float = 1.0
+    proximity_scale_m: float = 10.0
+    w_danger: float = 1.0
+    w_novelty: float = 0.5
+    w_relevance: float = 1.0
+    relevance_radius_m: float = 3.0
+    attention_size: int = 16
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """The behavior-generation consumer at one level (reference 001, 4.1)."""
+
+    level: str = "subsystem"
+    replan_period_s: float = 0.5
+    speeds_mps: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0)
+    curvatures_1pm: tuple[float, ...] = (-0.15, -0.1, -0.06, -0.03, 0.0, 0.03, 0.06, 0.1, 0.15)
+    min_clearance_m: float = 0.5
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """The node cycle (DESIGN.md section 3)."""
+
+    pose_source: PoseSource = PoseSource.ODOMETRY
+    level_periods_s: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_LEVEL_PERIODS_S))
+    deskew_bins: int = 8  # pose slices per sweep when moving points to the world
+    kd_advance_every: int = 10  # trim short-term memory every this many sweeps
+    prediction: PredictionConfig = field(default_factory=PredictionConfig)
+    vj: VJConfig = field(default_factory=VJConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    use_sp: bool = True  # run SP levels 2..5 when sp.pipeline is available
+
+
+@dataclass(frozen=True)
+class WhatIfConfig:
+    """What If rollouts: the vehicle model and each level's step and horizon (s)."""
+
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    steps_s: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_STEPS_S))
+    horizons_s: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_HORIZONS_S))
+    entity_search_margin_m: float = 20.0  # entities this far beyond the reachable disc ignored
+    clearance_refine_m: float = 3.0  # refine a plan's least clearance with fcl below this

@@ -1,0 +1,326 @@
+"""The world-modeling node: one cycle per LADAR sweep (DESIGN.md section 3).
+
+Per sweep, in the order of DESIGN.md section 3 and reference 001, 4.2 (the WM keeps the KD
+current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
+
+1. pose: LADAR odometry fused with wheel odometry (sp.odometry), or the log's ground truth;
+   the sweep is deskewed into the world with the pose at each slice's time;
+2. self state into the KD (entity ``self``, world frame);
+3. maps: every level scrolls to the new pose and fuses the points (maps.stack);
+4. SP levels 2..5 (sp.pipeline, when installed) write entity and event frames into the KD and
+   their labels into the map layers; attention comes from last cycle's prediction surprises;
+5. each map level's slow work at its own period: terrain (slope, traversability) and the
+   value-judgment cost layer (4.3);
+6. predictions for the next cycle (4.2 item 2): expected entity states and, every few
+   sweeps, a predicted range image compared with the next observed one.
+
+Sweeps wait until the log has passed their last point's time, so the poses (odometry or truth)
+covering them have arrived; :meth:`WorldModelNode.finish` drains the rest at the end.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter, defaultdict, deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+import kd_store
+from kd_store import Level, State, Status
+from maps.frames import BODY, CAMERA, LADAR, matrix_to_quat
+from maps.stack import MapStack
+from maps.terrain import update_terrain
+from sp.logs.types import (
+    CameraFrame,
+    Frame,
+    GroundTruthPose,
+    LadarScan,
+    ObjectBoxes,
+    OdometryFrame,
+    TransformFrame,
+)
+from wm import predict, vj
+from wm.config import NodeConfig, PoseSource
+from wm.poses import PoseError, PoseTrack, deskew_to_world
+
+
+class NodeError(ValueError):
+    """The node cannot run on what it was given (names what is missing and where)."""
+
+
+@dataclass
+class CycleResult:
+    """What one cycle did: its time, pose, points fused and SP output (or None)."""
+
+    t_ns: int
+    T_world_body: np.ndarray  # at t_pose_ns, the sweep's middle
+    n_points: int
+    t_pose_ns: int
+    sp_result: Any | None = None
+    odometry_status: str = ""
+
+
+@dataclass
+class NodeStats:
+    """Counters and per-stage wall times (s) over a run."""
+
+    frames: Counter = field(default_factory=Counter)
+    sweeps: int = 0
+    stage_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    odometry_status: Counter = field(default_factory=Counter)
+    notes: list[str] = field(default_factory=list)
+    range_image_error_m: list[float] = field(default_factory=list)
+    surprise_fraction: list[float] = field(default_factory=list)
+
+
+def load_sensory_processor(kd: kd_store.KnowledgeDatabase) -> tuple[Any | None, str]:
+    """SP levels 2..5 (sp.pipeline.SensoryProcessor) over ``kd``, or None and why not."""
+    try:
+        from sp.pipeline import SensoryProcessor  # type: ignore[import-not-found]
+    except ImportError as e:
+        return None, f"no entity perception this run: sp.pipeline is not available ({e})"
+    return SensoryProcessor(kd), ""
+
+
+class WorldModelNode:
+    """Keeps the KD and the map stack current from a stream of log frames (module docstring)."""
+
+    def __init__(
+        self,
+        kd: kd_store.KnowledgeDatabase,
+        config: NodeConfig | None = None,
+        stack: MapStack | None = None,
+    ) -> None:
+        self.kd = kd
+        self.config = config or NodeConfig()
+        self.stack = stack if stack is not None else MapStack()
+        self.stats = NodeStats()
+        self.sp, why = load_sensory_processor(kd) if self.config.use_sp else (None, "SP off")
+        if self.sp is None:
+            self.stats.notes.append(why)
+        self.T_body_ladar: np.ndarray | None = None
+        self.T_body_camera: np.ndarray | None = None
+        self.truth = PoseTrack()
+        self.track = PoseTrack()  # the poses the node uses (estimated, or truth)
+        self.odometry: Any | None = None
+        self.pending: deque[LadarScan] = deque()
+        self.camera: CameraFrame | None = None
+        self.truth_boxes: ObjectBoxes | None = None
+        self.last_t_ns: int | None = None
+        self.level_due_ns = {lvl.name: -(2**62) for lvl in self.stack.levels}
+        self.attention_world_xyz: np.ndarray | None = None
+        self.prediction: predict.RangePrediction | None = None
+        self.surprises = predict.SurpriseEvents()
+        self.expecting: set[int] = set()  # entities that may hold expectations
+        self.self_id = kd.add_entity(
+            "self",
+            Level.OBJECT,
+            generic_classes=("vehicle",),
+            status=Status.CONFIRMED,
+            confidence=1.0,
+            noteworthy=True,
+        ).id
+
+    # --- frames in -------------------------------------------------------------------------
+
+    def feed(self, frame: Frame) -> list[CycleResult]:
+        """Take one log frame; returns the cycles it let run (sweeps whose poses are in)."""
+        self.stats.frames[type(frame).__name__] += 1
+        if isinstance(frame, TransformFrame):
+            self._transform(frame)
+        elif isinstance(frame, GroundTruthPose):
+            self.truth.add(frame.t_ns, frame.T_parent_child)
+        elif isinstance(frame, OdometryFrame):
+            self._odometry().add_wheel_odometry(frame) if self._uses_odometry() else None
+        elif isinstance(frame, CameraFrame):
+            self.camera = frame
+        elif isinstance(frame, ObjectBoxes):
+            self.truth_boxes = frame
+        elif isinstance(frame, LadarScan):
+            self.pending.append(frame)
+        self.last_t_ns = frame.t_ns if self.last_t_ns is None else max(self.last_t_ns, frame.t_ns)
+        out = []
+        while self.pending and self._ready(self.pending[0]):
+            out.append(self.cycle(self.pending.popleft()))
+        return out
+
+    def finish(self) -> list[CycleResult]:
+        """Run the sweeps still waiting (end of log)."""
+        out = []
+        while self.pending:
+            out.append(self.cycle(self.pending.popleft()))
+        return out
+
+    def _ready(self, scan: LadarScan) -> bool:
+        end = scan.t_ns + (int(scan.t_offset_ns.max()) if scan.n_points else 0)
+        return self.last_t_ns is not None and self.last_t_ns > end
+
+    def _transform(self, frame: TransformFrame) -> None:
+        if frame.parent_frame_id != BODY:
+            return
+        if frame.child_frame_id == LADAR or frame.child_frame_id.startswith(LADAR):
+            self.T_body_ladar = frame.T_parent_child
+        elif frame.child_frame_id.startswith(CAMERA):
+            self.T_body_camera = frame.T_parent_child
+
+    def _uses_odometry(self) -> bool:
+        return self.config.pose_source == PoseSource.ODOMETRY
+
+    def _odometry(self) -> Any:
+        if self.odometry is None:
+            from sp.odometry import LadarOdometry
+
+            T0 = None
+            if self.truth.t_ns:  # align the odometry's world with the truth's start, if known
+                T0 = self.truth.poses[0]
+            self.odometry = LadarOdometry(T_body_sensor=self.T_body_ladar, T_world_body0=T0)
+        return self.odometry
+
+    # --- the cycle -------------------------------------------------------------------------
+
+    def cycle(self, scan: LadarScan) -> CycleResult:
+        """One node cycle on one sweep (module docstring, steps 1-6)."""
+        stage = self.stats.stage_s
+        t0 = time.perf_counter()
+        self.kd.begin_cycle(scan.t_ns)
+        if self.T_body_ladar is None:
+            self.T_body_ladar = np.eye(4)
+            self.stats.notes.append("no body->ladar transform in the log: LADAR taken at body")
+        status = self._pose(scan)
+        span = int(scan.t_offset_ns.max()) if scan.n_points else 0
+        t_mid = scan.t_ns + span // 2
+        T_world_body = self.track.at(t_mid)
+        T_world_ladar = T_world_body @ self.T_body_ladar
+        pts = deskew_to_world(
+            scan.points_xyz, scan.t_offset_ns, scan.t_ns, self.track, self.T_body_ladar,
+            self.config.deskew_bins,
+        )  # fmt: skip
+        self._self_state(t_mid, T_world_body)
+        t1 = time.perf_counter()
+        stage["pose"] += t1 - t0
+
+        predict.drop_stale_expectations(self.kd, self.expecting, scan.t_ns + span)
+        if self.prediction is not None:  # last cycle's expectation of this sweep
+            self._compare_prediction(pts, T_world_ladar)
+        self.stack.move_to_pose(T_world_body)
+        if len(pts):
+            self.stack.fuse(pts, t_ns=scan.t_ns, sensor_xyz=T_world_ladar[:3, 3])
+        t2 = time.perf_counter()
+        stage["maps"] += t2 - t1
+
+        sp_result = self._sensory_processing(scan, T_world_ladar)
+        t3 = time.perf_counter()
+        stage["sp"] += t3 - t2
+
+        self._levels(scan.t_ns)
+        t4 = time.perf_counter()
+        stage["levels"] += t4 - t3
+
+        self._predict(scan, T_world_body, span)
+        if self.stats.sweeps % self.config.kd_advance_every == 0:
+            self.kd.advance(scan.t_ns)
+        stage["predict"] += time.perf_counter() - t4
+        self.stats.sweeps += 1
+        self.stats.odometry_status[status] += 1
+        return CycleResult(scan.t_ns, T_world_body, len(pts), t_mid, sp_result, status)
+
+    def _pose(self, scan: LadarScan) -> str:
+        """Step 1: extend the pose track over this sweep; returns the odometry status."""
+        if self.config.pose_source == PoseSource.TRUTH:
+            if not self.truth.t_ns:
+                raise NodeError(
+                    f"pose source 'truth' but no ground-truth pose before the sweep at "
+                    f"t_ns={scan.t_ns}; use the odometry pose source for this log"
+                )
+            self.track = self.truth
+            return "truth"
+        est = self._odometry().update(scan)
+        self.track.add(est.t_ns, est.T_world_body)
+        return str(est.status)
+
+    def _self_state(self, t_ns: int, T_world_body: np.ndarray) -> None:
+        """Step 2: the vehicle's own state (world frame) into the KD."""
+        v = self.track.velocity(t_ns)
+        q = matrix_to_quat(T_world_body[:3, :3])
+        state = State(t_ns, "world", T_world_body[:3, 3], q, v)
+        try:
+            self.kd.observe(self.self_id, state)
+        except kd_store.KDError:  # a repeated time (same sweep middle): keep the first
+            pass
+
+    def _sensory_processing(self, scan: LadarScan, T_world_ladar: np.ndarray) -> Any | None:
+        """Step 4: SP levels 2..5 and their labels into the maps."""
+        if self.sp is None:
+            return None
+        cam, T_world_camera = None, None
+        if self.camera is not None and self.T_body_camera is not None:
+            try:
+                T_world_camera = self.track.at(self.camera.t_ns) @ self.T_body_camera
+                cam = self.camera
+            except PoseError:
+                pass
+        result = self.sp.process(
+            scan,
+            T_world_ladar,
+            camera=cam,
+            T_world_camera=T_world_camera,
+            attention_world_xyz=self.attention_world_xyz,
+        )
+        if len(result.points_world):
+            self.stack.fuse_labels(
+                result.points_world, result.point_entity_ids, result.point_class_ids
+            )
+        for name, s in getattr(result, "timings_s", {}).items():
+            self.stats.stage_s[f"sp.{name}"] += float(s)
+        return result
+
+    def _levels(self, t_ns: int) -> None:
+        """Step 5: each level's terrain and cost layer, at the level's own period."""
+        periods = self.config.level_periods_s
+        for lvl in self.stack.levels:
+            period_ns = round(periods.get(lvl.name, 1.0) * 1e9)
+            if t_ns < self.level_due_ns[lvl.name]:
+                continue
+            self.level_due_ns[lvl.name] = t_ns + period_ns
+            update_terrain(lvl, self.stack.config.terrain)
+            vj.write_cost_layer(lvl, self.kd, self.config.vj)
+
+    def _predict(self, scan: LadarScan, T_world_body: np.ndarray, span_ns: int) -> None:
+        """Step 6: expected entity states; every few sweeps a predicted range image."""
+        cfg = self.config.prediction
+        self.expecting.update(
+            predict.expect_entities(
+                self.kd, cfg.expectation_steps_s, cfg.expect_min_confidence, skip=self.self_id
+            )
+        )
+        every = cfg.range_image_every
+        self.prediction = None
+        if every and self.stats.sweeps % every == 0 and len(self.track) >= 2:
+            period_ns = max(span_ns, 50_000_000)
+            t_next = scan.t_ns + period_ns + span_ns // 2
+            try:
+                T_next = self.track.at(t_next)
+            except PoseError:
+                return
+            has = self._has("subsystem")
+            level = self.stack.level("subsystem") if has else self.stack.levels[0]
+            self.prediction = predict.predict_range_image(
+                level, self.kd, T_next @ self.T_body_ladar, t_next, cfg, scan, skip=self.self_id
+            )
+
+    def _has(self, name: str) -> bool:
+        return any(lvl.name == name for lvl in self.stack.levels)
+
+    def _compare_prediction(self, pts_world: np.ndarray, T_world_ladar: np.ndarray) -> None:
+        pred = self.prediction
+        assert pred is not None
+        cmp = predict.compare(pred, pts_world, T_world_ladar, self.config.prediction)
+        self.prediction = None
+        if cmp is None:
+            return
+        self.stats.range_image_error_m.append(cmp.median_abs_error_m)
+        self.stats.surprise_fraction.append(cmp.surprise_fraction)
+        self.attention_world_xyz = cmp.surprise_world_xyz
+        self.surprises.update(self.kd, cmp, pred.t_ns)

@@ -1,0 +1,244 @@
+"""The main job: a log through the world-modeling node into a KD, with a summary and pictures.
+
+``run_log(log, kd_path)`` reads any supported log (sp.logs.open_log), feeds every frame to a
+:class:`~wm.node.WorldModelNode`, scores against the log's ground truth when it has some
+(:mod:`wm.truth`), flushes the KD and returns a :class:`RunReport` (also written as JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import kd_store
+from maps.frames import NS_PER_S
+from sp.logs import open_log
+from sp.logs.types import CameraFrame, LadarScan, ObjectBoxes, OdometryFrame
+from wm.config import NodeConfig
+from wm.node import WorldModelNode
+from wm.truth import DetectionScore, OdometryScore, TerrainTruth, elevation_rmse
+
+
+@dataclass
+class RunReport:
+    """What a run did and how well (every field JSON-ready)."""
+
+    log: str
+    kd: str
+    pose_source: str
+    frames: dict[str, int]
+    sweeps: int
+    duration_s: float
+    wall_s: float
+    missing: list[str]
+    notes: list[str]
+    entities: dict[str, dict[str, int]]
+    events: dict[str, int]
+    stage_ms_per_sweep: dict[str, float]
+    odometry_status: dict[str, int]
+    metrics: dict[str, Any] = field(default_factory=dict)
+    pictures: list[str] = field(default_factory=list)
+
+    @property
+    def real_time_factor(self) -> float:
+        """Log seconds per wall second (> 1: faster than real time)."""
+        return self.duration_s / self.wall_s if self.wall_s > 0 else float("inf")
+
+    def to_json(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d["real_time_factor"] = self.real_time_factor
+        return _jsonable(d)
+
+    def text(self) -> str:
+        """The summary a user reads."""
+        lines = [
+            f"log {self.log}: {self.duration_s:.1f} s, {self.sweeps} sweeps, "
+            f"{sum(self.frames.values())} frames ({_fmt_counts(self.frames)})",
+            f"KD {self.kd}; poses from {self.pose_source} ({_fmt_counts(self.odometry_status)})",
+            f"wall {self.wall_s:.1f} s: {self.real_time_factor:.2f}x real time",
+            "ms per sweep: "
+            + _fmt_counts({k: f"{v:.1f}" for k, v in self.stage_ms_per_sweep.items()}),
+        ]
+        for m in self.missing:
+            lines.append(f"missing: {m}")
+        for n in self.notes:
+            lines.append(f"note: {n}")
+        for cls, by_status in sorted(self.entities.items()):
+            lines.append(f"entities {cls}: {_fmt_counts(by_status)}")
+        lines.append(f"events: {_fmt_counts(self.events) or 'none'}")
+        for k, v in self.metrics.items():
+            lines.append(f"{k}: {_fmt_counts(v) if isinstance(v, dict) else v}")
+        for p in self.pictures:
+            lines.append(f"picture {p}")
+        return "\n".join(lines)
+
+
+def _fmt_counts(d: dict) -> str:
+    return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in d.items())
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float) and not np.isfinite(v):
+        return None
+    return v
+
+
+def missing_inputs(frames: Counter) -> list[str]:
+    """What the log lacks, said plainly (the run goes on with what it has)."""
+    out = []
+    if not frames[LadarScan.__name__]:
+        out.append("no LADAR sweeps: nothing to map or perceive")
+    if not frames[OdometryFrame.__name__]:
+        out.append("no wheel odometry: poses from LADAR registration alone")
+    if not frames[CameraFrame.__name__]:
+        out.append("no camera: SP runs on LADAR only")
+    if not frames[ObjectBoxes.__name__]:
+        out.append("no ground-truth objects: no detection scores")
+    return out
+
+
+def run_log(
+    log_path: str | Path,
+    kd_path: str | Path = ":memory:",
+    *,
+    config: NodeConfig | None = None,
+    report_path: str | Path | None = None,
+    render_dir: str | Path | None = None,
+    progress: bool = True,
+    seconds: float | None = None,
+) -> RunReport:
+    """Run the node over a whole log (or its first ``seconds``); see the module docstring."""
+    config = config or NodeConfig()
+    source = open_log(Path(log_path))
+    info = source.info()
+    total = sum(t.count for t in info.topics)
+    terrain = TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
+    if str(kd_path) != ":memory:":
+        Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    with kd_store.open(kd_path) as kd:
+        node = WorldModelNode(kd, config)
+        odo, det = OdometryScore(), DetectionScore()
+        first_t, last_t = None, None
+        for frame in _progress(source.frames(), total, progress, Path(log_path).name):
+            first_t = frame.t_ns if first_t is None else first_t
+            if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
+                break
+            last_t = frame.t_ns
+            for c in node.feed(frame):
+                _score(node, c, odo, det)
+        for c in node.finish():
+            _score(node, c, odo, det)
+        wall = time.perf_counter() - t_start
+        report = _report(node, kd, log_path, kd_path, first_t, last_t, wall)
+        report.metrics.update(_metrics(node, odo, det, terrain))
+        if render_dir is not None:
+            from wm.render import render_run
+
+            report.pictures = [str(p) for p in render_run(node, Path(render_dir))]
+    if report_path is not None:
+        Path(report_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(report_path).write_text(json.dumps(report.to_json(), indent=2))
+    return report
+
+
+def _safe(get) -> dict:
+    try:
+        return get()
+    except Exception:  # a log format without attachments or metadata
+        return {}
+
+
+def _progress(frames, total: int, show: bool, name: str):
+    if not show:
+        return frames
+    from tqdm import tqdm
+
+    tty = sys.stderr.isatty()
+    return tqdm(frames, total=total, unit="msg", desc=f"wm run {name}", disable=not tty)
+
+
+def _score(node: WorldModelNode, cycle, odo: OdometryScore, det: DetectionScore) -> None:
+    if node.truth.t_ns:
+        odo.add(cycle.t_pose_ns, cycle.T_world_body, node.truth)
+    if node.sp is not None and node.truth_boxes is not None:
+        det.add(node.kd, node.truth_boxes, cycle.T_world_body[:3, 3], node.self_id)
+
+
+def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
+    entities: dict[str, Counter] = {}
+    for f in kd.entities():
+        if f.id == node.self_id:
+            continue
+        entities.setdefault(f.most_specific_class or "unclassified", Counter())[f.status.value] += 1
+    events = Counter(e.class_name for e in kd.events())
+    n = max(node.stats.sweeps, 1)
+    duration = (last_t - first_t) / NS_PER_S if first_t is not None and last_t is not None else 0.0
+    return RunReport(
+        log=str(log_path),
+        kd=str(kd_path),
+        pose_source=str(node.config.pose_source),
+        frames=dict(node.stats.frames),
+        sweeps=node.stats.sweeps,
+        duration_s=duration,
+        wall_s=wall,
+        missing=missing_inputs(node.stats.frames),
+        notes=list(dict.fromkeys(node.stats.notes)),
+        entities={k: dict(v) for k, v in entities.items()},
+        events=dict(events),
+        stage_ms_per_sweep={k: 1e3 * v / n for k, v in node.stats.stage_s.items()},
+        odometry_status=dict(node.stats.odometry_status),
+    )
+
+
+def _metrics(node, odo: OdometryScore, det: DetectionScore, terrain) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if odo.errors_m:
+        out["odometry"] = odo.summary()
+    if terrain is not None and node.stats.sweeps:
+        for name in ("primitive", "subsystem"):
+            if any(lv.name == name for lv in node.stack.levels):
+                rmse, cells = elevation_rmse(node.stack.level(name), terrain)
+                out[f"elevation_{name}"] = {"rmse_m": rmse, "cells": cells}
+    if node.sp is not None and det.tp + det.fn + det.fp:
+        out["detection"] = det.summary()
+    if node.stats.range_image_error_m:
+        out["prediction"] = {
+            "range_median_abs_error_m": float(np.median(node.stats.range_image_error_m)),
+            "surprise_fraction": float(np.mean(node.stats.surprise_fraction)),
+            "comparisons": len(node.stats.range_image_error_m),
+        }
+    return out
+
+
+def run_node(
+    log_path: str | Path,
+    kd_path: str | Path = ":memory:",
+    config: NodeConfig | None = None,
+    seconds: float | None = None,
+) -> WorldModelNode:
+    """Feed a log (or its first ``seconds``) through a node and return it, its KD still open
+    (the caller closes ``node.kd``): for What If / render from the shell and for tests."""
+    source = open_log(Path(log_path))
+    node = WorldModelNode(kd_store.open(kd_path), config or NodeConfig())
+    first_t = None
+    for frame in source.frames():
+        first_t = frame.t_ns if first_t is None else first_t
+        if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
+            break
+        node.feed(frame)
+    node.finish()
+    return node

@@ -1,0 +1,160 @@
+"""Scores against a log's ground truth: odometry error, elevation RMSE, detection, tracking and
+classification (what ``wm run`` reports when the log carries truth).
+
+Truth comes from the log itself: ``/ground_truth/pose`` (GroundTruthPose), ``/ground_truth/
+objects`` (ObjectBoxes) and the simulator's ``terrain.npy`` attachment with its ``terrain``
+metadata (origin_x, origin_y, resolution_m; heights[row, col] at
+``(origin_x + col * res, origin_y + row * res)``, world frame).
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import kd_store
+from kd_store import Level, Status
+from maps.level import MapLevel
+from sp.logs.types import ObjectBoxes
+from wm.poses import PoseError, PoseTrack
+
+
+@dataclass(frozen=True)
+class TerrainTruth:
+    """True terrain heights (rows, cols) float64 m on a regular world grid."""
+
+    heights: np.ndarray
+    origin_xy: tuple[float, float]
+    resolution_m: float
+
+    @classmethod
+    def from_log(cls, attachments: dict[str, bytes], metadata: dict) -> TerrainTruth | None:
+        meta = metadata.get("terrain")
+        if "terrain.npy" not in attachments or not meta:
+            return None
+        h = np.load(io.BytesIO(attachments["terrain.npy"])).astype(np.float64)
+        origin = (float(meta["origin_x"]), float(meta["origin_y"]))
+        return cls(h, origin, float(meta["resolution_m"]))
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """Bilinear height (N,) at world points (N, 2); NaN off the grid."""
+        u = (xy[:, 0] - self.origin_xy[0]) / self.resolution_m
+        v = (xy[:, 1] - self.origin_xy[1]) / self.resolution_m
+        rows, cols = self.heights.shape
+        ok = (u >= 0) & (v >= 0) & (u <= cols - 1) & (v <= rows - 1)
+        j = np.clip(np.floor(u).astype(np.int64), 0, cols - 2)
+        i = np.clip(np.floor(v).astype(np.int64), 0, rows - 2)
+        fx, fy = np.clip(u - j, 0, 1), np.clip(v - i, 0, 1)
+        g = self.heights
+        h = (g[i, j] * (1 - fx) + g[i, j + 1] * fx) * (1 - fy) + (
+            g[i + 1, j] * (1 - fx) + g[i + 1, j + 1] * fx
+        ) * fy
+        return np.where(ok, h, np.nan)
+
+
+def elevation_rmse(level: MapLevel, truth: TerrainTruth) -> tuple[float, int]:
+    """RMSE (m) of the level's elevation over ground cells (points fused, none above the
+    ground estimate) against the truth at cell centres; and the number of cells."""
+    count = level.window("count")
+    obst = level.window("obstacle_count")
+    rows, cols = np.nonzero((count > 0) & (obst == 0))
+    if not len(rows):
+        return float("nan"), 0
+    est = level.window("elevation")[rows, cols].astype(np.float64)
+    true = truth.height(level.window_to_world(rows, cols))
+    ok = np.isfinite(est) & np.isfinite(true)
+    if not ok.any():
+        return float("nan"), 0
+    return float(np.sqrt(np.mean((est[ok] - true[ok]) ** 2))), int(ok.sum())
+
+
+@dataclass
+class OdometryScore:
+    """Position error (m) of the node's poses against the truth at each sweep."""
+
+    errors_m: list[float] = field(default_factory=list)
+    path_m: float = 0.0
+    _last_xy: np.ndarray | None = None
+
+    def add(self, t_ns: int, T_world_body: np.ndarray, truth: PoseTrack) -> None:
+        try:
+            T_true = truth.at(t_ns)
+        except PoseError:
+            return
+        self.errors_m.append(float(np.linalg.norm(T_world_body[:3, 3] - T_true[:3, 3])))
+        if self._last_xy is not None:
+            self.path_m += float(np.linalg.norm(T_true[:2, 3] - self._last_xy))
+        self._last_xy = T_true[:2, 3].copy()
+
+    def summary(self) -> dict[str, float]:
+        if not self.errors_m:
+            return {}
+        e = np.asarray(self.errors_m)
+        return {
+            "ate_rmse_m": float(np.sqrt(np.mean(e**2))),
+            "final_error_m": float(e[-1]),
+            "path_m": self.path_m,
+            "final_error_pct_of_path": float(100 * e[-1] / self.path_m) if self.path_m else 0.0,
+        }
+
+
+@dataclass
+class DetectionScore:
+    """Confirmed object entities vs true boxes within ``range_m`` of the vehicle, matched
+    greedily by centre distance (at most ``match_m``), at every scored time."""
+
+    range_m: float = 40.0
+    match_m: float = 2.0
+    tp: int = 0
+    fp: int = 0
+    fn: int = 0
+    class_right: int = 0
+    id_switches: int = 0
+    _last_match: dict[int, int] = field(default_factory=dict)
+
+    def add(
+        self, kd: kd_store.KnowledgeDatabase, boxes: ObjectBoxes, xy: np.ndarray, skip: int
+    ) -> None:
+        near = np.linalg.norm(boxes.centers[:, :2] - xy[:2], axis=1) <= self.range_m
+        t_c, t_id = boxes.centers[near, :2], boxes.ids[near]
+        t_cls = [c for c, k in zip(boxes.classes, near, strict=True) if k]
+        region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), self.range_m)
+        ids = [
+            int(i)
+            for i in kd.region(region, statuses=[Status.CONFIRMED], levels=[Level.OBJECT])
+            if int(i) != skip
+        ]
+        frames = [kd.get(i) for i in ids]
+        e_c = np.array([f.state.position_xyz[:2] for f in frames]).reshape(-1, 2)  # type: ignore[union-attr]
+        used: set[int] = set()
+        if len(e_c) and len(t_c):
+            d = np.linalg.norm(t_c[:, None] - e_c[None], axis=2)
+            for flat in np.argsort(d, axis=None):
+                ti, ei = divmod(int(flat), len(e_c))
+                if d[ti, ei] > self.match_m:
+                    break
+                if ti in used or -ei - 1 in used:
+                    continue
+                used |= {ti, -ei - 1}
+                self.tp += 1
+                lineage = kd.class_lineage(frames[ei].id)
+                self.class_right += int(t_cls[ti] in lineage)
+                prev = self._last_match.get(int(t_id[ti]))
+                self.id_switches += int(prev is not None and prev != frames[ei].id)
+                self._last_match[int(t_id[ti])] = frames[ei].id
+        n_match = sum(1 for u in used if u >= 0)
+        self.fn += len(t_c) - n_match
+        self.fp += len(e_c) - n_match
+
+    def summary(self) -> dict[str, float]:
+        p = self.tp / (self.tp + self.fp) if self.tp + self.fp else float("nan")
+        r = self.tp / (self.tp + self.fn) if self.tp + self.fn else float("nan")
+        return {
+            "precision": p,
+            "recall": r,
+            "classification_accuracy": self.class_right / self.tp if self.tp else float("nan"),
+            "id_switches": self.id_switches,
+            "mota": 1.0 - (self.fp + self.fn + self.id_switches) / max(1, self.tp + self.fn),
+        }
