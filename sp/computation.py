@@ -57,6 +57,10 @@ class SegmentAttributes:
     def __len__(self) -> int:
         return int(self.n_pixels.shape[0])
 
+    def take(self, keep: np.ndarray) -> SegmentAttributes:
+        """The segments selected by ``keep`` (bool mask or indices), in order."""
+        return SegmentAttributes(**{k: getattr(self, k)[keep] for k in self.__slots__})
+
 
 def ground_below(ground: np.ndarray, z_world: np.ndarray) -> np.ndarray:
     """(H, W) float64: for each pixel the world height of the nearest ground return below it

@@ -47,7 +47,7 @@ class GroundConfig:
     sensor_height_m: float = 1.8
     height_search_m: float = 1.0
     start_tol_m: float = 0.35
-    max_slope_deg: float = 14.0
+    max_slope_deg: float = 32.0
     step_m: float = 0.06
     resume_gap_m: float = 0.8
     resume_gap_per_m: float = 0.04

@@ -72,7 +72,8 @@ class SPConfig:
     groups: GroupConfig = field(default_factory=GroupConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
-    max_object_range_m: float = 80.0  # farther segments are left ungrouped
+    max_object_range_m: float = 120.0  # farther segments are left ungrouped
+    min_object_height_m: float = 0.35  # lower segments are ground (bumps, ruts, curbs)
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 boundary lists of confirmed objects
@@ -243,6 +244,15 @@ class SensoryProcessor:
             img.t_offset_ns[..., 0],
             gz,
         )
+        # too low to stand out of the terrain: bumps and ruts are ground, not objects
+        low = attrs.height_m < cfg.min_object_height_m
+        if low.any():
+            flat_low = np.isin(labels, np.flatnonzero(low))
+            ground = ground | flat_low
+            remap = np.full(len(attrs), -1, dtype=np.int64)
+            remap[~low] = np.arange(int((~low).sum()))
+            labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+            attrs = attrs.take(~low)
         clock.lap("computation")
 
         # filtering: associate with the predictions, update, confirm or deny

@@ -32,13 +32,16 @@ class SegmentConfig:
 
     join_m:          two neighbouring returns closer than this (metres) belong together ...
     join_per_rad:    ... or closer than this many times the range times their angular spacing
-                     (the sensor's own point spacing grows with range).
+                     (the sensor's own point spacing grows with range), along a row (large
+                     enough to join a wall seen at a grazing angle) ...
+    join_per_rad_row: ... and across rows.
     min_pixels:      smallest object hypothesis (returns).
     edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
     """
 
     join_m: float = 0.6
-    join_per_rad: float = 2.5
+    join_per_rad: float = 6.0
+    join_per_rad_row: float = 2.5
     min_pixels: int = 4
     edge_jump_m: float = 0.5
     edge_jump_frac: float = 0.05
@@ -81,7 +84,12 @@ def label_objects(
     m = mask.reshape(-1)
     rng = range_m.reshape(-1)
     src, dst = [], []
-    for di, dj, step in ((0, 1, col_step_rad), (0, 2, 2 * col_step_rad), (1, 0, row_step_rad)):
+    steps = (
+        (0, 1, col_step_rad * cfg.join_per_rad),
+        (0, 2, 2 * col_step_rad * cfg.join_per_rad),
+        (1, 0, row_step_rad * cfg.join_per_rad_row),
+    )
+    for di, dj, step in steps:
         if di >= H:
             continue
         a, b = _pairs(H, W, di, dj)
@@ -89,7 +97,7 @@ def label_objects(
         a, b = a[ok], b[ok]
         d = np.linalg.norm(flat[a] - flat[b], axis=1)
         r = np.minimum(rng[a], rng[b])
-        near = d <= np.maximum(cfg.join_m, cfg.join_per_rad * r * step)
+        near = d <= np.maximum(cfg.join_m, r * step)
         src.append(a[near])
         dst.append(b[near])
     idx = np.flatnonzero(m)
