@@ -73,7 +73,7 @@ class SPConfig:
     window: WindowConfig = field(default_factory=WindowConfig)
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
     max_object_range_m: float = 120.0  # farther segments are left ungrouped
-    min_object_height_m: float = 0.35  # lower segments are ground (bumps, ruts, curbs)
+    min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 boundary lists of confirmed objects

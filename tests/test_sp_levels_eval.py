@@ -1,0 +1,269 @@
+"""Evaluations of SP levels 2-5 against ground truth (``make eval``).
+
+Simulated logs: detection precision and recall, CLEAR MOT (MOTA, ID switches), position and
+velocity RMSE, classification accuracy, with the true sensor pose (T_world_body from the
+simulator's ground truth composed with the static mount), so the figures measure SP, not
+odometry. A ground-truth object counts in a sweep when at least ``MIN_POINTS`` of the sweep's
+image points fall inside its box (enlarged by ``BOX_MARGIN_M``); a confirmed track and a box
+match when most of the track's points lie in the box (optimal assignment on the point counts);
+a track lying mostly in a box that is not counted (too few points, or a second track on one
+box) is "don't care", neither a hit nor a false alarm, as in the KITTI tracking benchmark.
+
+Real data: KITTI ground precision / recall / F1 under the Patchwork++ protocol against
+SemanticKITTI labels; Argoverse 2 cuboid recall and ground accuracy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+
+import kd_store
+from sp.egosphere import EgosphereConfig
+from sp.logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
+from sp.pipeline import SensoryProcessor, SPConfig
+
+MIN_POINTS = 20
+BOX_MARGIN_M = 0.3
+OBJECT_CLASSES = ("building", "tree", "bush", "rock", "post", "vehicle", "person")
+MOVING_CLASSES = ("vehicle", "person")
+
+
+def points_in_boxes(points: np.ndarray, boxes: ObjectBoxes, margin: float) -> np.ndarray:
+    """(N,) int64 index of the box each world point lies in (first box), -1 none."""
+    out = np.full(points.shape[0], -1, dtype=np.int64)
+    for k in range(len(boxes)):
+        d = points[:, :3].astype(np.float64) - boxes.centers[k]
+        c, s = math.cos(boxes.yaws[k]), math.sin(boxes.yaws[k])
+        u, v = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+        half = boxes.sizes[k] / 2 + margin
+        inside = (np.abs(u) <= half[0]) & (np.abs(v) <= half[1]) & (np.abs(d[:, 2]) <= half[2])
+        out[inside & (out < 0)] = k
+    return out
+
+
+@dataclass
+class MotTally:
+    """CLEAR MOT and detection counts over a run."""
+
+    gt: int = 0
+    tp: int = 0
+    fp: int = 0
+    fn: int = 0
+    idsw: int = 0
+    last_match: dict[int, int] = field(default_factory=dict)
+    pos_err2: list[float] = field(default_factory=list)
+    pos_err2_moving: list[float] = field(default_factory=list)
+    vel_err2_moving: list[float] = field(default_factory=list)
+    cls_ok: int = 0
+    cls_n: int = 0
+    confusion: dict[tuple[str, str], int] = field(default_factory=dict)
+
+    def figures(self) -> dict[str, float]:
+        rmse = lambda v: float(np.sqrt(np.mean(v))) if v else float("nan")  # noqa: E731
+        return {
+            "mota": 1.0 - (self.fn + self.fp + self.idsw) / max(self.gt, 1),
+            "precision": self.tp / max(self.tp + self.fp, 1),
+            "recall": self.tp / max(self.tp + self.fn, 1),
+            "id_switches": float(self.idsw),
+            "id_switches_per_100": 100.0 * self.idsw / max(self.tp, 1),
+            "position_rmse_m": rmse(self.pos_err2),
+            "position_rmse_moving_m": rmse(self.pos_err2_moving),
+            "velocity_rmse_moving_mps": rmse(self.vel_err2_moving),
+            "classification_accuracy": self.cls_ok / max(self.cls_n, 1),
+            "gt_object_frames": float(self.gt),
+        }
+
+
+def score_cycle(tally: MotTally, kd, sp: SensoryProcessor, result, boxes: ObjectBoxes) -> None:
+    """Match this cycle's confirmed tracks with the visible true boxes and count."""
+    pts = result.points_world
+    in_box = points_in_boxes(pts, boxes, BOX_MARGIN_M)
+    counts = np.bincount(in_box[in_box >= 0], minlength=len(boxes))
+    visible = np.flatnonzero(counts >= MIN_POINTS)
+    tracks = [i for i in result.objects if kd.get(i).status == kd_store.Status.CONFIRMED]
+    overlap = np.zeros((len(tracks), visible.size))
+    n_pts = np.zeros(len(tracks))
+    for a, tid in enumerate(tracks):
+        mine = in_box[result.point_entity_ids == tid]
+        n_pts[a] = mine.size
+        for b, k in enumerate(visible):
+            overlap[a, b] = np.count_nonzero(mine == k)
+    ok = overlap >= 0.5 * n_pts[:, None]
+    cost = np.where(ok, -overlap, 0.0)
+    rows, cols = linear_sum_assignment(cost) if overlap.size else ([], [])
+    pairs = [(r, c) for r, c in zip(rows, cols, strict=True) if ok[r, c] and overlap[r, c] > 0]
+    # tracks on boxes too sparsely seen to count are neither hits nor false alarms (don't care)
+    matched = {r for r, _ in pairs}
+    dont_care = 0
+    for a, tid in enumerate(tracks):
+        mine = in_box[result.point_entity_ids == tid]
+        if a not in matched and mine.size and np.count_nonzero(mine >= 0) >= 0.5 * mine.size:
+            dont_care += 1
+    tally.gt += visible.size
+    tally.tp += len(pairs)
+    tally.fp += len(tracks) - len(pairs) - dont_care
+    tally.fn += visible.size - len(pairs)
+    for r, c in pairs:
+        k = int(visible[c])
+        gid, tid = int(boxes.ids[k]), tracks[r]
+        if gid in tally.last_match and tally.last_match[gid] != tid:
+            tally.idsw += 1
+        tally.last_match[gid] = tid
+        st = kd.get(tid).state
+        dt = (st.t_ns - boxes.t_ns) * 1e-9
+        centre = boxes.centers[k] + boxes.velocities[k] * dt
+        e2 = float(np.sum((st.position_xyz[:2] - centre[:2]) ** 2))
+        tally.pos_err2.append(e2)
+        cls = boxes.classes[k]
+        if cls in MOVING_CLASSES:
+            tally.pos_err2_moving.append(e2)
+            tally.vel_err2_moving.append(
+                float(np.sum((st.velocity_xyz[:2] - boxes.velocities[k][:2]) ** 2))
+            )
+        if cls in OBJECT_CLASSES:
+            got = sp.track_class.get(tid, (None, 0.0))[0]
+            tally.cls_n += 1
+            tally.cls_ok += int(got == cls)
+            tally.confusion[(cls, str(got))] = tally.confusion.get((cls, str(got)), 0) + 1
+
+
+def run_simulated(
+    scenario: str = "default", seconds: float = 20.0, seed: int | None = None
+) -> tuple[MotTally, dict[str, float]]:
+    """Run SP over a simulated log with true poses; returns the tally and median timings."""
+    from fixtures.simulate import simulate
+
+    kd = kd_store.open(":memory:")
+    sp = SensoryProcessor(kd, SPConfig())
+    tally = MotTally()
+    T_body_ladar = T_world_body = None
+    boxes: ObjectBoxes | None = None
+    timings: dict[str, list[float]] = {}
+    for f in simulate(scenario, seconds=seconds, seed=seed):
+        if isinstance(f, TransformFrame) and f.child_frame_id == "ladar":
+            T_body_ladar = f.T_parent_child
+        elif isinstance(f, GroundTruthPose):
+            T_world_body = f.T_parent_child
+        elif isinstance(f, ObjectBoxes):
+            boxes = f
+        elif isinstance(f, LadarScan) and T_body_ladar is not None and T_world_body is not None:
+            result = sp.process(f, T_world_body @ T_body_ladar)
+            for k, v in result.timings_s.items():
+                timings.setdefault(k, []).append(v)
+            if boxes is not None and boxes.t_ns == f.t_ns:
+                score_cycle(tally, kd, sp, result, boxes)
+    return tally, {k: float(np.median(v)) for k, v in timings.items()}
+
+
+@pytest.mark.eval
+def test_eval_simulated_default_tracking() -> None:
+    from bench.results import record
+
+    tally, timings = run_simulated("default", seconds=30.0)
+    fig = tally.figures()
+    cmd = "make eval"
+    record("sp_levels_mota", fig["mota"], "ratio", target=0.9, command=cmd)
+    record(
+        "sp_levels_id_switches_per_100",
+        fig["id_switches_per_100"],
+        "per 100",
+        target=1.0,
+        command=cmd,
+    )
+    record("sp_levels_detection_precision", fig["precision"], "ratio", command=cmd)
+    record("sp_levels_detection_recall", fig["recall"], "ratio", command=cmd)
+    record("sp_levels_position_rmse", fig["position_rmse_m"], "m", command=cmd)
+    record("sp_levels_position_rmse_moving", fig["position_rmse_moving_m"], "m", command=cmd)
+    record("sp_levels_velocity_rmse_moving", fig["velocity_rmse_moving_mps"], "m/s", command=cmd)
+    record(
+        "sp_levels_classification_accuracy",
+        fig["classification_accuracy"],
+        "ratio",
+        target=0.9,
+        command=cmd,
+    )
+    print(fig, timings)
+    assert fig["gt_object_frames"] > 100
+    assert fig["recall"] > 0.5
+
+
+# ---------------------------------------------------------------- real data
+
+PATCHWORK_GROUND = (40, 44, 48, 49, 60, 72)  # road, parking, sidewalk, other-ground, lane, terrain
+PATCHWORK_UNSCORED = (0, 1, 70)  # unlabelled, outlier, vegetation (not scored)
+PATCHWORK_PAPER_F1 = 0.965  # Patchwork++ (Lee et al., RA-L 2022) on SemanticKITTI: reference only
+
+
+def kitti_ground_scores(folder: Path) -> list[tuple[float, float, float]]:
+    """(precision, recall, F1) of our ground per KITTI scan with SemanticKITTI labels."""
+    from sp.egosphere import to_egosphere
+    from sp.ground import GroundConfig, ground_mask
+
+    cfg = EgosphereConfig(
+        n_rows=64,
+        n_cols=2048,
+        use_ring=False,
+        elevation_min_deg=-25.0,
+        elevation_max_deg=3.0,
+        max_returns=1,
+    )
+    out = []
+    for path in sorted(folder.glob("*.bin")):
+        a = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+        label = np.fromfile(path.with_suffix(".label"), dtype=np.uint32) & 0xFFFF
+        scan = LadarScan(0, "ladar", a[:, :3].copy(), a[:, 3].copy(), np.zeros(len(a), np.int64))
+        img = to_egosphere(scan, cfg)
+        ground, _ = ground_mask(img.xyz[..., 0, :], img.valid_first, GroundConfig(1.73))
+        pred = ground_of_points(scan, cfg, ground)
+        gt = np.isin(label, PATCHWORK_GROUND)
+        scored = ~np.isin(label, PATCHWORK_UNSCORED)
+        tp = np.count_nonzero(pred & gt & scored)
+        fp = np.count_nonzero(pred & ~gt & scored)
+        fn = np.count_nonzero(~pred & gt & scored)
+        p, r = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
+        out.append((p, r, 2 * p * r / max(p + r, 1e-12)))
+    return out
+
+
+def ground_of_points(scan: LadarScan, cfg: EgosphereConfig, ground: np.ndarray) -> np.ndarray:
+    """Per point of the sweep: the ground label of the pixel it falls in (False when dropped)."""
+    from sp.egosphere import spherical
+
+    rng, az, el = spherical(scan.points_xyz.astype(np.float64))
+    col = np.clip(((np.pi - az) * cfg.n_cols / (2 * np.pi)).astype(np.int64), 0, cfg.n_cols - 1)
+    el_hi, el_lo = np.deg2rad(cfg.elevation_max_deg), np.deg2rad(cfg.elevation_min_deg)
+    row = ((el_hi - el) * cfg.n_rows / (el_hi - el_lo)).astype(np.int64)
+    ok = (row >= 0) & (row < cfg.n_rows) & (rng >= cfg.min_range_m)
+    out = np.zeros(scan.n_points, dtype=bool)
+    out[ok] = ground[row[ok], col[ok]]
+    return out
+
+
+@pytest.mark.eval
+@pytest.mark.real_data
+def test_eval_kitti_ground_patchwork_protocol(real_data: Path) -> None:
+    from bench.results import record
+
+    folder = real_data / "kitti" / "sequences" / "00" / "velodyne"
+    scores = np.array(kitti_ground_scores(folder))
+    p, r, f1 = scores.mean(axis=0)
+    cmd = "make eval"
+    record("sp_levels_kitti_ground_precision", float(p), "ratio", command=cmd)
+    record("sp_levels_kitti_ground_recall", float(r), "ratio", command=cmd)
+    record(
+        "sp_levels_kitti_ground_f1",
+        float(f1),
+        "ratio",
+        baseline="Patchwork++ paper figure "
+        "(SemanticKITTI, not run here: pypatchworkpp unavailable)",
+        baseline_value=PATCHWORK_PAPER_F1,
+        target=PATCHWORK_PAPER_F1 - 0.02,
+        command=cmd,
+    )
+    assert f1 >= PATCHWORK_PAPER_F1 - 0.02
