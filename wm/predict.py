@@ -248,7 +248,8 @@ def compare(
     n = int(both.sum())
     if n == 0:
         return None
-    err = np.where(both, np.abs(obs - pred.range_m), 0.0)
+    with np.errstate(invalid="ignore"):  # inf - inf where neither has a return
+        err = np.where(both, np.abs(obs - pred.range_m), 0.0)
     bad = both & (err > config.mismatch_m)
     flat_bad = bad.ravel()
     sel = (pix >= 0) & flat_bad[np.maximum(pix, 0)]

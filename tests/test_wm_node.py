@@ -1,0 +1,199 @@
+"""The world-modeling node end to end on a short simulated log, against the log's ground truth:
+self state, What Is in every frame, the BG consumer's plans, and `wm run`'s report."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from kd_store import Attribute, Level, State, Status
+from maps.frames import se3_inverse, transform_points, yaw_of
+from sp.logs import open_log
+from sp.logs.types import GroundTruthPose, ObjectBoxes
+from wm.bg import Planner
+from wm.config import NodeConfig, PoseSource
+from wm.poses import PoseTrack
+from wm.run import run_log, run_node
+from wm.whatif import WhatIf
+from wm.whatis import WhatIs, WhatIsError
+
+SECONDS = 2.0
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory):
+    from fixtures.simulate import simulate_to_log
+
+    path = tmp_path_factory.mktemp("wm") / "default.mcap"
+    return simulate_to_log("default", path, seconds=SECONDS, seed=7, progress=False)
+
+
+@pytest.fixture(scope="module")
+def truth(log):
+    poses, boxes = [], []
+    for f in open_log(log).frames():
+        if isinstance(f, GroundTruthPose):
+            poses.append(f)
+        elif isinstance(f, ObjectBoxes):
+            boxes.append(f)
+    return poses, boxes
+
+
+@pytest.fixture(scope="module")
+def node(log):
+    cfg = NodeConfig(pose_source=PoseSource.TRUTH, use_sp=False)
+    n = run_node(log, ":memory:", cfg)
+    yield n
+    n.kd.close()
+
+
+def _true_pose(poses, t_ns):
+    ts = np.array([p.t_ns for p in poses])
+    i = int(np.argmin(np.abs(ts - t_ns)))
+    assert ts[i] == t_ns or abs(ts[i] - t_ns) < 30_000_000
+    return poses[i]
+
+
+def _put_truth(kd, boxes: ObjectBoxes, near_xy, radius=40.0) -> dict[int, int]:
+    """True objects near ``near_xy`` into the KD as confirmed entities; kd id -> true index."""
+    out = {}
+    kd.begin_cycle(boxes.t_ns)
+    for k in np.flatnonzero(np.linalg.norm(boxes.centers[:, :2] - near_xy, axis=1) < radius):
+        size = boxes.sizes[k]
+        attrs = {n: Attribute(estimated=float(v))
+                 for n, v in zip(("length_m", "width_m", "height_m"), size, strict=False)}  # fmt: skip
+        cls = boxes.classes[k]
+        e = kd.add_entity(f"true-{boxes.ids[k]}", Level.OBJECT, generic_classes=(cls,),
+                          status=Status.CONFIRMED, confidence=1.0, attributes=attrs)  # fmt: skip
+        yaw = boxes.yaws[k]
+        q = (0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2))
+        kd.observe(e.id, State(boxes.t_ns, "world", boxes.centers[k], q, boxes.velocities[k]))
+        out[e.id] = int(k)
+    return out
+
+
+def test_self_state_matches_the_true_pose(node, truth) -> None:
+    poses, _ = truth
+    wi = WhatIs(node.kd, node.stack, node.self_id, node.T_body_ladar)
+    hist = node.kd.history(node.self_id)
+    assert len(hist) >= 15
+    track = PoseTrack()
+    for p in poses:
+        track.add(p.t_ns, p.T_parent_child)
+    for s in hist[::4]:
+        a = wi.self_state(s.t_ns)
+        # the truth between its 50 Hz samples, interpolated independently of the node's track
+        T = track.at(s.t_ns)
+        assert np.linalg.norm(a.position - T[:3, 3]) < 1e-6
+        assert a.frame == "world" and a.t_ns == s.t_ns
+
+
+def test_whatis_entity_in_every_frame_matches_truth(node, truth) -> None:
+    _poses, boxes = truth
+    T_last = node.stack.T_world_body
+    ids = _put_truth(node.kd, boxes[-1], T_last[:2, 3])
+    assert ids, "no true objects within 40 m"
+    wi = WhatIs(node.kd, node.stack, node.self_id, node.T_body_ladar)
+    for eid, k in ids.items():
+        c = boxes[-1].centers[k]
+        a = wi.entity(eid)
+        np.testing.assert_allclose(a.position, c, atol=1e-9)
+        assert a.t_ns == boxes[-1].t_ns and a.class_name == boxes[-1].classes[k]
+        # the body pose at the entity's time (checked against truth in the test above)
+        b = wi.entity(eid, frame="base_link")
+        T_at = wi.T_world_body(boxes[-1].t_ns)
+        p_body_true = transform_points(se3_inverse(T_at), c[None])[0]
+        np.testing.assert_allclose(b.position, p_body_true, atol=1e-6)
+        p_l = transform_points(se3_inverse(T_at @ node.T_body_ladar), c[None])[0]
+        np.testing.assert_allclose(wi.entity(eid, frame="ladar").position, p_l, atol=1e-6)
+        ego = wi.entity(eid, frame="egosphere").position
+        assert ego[2] == pytest.approx(np.linalg.norm(p_l), abs=1e-6)
+        assert ego[0] == pytest.approx(np.arctan2(p_l[1], p_l[0]), abs=1e-9)
+        m = wi.entity(eid, frame="map:subsystem").position
+        lvl = node.stack.level("subsystem")
+        rows, cols, inside = lvl.world_to_window(c[None, :2])
+        if inside[0]:
+            assert int(np.floor(m[0])) == cols[0] and int(np.floor(m[1])) == rows[0]
+    with pytest.raises(WhatIsError, match="frame"):
+        wi.entity(next(iter(ids)), frame="moon")
+
+
+def test_whatis_before_short_term_memory_says_so(node) -> None:
+    wi = WhatIs(node.kd, node.stack, node.self_id)
+    oldest = node.kd.history(node.self_id)[0].t_ns
+    with pytest.raises(WhatIsError, match="before short-term memory"):
+        wi.entity(node.self_id, oldest - 10**9)
+
+
+def test_map_window_is_the_level_window(node) -> None:
+    wi = WhatIs(node.kd, node.stack, node.self_id)
+    lvl = node.stack.level("subsystem")
+    a = wi.map_window("subsystem", ("elevation", "count"), size=64)
+    full = lvl.window("count")
+    mid = lvl.size // 2
+    np.testing.assert_array_equal(a.layers["count"], full[mid - 32 : mid + 32, mid - 32 : mid + 32])
+    assert np.isfinite(a.layers["elevation"]).mean() > 0.3
+    with pytest.raises(WhatIsError, match="does not exist"):
+        wi.map_window("galaxy")
+
+
+def _boxes_overlap(c1, yaw1, half1, c2, yaw2, half2) -> bool:
+    """Separating-axis test of two oriented rectangles (independent of fcl)."""
+    axes = [
+        np.array([np.cos(a), np.sin(a)]) for a in (yaw1, yaw1 + np.pi / 2, yaw2, yaw2 + np.pi / 2)
+    ]
+    d = c2 - c1
+    for ax in axes:
+        r1 = sum(h * abs(ax @ np.array([np.cos(yaw1 + o), np.sin(yaw1 + o)]))
+                 for h, o in zip(half1, (0, np.pi / 2), strict=False))  # fmt: skip
+        r2 = sum(h * abs(ax @ np.array([np.cos(yaw2 + o), np.sin(yaw2 + o)]))
+                 for h, o in zip(half2, (0, np.pi / 2), strict=False))  # fmt: skip
+        if abs(ax @ d) > r1 + r2:
+            return False
+    return True
+
+
+def test_bg_selected_plans_never_collide_with_true_objects(node, truth) -> None:
+    _poses, boxes = truth
+    _put_truth(node.kd, boxes[-1], node.stack.T_world_body[:2, 3], radius=80.0)
+    wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
+    planner = Planner(wi)
+    T = node.stack.T_world_body
+    goal = T[:2, 3] + 30.0 * T[:2, 0]
+    sel = planner.plan(goal)
+    assert sel.collision_entity == -1
+    veh = wi.config.vehicle
+    b = boxes[-1]
+    t0 = node.kd.get(node.self_id).state.t_ns
+    for t, xy, yaw in zip(sel.t_s, sel.xy, sel.yaw, strict=True):
+        dt = (t0 - b.t_ns) * 1e-9 + t
+        for k in range(len(b)):
+            c = b.centers[k, :2] + dt * b.velocities[k, :2]
+            hit = _boxes_overlap(xy, yaw, (veh.length_m / 2, veh.width_m / 2),
+                                 c, b.yaws[k], b.sizes[k, :2] / 2)  # fmt: skip
+            assert not hit, f"plan meets true object {b.ids[k]} at t={t:.1f} s"
+    assert yaw_of(T) is not None
+
+
+def test_wm_run_report_and_pictures(log, tmp_path) -> None:
+    report = run_log(log, tmp_path / "kd.duckdb", report_path=tmp_path / "r.json",
+                     render_dir=tmp_path / "pics", progress=False)  # fmt: skip
+    data = json.loads((tmp_path / "r.json").read_text())
+    assert data["sweeps"] == report.sweeps >= 15
+    assert data["metrics"]["odometry"]["ate_rmse_m"] < 1.0
+    assert data["metrics"]["elevation_primitive"]["rmse_m"] < 0.15
+    assert data["real_time_factor"] > 0
+    assert len(report.pictures) == 8 and all((tmp_path / "pics").glob("*.png"))
+    import kd_store
+
+    with kd_store.open(tmp_path / "kd.duckdb", read_only=True) as kd:
+        q = (
+            "SELECT count(*) AS n FROM entity_states e JOIN entities x ON e.entity_id = x.id "
+            "WHERE x.name = 'self'"
+        )
+        n_self = kd.sql(q).column("n")[0].as_py()
+    assert n_self == report.sweeps
+    if report.metrics.get("detection"):  # SP ran: confirmed objects match the true ones
+        assert report.metrics["detection"]["recall"] > 0.3
