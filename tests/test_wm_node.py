@@ -62,8 +62,8 @@ def _put_truth(kd, boxes: ObjectBoxes, near_xy, radius=40.0) -> dict[int, int]:
     kd.begin_cycle(boxes.t_ns)
     for k in np.flatnonzero(np.linalg.norm(boxes.centers[:, :2] - near_xy, axis=1) < radius):
         size = boxes.sizes[k]
-        attrs = {n: Attribute(estimated=float(v))
-                 for n, v in zip(("length_m", "width_m", "height_m"), size, strict=False)}  # fmt: skip
+        names = ("length_m", "width_m", "height_m")
+        attrs = {n: Attribute(estimated=float(v)) for n, v in zip(names, size, strict=True)}
         cls = boxes.classes[k]
         e = kd.add_entity(f"true-{boxes.ids[k]}", Level.OBJECT, generic_classes=(cls,),
                           status=Status.CONFIRMED, confidence=1.0, attributes=attrs)  # fmt: skip

@@ -20,7 +20,8 @@ VEH = VehicleConfig()
 def _kd_with_box(center_xy=(20.0, 0.0), size=(1.0, 1.0, 1.0), velocity=(0.0, 0.0, 0.0)):
     kd = kd_store.open()
     kd.begin_cycle(0)
-    attrs = {n: Attribute(estimated=v) for n, v in zip(("length_m", "width_m", "height_m"), size, strict=False)}
+    names = ("length_m", "width_m", "height_m")
+    attrs = {n: Attribute(estimated=v) for n, v in zip(names, size, strict=True)}
     e = kd.add_entity("rock", Level.OBJECT, generic_classes=("rock",), status=Status.CONFIRMED,
                       confidence=0.9, attributes=attrs)  # fmt: skip
     kd.observe(e.id, State(0, "world", (*center_xy, 0.5), velocity_xyz=velocity))
