@@ -70,7 +70,7 @@ def bench_correlation() -> None:
         "ms",
         baseline="cv2.matchTemplate TM_CCOEFF_NORMED over +-16 px, same crops",
         baseline_value=times["match"] * 1e3,
-        target="ratio < 1",
+        target="(reference; the issue sets no target against matchTemplate)",
         command=cmd,
     )
     record(
