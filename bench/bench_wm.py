@@ -1,0 +1,91 @@
+"""World-model benchmarks: the whole pipeline on the default scenario (real-time factor, time
+per stage), What If for 100 candidate 5 s plans, What Is entity lookup and a 64x64 map window.
+Medians; baselines run side by side in the same process."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+import kd_store
+from bench.results import median_time, record
+from kd_store import Attribute, Level, State, Status
+from maps.stack import MapStack
+from wm.config import NodeConfig
+from wm.run import run_log
+from wm.whatif import ControlPlan, Start, WhatIf
+from wm.whatis import WhatIs
+
+CMD = "make bench (python -m bench wm)"
+PIPELINE_SECONDS = 10.0
+
+
+def _kd_with_entities(n: int = 50) -> tuple[kd_store.KnowledgeDatabase, list[int]]:
+    kd = kd_store.open()
+    kd.begin_cycle(0)
+    rng = np.random.default_rng(0)
+    ids = []
+    for i in range(n):
+        attrs = {k: Attribute(estimated=1.5) for k in ("length_m", "width_m", "height_m")}
+        e = kd.add_entity(f"e{i}", Level.OBJECT, generic_classes=("rock",),
+                          status=Status.CONFIRMED, confidence=0.9, attributes=attrs)  # fmt: skip
+        xy = rng.uniform(-40, 40, 2)
+        kd.observe(e.id, State(0, "world", (*xy, 0.0), velocity_xyz=(*rng.normal(0, 1, 2), 0)))
+        ids.append(e.id)
+    return kd, ids
+
+
+def bench_whatif() -> None:
+    kd, _ = _kd_with_entities()
+    stack = MapStack()
+    stack.move_to(np.zeros(2))
+    wi = WhatIf(kd, stack)
+    plans = [ControlPlan(np.array([0.0]), np.array([v]), np.array([k]))
+             for v in np.linspace(1, 10, 10) for k in np.linspace(-0.15, 0.15, 10)]  # fmt: skip
+    start = Start(np.zeros(2), 0.0, 5.0, 0)
+    t = median_time(lambda: wi.simulate(plans, start=start), repeat=15)
+    one = median_time(lambda: wi.simulate(plans[:1], start=start), repeat=15)
+    record("wm_whatif_100_plans_5s", t * 1e3, "ms", baseline="one plan per call",
+           baseline_value=one * 1e3, target="at most 50 ms", command=CMD)  # fmt: skip
+
+
+def bench_whatis() -> None:
+    kd, ids = _kd_with_entities(1000)
+    stack = MapStack()
+    stack.move_to(np.zeros(2))
+    wi = WhatIs(kd, stack)
+    i = ids[500]
+    t = median_time(lambda: [wi.entity(i) for _ in range(1000)], repeat=7) / 1000
+    base = median_time(lambda: [kd.get(i) for _ in range(1000)], repeat=7) / 1000
+    record("wm_whatis_entity_lookup", t * 1e6, "us", baseline="kd.get alone",
+           baseline_value=base * 1e6, target="at most 20 us", command=CMD)  # fmt: skip
+    lvl = stack.level("subsystem")
+    tw = median_time(lambda: wi.map_window("subsystem", ("elevation",), size=64), repeat=50)
+    tb = median_time(lambda: lvl.window("elevation"), repeat=50)
+    record("wm_whatis_map_window_64", tw * 1e6, "us", baseline="full 256x256 level.window",
+           baseline_value=tb * 1e6, target="at most 200 us", command=CMD)  # fmt: skip
+
+
+def bench_pipeline() -> None:
+    from fixtures.simulate import simulate_to_log
+
+    with tempfile.TemporaryDirectory() as d:
+        log = simulate_to_log("default", Path(d) / "default.mcap", seconds=PIPELINE_SECONDS,
+                              progress=False)  # fmt: skip
+        rep = run_log(log, ":memory:", config=NodeConfig(), progress=False)
+    print("ms per sweep:", {k: round(v, 1) for k, v in rep.stage_ms_per_sweep.items()})
+    record("wm_pipeline_default_real_time_factor", rep.real_time_factor, "x real time",
+           baseline="real time (1.0)", baseline_value=1.0,
+           target="at least 2x real time on 2 cores", command=CMD)  # fmt: skip
+
+
+def main() -> None:
+    bench_whatif()
+    bench_whatis()
+    bench_pipeline()
+
+
+if __name__ == "__main__":
+    main()
