@@ -128,9 +128,10 @@ def range_edges(range_m: np.ndarray, valid: np.ndarray, config: SegmentConfig | 
     for axis in (0, 1):
         nxt = np.roll(r, -1, axis=axis)
         if axis == 0:
-            nxt[-1] = np.inf
+            nxt[-1] = r[-1]  # the image's bottom border is no edge
         lo = np.minimum(r, nxt)
-        jump = np.abs(r - nxt) > cfg.edge_jump_m + cfg.edge_jump_frac * lo
+        with np.errstate(invalid="ignore"):
+            jump = np.abs(r - nxt) > cfg.edge_jump_m + cfg.edge_jump_frac * lo
         jump &= np.isfinite(lo)
         near_here = jump & (r <= nxt)
         near_next = jump & (nxt < r)

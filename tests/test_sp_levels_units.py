@@ -1,0 +1,344 @@
+"""Unit tests of SP levels 2-5: each grouping rule, the filters, confirm/deny, the classifier,
+groups, and the consistency of entity images with the KD's frames (against analytic truth)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+
+import kd_store
+from kd_store import Level, Status
+from sp.classify import Classifier
+from sp.computation import ground_below, segment_attributes
+from sp.ground import GroundConfig, ground_mask
+from sp.groups import group_labels, match_groups
+from sp.logs.types import LadarScan
+from sp.pipeline import IMAGE_NAMES, SensoryProcessor
+from sp.segments import label_objects, range_edges
+from sp.tracking import (
+    F_Q,
+    Measurements,
+    Tracker,
+    TrackerConfig,
+    TrackStatus,
+    predict,
+    update,
+)
+from sp.windowing import window_mask
+
+H, W = 32, 360
+EL = np.deg2rad(np.linspace(2.0, -25.0, H))  # row 0 highest
+AZ = np.pi - (np.arange(W) + 0.5) * 2 * np.pi / W
+SENSOR_H = 1.8
+
+
+def _rays() -> np.ndarray:
+    E, A = np.meshgrid(EL, AZ, indexing="ij")
+    return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1)
+
+
+def flat_scene(
+    box_xy: tuple[float, float] | None = (10.0, 0.0),
+    half: float = 1.0,
+    top: float = 1.5,
+    slope: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ray-cast a plane z = -SENSOR_H + slope * x and an axis-aligned box standing on it.
+    Returns (xyz (H, W, 3), valid (H, W), truth_box (H, W) bool)."""
+    d = _rays()
+    # plane: t * dz = -h + slope * t * dx  ->  t = -h / (dz - slope * dx)
+    den = d[..., 2] - slope * d[..., 0]
+    with np.errstate(divide="ignore"):
+        t = np.where(den < -1e-6, -SENSOR_H / den, np.inf)
+    t = np.where(t < 80.0, t, np.inf)
+    hit_box = np.zeros((H, W), dtype=bool)
+    if box_xy is not None:
+        z0 = -SENSOR_H + slope * box_xy[0]
+        lo = np.array([box_xy[0] - half, box_xy[1] - half, z0])
+        hi = np.array([box_xy[0] + half, box_xy[1] + half, z0 + top])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0 = (lo - 0 * d) / d
+            t1 = (hi - 0 * d) / d
+        tmin = np.nanmax(np.minimum(t0, t1), axis=-1)
+        tmax = np.nanmin(np.maximum(t0, t1), axis=-1)
+        hit = (tmax >= tmin) & (tmin > 0) & (tmin < t)
+        t = np.where(hit, tmin, t)
+        hit_box = hit
+    valid = np.isfinite(t)
+    xyz = np.where(valid[..., None], d * np.where(valid, t, 0)[..., None], np.nan)
+    return xyz, valid, hit_box
+
+
+# ---------------------------------------------------------------- grouping rules
+
+
+@pytest.mark.parametrize("slope", [0.0, 0.15])
+def test_ground_is_the_plane_and_not_the_box(slope: float) -> None:
+    xyz, valid, box = flat_scene(slope=slope)
+    ground, h = ground_mask(xyz, valid, GroundConfig())
+    assert abs(h - SENSOR_H) < 0.2
+    plane = valid & ~box
+    assert np.count_nonzero(ground & plane) >= 0.97 * np.count_nonzero(plane)
+    # the box's foot (its lowest 20 cm) is where box and ground meet; above it, nothing is ground
+    above = box & (xyz[..., 2] > -SENSOR_H + slope * xyz[..., 0] + 0.2)
+    assert np.count_nonzero(above) > 50
+    assert np.count_nonzero(ground & above) == 0
+
+
+def test_curb_is_stepped_over() -> None:
+    xyz, valid, _ = flat_scene(box_xy=None)
+    r = np.hypot(xyz[..., 0], xyz[..., 1])
+    xyz[..., 2] += np.where(r > 8.0, 0.12, 0.0)  # a 12 cm curb 8 m out
+    ground, _ = ground_mask(xyz, valid)
+    assert np.count_nonzero(ground) >= 0.97 * np.count_nonzero(valid)
+
+
+def test_contiguity_groups_the_box_and_separates_two() -> None:
+    xyz, _, box = flat_scene(box_xy=(10.0, 0.0))
+    xyz2, _, box2 = flat_scene(box_xy=(10.0, 5.0))
+    both = box | box2
+    xyz = np.where(box2[..., None], xyz2, xyz)
+    rng = np.linalg.norm(np.nan_to_num(xyz), axis=-1)
+    labels = label_objects(xyz, rng, both, np.deg2rad(27 / 31), 2 * np.pi / W)
+    a, b = np.unique(labels[box]), np.unique(labels[box2])
+    assert a.size == 1 and b.size == 1 and a[0] != b[0] and a[0] >= 0
+    assert np.all(labels[~both] == -1)
+
+
+def test_speckle_below_min_pixels_is_not_grouped() -> None:
+    xyz = np.zeros((H, W, 3))
+    xyz[..., 0] = 10.0
+    mask = np.zeros((H, W), dtype=bool)
+    mask[5, 5] = True
+    labels = label_objects(xyz, np.full((H, W), 10.0), mask, 0.01, 0.01)
+    assert labels[5, 5] == -1
+
+
+def test_range_edges_mark_the_near_side_of_a_jump() -> None:
+    r = np.full((4, 10), 20.0)
+    r[:, 4:7] = 5.0
+    edge = range_edges(r, np.ones_like(r, dtype=bool))
+    assert edge[:, 4].all() and edge[:, 6].all()
+    assert not edge[:, 5].any() and not edge[:, 0].any()
+
+
+def test_computation_of_box_attributes() -> None:
+    xyz, valid, box = flat_scene(box_xy=(10.0, 0.0), half=1.0, top=1.5)
+    ground, _ = ground_mask(xyz, valid)
+    labels = np.where(box, 0, -1)
+    z = np.where(valid, xyz[..., 2], np.nan)
+    a = segment_attributes(
+        labels,
+        np.nan_to_num(xyz),
+        np.zeros((H, W)),
+        np.linalg.norm(np.nan_to_num(xyz), axis=-1),
+        np.zeros((H, W), np.int64),
+        ground_below(ground, z),
+    )
+    assert len(a) == 1
+    assert a.height_m[0] == pytest.approx(1.5, abs=0.2)
+    assert a.ground_z_m[0] == pytest.approx(-SENSOR_H, abs=0.1)
+    assert a.center_xyz[0, 1] == pytest.approx(0.0, abs=0.3)
+    assert 9.0 <= a.center_xyz[0, 0] <= 10.0  # the visible face is at x = 9
+
+
+def test_degenerate_segments_do_not_crash() -> None:
+    labels = np.full((2, 3), -1)
+    labels[0, 0] = 0  # one pixel
+    labels[1, :] = 1  # collinear
+    pts = np.zeros((2, 3, 3))
+    pts[1, :, 0] = [1.0, 2.0, 3.0]
+    a = segment_attributes(
+        labels,
+        pts,
+        np.zeros((2, 3)),
+        np.ones((2, 3)),
+        np.zeros((2, 3), np.int64),
+        np.full((2, 3), np.nan),
+    )
+    assert np.all(np.isfinite(a.center_xyz)) and a.length_m[0] == 0.0
+    assert a.length_m[1] == pytest.approx(2.0)
+
+
+# ---------------------------------------------------------------- filtering
+
+
+def test_batched_kalman_equals_filterpy() -> None:
+    rng = np.random.default_rng(1)
+    kf = KalmanFilter(dim_x=6, dim_z=3)
+    x0 = rng.normal(size=6)
+    A = rng.normal(size=(6, 6))
+    P0 = A @ A.T + np.eye(6)
+    dt = 0.1
+    F, Q = F_Q(np.array([dt]), 2.0)
+    kf.x, kf.P, kf.F, kf.Q = x0.copy(), P0.copy(), F[0], Q[0]
+    kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    R = np.diag([0.1, 0.2, 0.3])
+    kf.R = R
+    z = rng.normal(size=3)
+    kf.predict()
+    kf.update(z)
+    x, P = predict(x0[None], P0[None], np.array([dt]), 2.0)
+    x, P, nis = update(x, P, z[None], R[None])
+    np.testing.assert_allclose(x[0], kf.x, atol=1e-10)
+    np.testing.assert_allclose(P[0], kf.P, atol=1e-10)
+    assert nis[0] == pytest.approx(float(kf.y @ np.linalg.solve(kf.S, kf.y)))
+
+
+def _meas(xyz: np.ndarray, t_ns: int) -> Measurements:
+    xyz = np.atleast_2d(xyz)
+    return Measurements(xyz, np.full(len(xyz), t_ns), np.tile([4.0, 2.0, 1.5, 0.0], (len(xyz), 1)))
+
+
+def test_consistent_track_is_confirmed_and_velocity_estimated() -> None:
+    tr = Tracker(TrackerConfig())
+    for k in range(15):
+        tr.step(_meas([5.0 * 0.1 * k, 0.0, 0.0], k * 100_000_000), k * 100_000_000)
+    assert len(tr.tracks) == 1
+    assert tr.tracks.status[0] == TrackStatus.CONFIRMED
+    assert tr.tracks.x[0, 3] == pytest.approx(5.0, abs=0.3)
+    P = tr.tracks.P[0]
+    np.testing.assert_allclose(P, P.T)
+    assert np.all(np.linalg.eigvalsh(P) > 0)
+
+
+def test_one_off_hypothesis_is_denied_and_lost_track_gone() -> None:
+    cfg = TrackerConfig()
+    tr = Tracker(cfg)
+    tr.step(_meas([0.0, 0.0, 0.0], 0), 0)
+    for k in range(1, cfg.max_misses_hyp + 2):
+        tr.step(_meas(np.zeros((0, 3)), 0), k * 100_000_000)
+    assert tr.tracks.status[0] == TrackStatus.DENIED
+    done = tr.drop_finished()
+    assert len(done) == 1 and len(tr.tracks) == 0
+    # a confirmed track left unseen goes
+    for k in range(6):
+        tr.step(_meas([0.0, 0.0, 0.0], k * 100_000_000), k * 100_000_000)
+    assert tr.tracks.status[0] == TrackStatus.CONFIRMED
+    for k in range(6, 6 + cfg.max_misses + 1):
+        tr.step(_meas(np.zeros((0, 3)), 0), k * 100_000_000)
+    assert tr.tracks.status[0] == TrackStatus.GONE
+
+
+def test_assignment_keeps_two_crossing_tracks_apart() -> None:
+    tr = Tracker()
+    for k in range(10):
+        t = k * 100_000_000
+        tr.step(_meas([[0.1 * k, 0.0, 0.0], [0.1 * k, 6.0, 0.0]], t), t)
+    assert len(tr.tracks) == 2
+    assert sorted(np.round(tr.tracks.x[:, 1])) == [0.0, 6.0]
+
+
+# ---------------------------------------------------------------- classification, groups
+
+
+def test_classifier_picks_the_prototype_and_its_lineage() -> None:
+    lib = kd_store.ClassLibrary.default()
+    clf = Classifier(lib, Level.OBJECT)
+    for name in ("vehicle", "person", "building", "tree", "post"):
+        m = clf.classify(dict(lib.get(name).attributes))
+        assert m.name == name and m.score == pytest.approx(1.0)
+        assert m.generic[-1] == name
+    m = clf.classify({"height_m": 8.0, "width_m": 4.0, "length_m": 4.0, "speed_mps": 0.0})
+    assert m.generic == ("vegetation", "tree")
+
+
+def test_groups_by_proximity_and_common_motion() -> None:
+    pos = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [0.0, 50.0], [2.0, 50.0]])
+    vel = np.array([[5.0, 0.0], [5.2, 0.0], [5.0, 0.1], [0.0, 0.0], [3.0, 0.0]])
+    lab = group_labels(pos, vel, np.zeros(5, dtype=bool))
+    assert lab[0] == lab[1] == lab[2] >= 0
+    assert lab[3] == lab[4] == -1  # one still, one moving: not alike
+    carried, new, ended = match_groups(
+        {7: frozenset({1, 2, 3})}, [frozenset({1, 2}), frozenset({9, 8})]
+    )
+    assert carried == {0: 7} and new == [1] and ended == []
+
+
+def test_windows_grow_with_uncertainty() -> None:
+    row_el = EL.copy()
+    c = np.array([[20.0, 0.0, -1.0]])
+    small = window_mask((H, W), c, np.array([0.1]), row_el)
+    big = window_mask((H, W), c, np.array([2.0]), row_el)
+    assert small.any() and np.count_nonzero(big) > np.count_nonzero(small)
+    assert np.all(big[small])
+
+
+# ---------------------------------------------------------------- the pipeline and the KD
+
+
+def _scan_of(xyz: np.ndarray, valid: np.ndarray, t_ns: int) -> LadarScan:
+    pts = xyz[valid].astype(np.float32)
+    ring = (H - 1 - np.nonzero(valid)[0]).astype(np.uint16)
+    n = pts.shape[0]
+    return LadarScan(t_ns, "ladar", pts, np.ones(n, np.float32), np.zeros(n, np.int64), ring)
+
+
+def test_pipeline_images_point_to_frames_and_back() -> None:
+    from sp.egosphere import EgosphereConfig
+    from sp.pipeline import SPConfig
+
+    kd = kd_store.open(":memory:")
+    cfg = SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W, max_returns=1))
+    sp = SensoryProcessor(kd, cfg)
+    T = np.eye(4)
+    T[2, 3] = SENSOR_H
+    result = None
+    for k in range(6):
+        xyz, valid, _ = flat_scene(box_xy=(10.0 + 0.5 * k, 0.0))
+        result = sp.process(_scan_of(xyz, valid, k * 100_000_000), T)
+        assert result.ok
+    assert result is not None
+    img4 = result.entity_images[4]
+    ids = np.unique(img4[img4 >= 0])
+    assert ids.size == 1
+    obj = kd.get(int(ids[0]))
+    assert obj.level == Level.OBJECT and IMAGE_NAMES[4] in obj.images
+    assert obj.status == Status.CONFIRMED
+    assert obj.state.velocity_xyz[0] == pytest.approx(5.0, abs=1.0)
+    assert obj.state.position_xyz[2] == pytest.approx(0.75, abs=0.3)  # half the box height
+    img3 = result.entity_images[3]
+    g = np.unique(img3[img3 >= 0])
+    assert g.size == 1 and kd.get(int(g[0])).level == Level.SURFACE
+    assert np.array_equal(img3 >= 0, result.ground_mask)
+    img2 = result.entity_images[2]
+    for lid in np.unique(img2[img2 >= 0]):
+        lst = kd.get(int(lid))
+        assert lst.level == Level.LIST and IMAGE_NAMES[2] in lst.images
+        owner = kd.parent(int(lid))
+        assert owner is not None
+        assert np.any((img2 == lid) & ((img4 == owner) | (img3 == owner)))
+    # per-point views agree with the images
+    flat = img4.reshape(-1)[result.point_pixel]
+    np.testing.assert_array_equal(flat, result.point_entity_ids)
+    assert kd.events(class_name="confirmed", participant=obj.id)
+    assert kd.events(class_name="appeared", participant=obj.id)
+
+
+def test_a_failing_sweep_is_skipped_and_tracks_kept() -> None:
+    kd = kd_store.open(":memory:")
+    from sp.egosphere import EgosphereConfig
+    from sp.pipeline import SPConfig
+
+    sp = SensoryProcessor(
+        kd, SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W, max_returns=1))
+    )
+    T = np.eye(4)
+    T[2, 3] = SENSOR_H
+    for k in range(4):
+        xyz, valid, _ = flat_scene()
+        sp.process(_scan_of(xyz, valid, k * 100_000_000), T)
+    n = len(sp.tracker.tracks)
+    bad = LadarScan(
+        500_000_000,
+        "ladar",
+        np.zeros((3, 2), np.float32),
+        np.zeros(3, np.float32),
+        np.zeros(3, np.int64),
+    )
+    r = sp.process(bad, T)
+    assert not r.ok and sp.n_failed == 1 and len(sp.tracker.tracks) == n
+    assert math.isfinite(float(sp.tracker.tracks.x.sum()))
