@@ -53,7 +53,8 @@ class TrackerConfig:
                     object's larger footprint extent (the visible centre wanders on big ones).
     sigma_vel0:     initial velocity standard deviation (m/s).
     gate_chi2:      association gate on the squared Mahalanobis distance.
-    gate_min_m:     ... never tighter than this Euclidean distance.
+    gate_min_m:     ... never tighter than this Euclidean distance, never wider than
+                    ``gate_max_m``.
     q_size_m, sigma_size_m: random walk and measurement noise of the extents (m).
     alpha:          confidence gain per cycle; confirm / deny thresholds; min_hits to confirm.
     max_misses:     cycles a confirmed track may go unseen before it is gone; a hypothesized
@@ -66,6 +67,7 @@ class TrackerConfig:
     sigma_vel0: float = 5.0
     gate_chi2: float = GATE_CHI2_3DOF
     gate_min_m: float = 1.5
+    gate_max_m: float = 12.0
     q_size_m: float = 0.05
     sigma_size_m: float = 0.5
     sigma_yaw_rad: float = 0.3
@@ -185,9 +187,13 @@ def associate(
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     R = measurement_R(meas.what, config)
     d = meas.position_xyz[None, :, :] - x_pred[:, None, :3]  # (T, M, 3)
-    S = P_pred[:, None, :3, :3] + R[None]  # (T, M, 3, 3)
-    d2 = np.einsum("tmi,tmij,tmj->tm", d, np.linalg.inv(S), d)
     eucl = np.linalg.norm(d[..., :2], axis=2)
+    # Mahalanobis distances only for pairs a coarse Euclidean gate lets through
+    t, m = np.nonzero(eucl <= config.gate_max_m)
+    S = P_pred[t, :3, :3] + R[m]
+    dd = d[t, m]
+    d2 = np.full((T, M), np.inf)
+    d2[t, m] = np.einsum("ki,ki->k", dd, np.linalg.solve(S, dd[..., None])[..., 0])
     ok = (d2 <= config.gate_chi2) | (eucl <= config.gate_min_m)
     big = 1e9
     cost = np.where(ok, np.minimum(d2, config.gate_chi2), big)
