@@ -197,3 +197,42 @@ def test_wm_run_report_and_pictures(log, tmp_path) -> None:
     assert n_self == report.sweeps
     if report.metrics.get("detection"):  # SP ran: confirmed objects match the true ones
         assert report.metrics["detection"]["recall"] > 0.3
+
+
+def test_predicted_range_image_matches_the_next_sweep(node) -> None:
+    # truth poses, a static map: ray-cast ranges agree with the next sweep where both return
+    errs = node.stats.range_image_error_m
+    assert len(errs) >= 1
+    assert np.median(errs) < 0.5
+    assert np.mean(node.stats.surprise_fraction) < 0.3
+
+
+def test_attention_lists_rank_the_nearest_dangerous_entities_first(node, truth) -> None:
+    from wm import vj
+    from wm.config import VJConfig
+
+    _, boxes = truth
+    _put_truth(node.kd, boxes[-1], node.stack.T_world_body[:2, 3], radius=60.0)
+    xy = node.stack.T_world_body[:2, 3]
+    att = vj.attention(node.kd, xy, VJConfig(w_danger=0.0, w_novelty=0.0), skip=node.self_id)
+    d = [np.linalg.norm(node.kd.get(int(i)).state.position_xyz[:2] - xy) for i in att.ids]
+    assert len(d) >= 2 and np.all(np.diff(d) >= -1e-9)  # proximity alone: nearest first
+    assert np.all(np.diff(att.priority) <= 1e-12)
+
+
+def test_a_log_with_ladar_only_runs_and_says_what_was_missing(log, tmp_path) -> None:
+    from sp.logs import McapLogWriter
+    from sp.logs.types import LadarScan, TransformFrame
+
+    only = tmp_path / "ladar_only.mcap"
+    with McapLogWriter(only) as w:
+        for f in open_log(log).frames():
+            if isinstance(f, LadarScan | TransformFrame) and f.t_ns <= 1_000_000_000:
+                w.write(f)
+    report = run_log(only, ":memory:", progress=False)
+    assert report.sweeps >= 9
+    text = report.text()
+    assert "no wheel odometry" in text and "no camera" in text
+    assert "odometry" not in report.metrics  # no truth in the log: no odometry score
+    with pytest.raises(Exception, match="no ground-truth pose"):
+        run_log(only, ":memory:", config=NodeConfig(pose_source=PoseSource.TRUTH), progress=False)

@@ -9,8 +9,8 @@ current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
 3. maps: every level scrolls to the new pose and fuses the points (maps.stack);
 4. SP levels 2..5 (sp.pipeline, when installed) write entity and event frames into the KD and
    their labels into the map layers; attention comes from last cycle's prediction surprises;
-5. each map level's slow work at its own period: terrain (slope, traversability) and the
-   value-judgment cost layer (4.3);
+5. each map level's slow work at its own period: terrain (slope, traversability), the
+   value-judgment cost layer and the level's entities-of-attention list (4.3, 4.4.11);
 6. predictions for the next cycle (4.2 item 2): expected entity states and, every few
    sweeps, a predicted range image compared with the next observed one.
 
@@ -20,6 +20,7 @@ covering them have arrived; :meth:`WorldModelNode.finish` drains the rest at the
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
@@ -286,6 +287,18 @@ class WorldModelNode:
             self.level_due_ns[lvl.name] = t_ns + period_ns
             update_terrain(lvl, self.stack.config.terrain)
             vj.write_cost_layer(lvl, self.kd, self.config.vj)
+            self._attention(lvl)
+
+    def _attention(self, lvl) -> None:
+        """The level's entities of attention, proximity judged on the level's own scale."""
+        if self.stack.T_world_body is None:
+            return
+        cfg = dataclasses.replace(self.config.vj, proximity_scale_m=25.0 * lvl.resolution_m)
+        att = vj.attention(self.kd, self.stack.T_world_body[:2, 3], cfg, skip=self.self_id)
+        try:
+            self.kd.set_attention(lvl.name, att.ids.tolist())
+        except kd_store.KDError:
+            pass  # the KD keeps no attention list for this level
 
     def _predict(self, scan: LadarScan, T_world_body: np.ndarray, span_ns: int) -> None:
         """Step 6: expected entity states; every few sweeps a predicted range image."""

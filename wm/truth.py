@@ -100,13 +100,26 @@ class OdometryScore:
         }
 
 
+def footprint_distance(
+    points_xy: np.ndarray, centers_xy: np.ndarray, sizes_lw: np.ndarray, yaws: np.ndarray
+) -> np.ndarray:
+    """Distance (M, N) m from each of N points to each of M oriented rectangles (0 inside)."""
+    d = points_xy[None, :, :] - centers_xy[:, None, :]
+    c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    u = np.abs(c * d[..., 0] + s * d[..., 1]) - 0.5 * sizes_lw[:, 0:1]
+    w = np.abs(-s * d[..., 0] + c * d[..., 1]) - 0.5 * sizes_lw[:, 1:2]
+    return np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))
+
+
 @dataclass
 class DetectionScore:
-    """Confirmed object entities vs true boxes within ``range_m`` of the vehicle, matched
-    greedily by centre distance (at most ``match_m``), at every scored time."""
+    """Confirmed object entities vs true boxes within ``range_m`` of the vehicle, at every
+    scored time, matched greedily by the distance (m) from the entity's position to the true
+    box's footprint (0 inside; at most ``match_m``): SP places an entity at the centre of the
+    surfaces it saw, which for a large object lies well off the box centre."""
 
     range_m: float = 40.0
-    match_m: float = 2.0
+    match_m: float = 1.0
     tp: int = 0
     fp: int = 0
     fn: int = 0
@@ -130,7 +143,7 @@ class DetectionScore:
         e_c = np.array([f.state.position_xyz[:2] for f in frames]).reshape(-1, 2)  # type: ignore[union-attr]
         used: set[int] = set()
         if len(e_c) and len(t_c):
-            d = np.linalg.norm(t_c[:, None] - e_c[None], axis=2)
+            d = footprint_distance(e_c, t_c, boxes.sizes[near, :2], boxes.yaws[near])
             for flat in np.argsort(d, axis=None):
                 ti, ei = divmod(int(flat), len(e_c))
                 if d[ti, ei] > self.match_m:
