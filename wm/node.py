@@ -45,6 +45,7 @@ from sp.logs.types import (
 from wm import predict, vj
 from wm.config import NodeConfig, PoseSource
 from wm.poses import PoseError, PoseTrack, deskew_to_world
+from wm.truth import truth_boxes_to_world
 
 
 class NodeError(ValueError):
@@ -138,7 +139,7 @@ class WorldModelNode:
         elif isinstance(frame, CameraFrame):
             self.camera = frame
         elif isinstance(frame, ObjectBoxes):
-            self.truth_boxes = frame
+            self.truth_boxes = self._boxes_in_world(frame)
         elif isinstance(frame, LadarScan):
             self.pending.append(frame)
         self.last_t_ns = frame.t_ns if self.last_t_ns is None else max(self.last_t_ns, frame.t_ns)
@@ -166,6 +167,18 @@ class WorldModelNode:
         elif frame.child_frame_id.startswith(CAMERA):
             self.T_body_camera = frame.T_parent_child
 
+    def _boxes_in_world(self, boxes: ObjectBoxes) -> ObjectBoxes | None:
+        """Ground-truth boxes in the world frame (body-frame boxes moved with the true pose)."""
+        if boxes.frame_id == "world":
+            return boxes
+        if boxes.frame_id != BODY or not self.truth.t_ns:
+            return None
+        try:
+            T = self.truth.at(boxes.t_ns)
+        except PoseError:
+            return None
+        return truth_boxes_to_world(boxes, T)
+
     def _uses_odometry(self) -> bool:
         return self.config.pose_source == PoseSource.ODOMETRY
 
@@ -188,7 +201,10 @@ class WorldModelNode:
         self.kd.begin_cycle(scan.t_ns)
         if self.T_body_ladar is None:
             self.T_body_ladar = np.eye(4)
-            self.stats.notes.append("no body->ladar transform in the log: LADAR taken at body")
+            if scan.frame_id != BODY:
+                self.stats.notes.append(
+                    f"no {BODY}->{scan.frame_id} transform in the log: LADAR taken at the body"
+                )
         status = self._pose(scan)
         span = int(scan.t_offset_ns.max()) if scan.n_points else 0
         t_mid = scan.t_ns + span // 2

@@ -23,7 +23,7 @@ from sp.logs import open_log
 from sp.logs.types import CameraFrame, LadarScan, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig
 from wm.node import WorldModelNode
-from wm.truth import DetectionScore, OdometryScore, TerrainTruth, elevation_rmse
+from wm.truth import DetectionScore, OdometryScore, RasterTruth, TerrainTruth, elevation_error
 
 
 @dataclass
@@ -96,12 +96,12 @@ def _jsonable(v: Any) -> Any:
     return v
 
 
-def missing_inputs(frames: Counter) -> list[str]:
+def missing_inputs(frames: Counter, uses_odometry: bool = True) -> list[str]:
     """What the log lacks, said plainly (the run goes on with what it has)."""
     out = []
     if not frames[LadarScan.__name__]:
         out.append("no LADAR sweeps: nothing to map or perceive")
-    if not frames[OdometryFrame.__name__]:
+    if not frames[OdometryFrame.__name__] and uses_odometry:
         out.append("no wheel odometry: poses from LADAR registration alone")
     if not frames[CameraFrame.__name__]:
         out.append("no camera: SP runs on LADAR only")
@@ -126,6 +126,7 @@ def run_log(
     info = source.info()
     total = sum(t.count for t in info.topics)
     terrain = TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
+    terrain = terrain or RasterTruth.from_folder(Path(log_path))
     if str(kd_path) != ":memory:":
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
@@ -195,7 +196,7 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
         sweeps=node.stats.sweeps,
         duration_s=duration,
         wall_s=wall,
-        missing=missing_inputs(node.stats.frames),
+        missing=missing_inputs(node.stats.frames, node.config.pose_source == "odometry"),
         notes=list(dict.fromkeys(node.stats.notes)),
         entities={k: dict(v) for k, v in entities.items()},
         events=dict(events),
@@ -211,8 +212,7 @@ def _metrics(node, odo: OdometryScore, det: DetectionScore, terrain) -> dict[str
     if terrain is not None and node.stats.sweeps:
         for name in ("primitive", "subsystem"):
             if any(lv.name == name for lv in node.stack.levels):
-                rmse, cells = elevation_rmse(node.stack.level(name), terrain)
-                out[f"elevation_{name}"] = {"rmse_m": rmse, "cells": cells}
+                out[f"elevation_{name}"] = elevation_error(node.stack.level(name), terrain)
     if node.sp is not None and det.tp + det.fn + det.fp:
         out["detection"] = det.summary()
     if node.stats.range_image_error_m:

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 import kd_store
 from kd_store import Level, Status
+from maps.apriori import ElevationRaster, load_av2_ground_height
 from maps.level import MapLevel
 from sp.logs.types import ObjectBoxes
 from wm.poses import PoseError, PoseTrack
@@ -54,20 +56,47 @@ class TerrainTruth:
         return np.where(ok, h, np.nan)
 
 
-def elevation_rmse(level: MapLevel, truth: TerrainTruth) -> tuple[float, int]:
-    """RMSE (m) of the level's elevation over ground cells (points fused, none above the
-    ground estimate) against the truth at cell centres; and the number of cells."""
+@dataclass(frozen=True)
+class RasterTruth:
+    """A real ground-height raster as terrain truth (e.g. Argoverse 2's ground surface)."""
+
+    raster: ElevationRaster
+
+    @classmethod
+    def from_folder(cls, folder: Path) -> RasterTruth | None:
+        """The AV2 map's ground-height raster when ``folder`` is an AV2 log that has one."""
+        map_dir = folder / "map"
+        if not (folder.is_dir() and any(map_dir.glob("*ground_height_surface*.npy"))):
+            return None
+        try:
+            return cls(load_av2_ground_height(map_dir))
+        except (OSError, ValueError):
+            return None
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        return self.raster.sample(xy)
+
+
+def elevation_error(level: MapLevel, truth: TerrainTruth | RasterTruth) -> dict[str, float]:
+    """The level's elevation over ground cells (points fused, none above the ground estimate)
+    against the truth at cell centres: RMSE (m), median |error| (m; robust to the tops of
+    objects seen from one side only, which pass for ground) and the number of cells."""
     count = level.window("count")
     obst = level.window("obstacle_count")
     rows, cols = np.nonzero((count > 0) & (obst == 0))
     if not len(rows):
-        return float("nan"), 0
+        return {"rmse_m": float("nan"), "median_abs_m": float("nan"), "cells": 0}
     est = level.window("elevation")[rows, cols].astype(np.float64)
     true = truth.height(level.window_to_world(rows, cols))
     ok = np.isfinite(est) & np.isfinite(true)
     if not ok.any():
-        return float("nan"), 0
-    return float(np.sqrt(np.mean((est[ok] - true[ok]) ** 2))), int(ok.sum())
+        return {"rmse_m": float("nan"), "median_abs_m": float("nan"), "cells": 0}
+    e = est[ok] - true[ok]
+    return {
+        "rmse_m": float(np.sqrt(np.mean(e**2))),
+        "median_abs_m": float(np.median(np.abs(e))),
+        "cells": int(ok.sum()),
+    }
 
 
 @dataclass
@@ -98,6 +127,30 @@ class OdometryScore:
             "path_m": self.path_m,
             "final_error_pct_of_path": float(100 * e[-1] / self.path_m) if self.path_m else 0.0,
         }
+
+
+#: Argoverse 2 categories (and other datasets' names) as the engine's classes, for scoring.
+CLASS_ALIASES: dict[str, str] = {
+    "REGULAR_VEHICLE": "vehicle", "LARGE_VEHICLE": "vehicle", "BUS": "vehicle",
+    "BOX_TRUCK": "vehicle", "TRUCK": "vehicle", "TRUCK_CAB": "vehicle",
+    "VEHICULAR_TRAILER": "vehicle",
+    "SCHOOL_BUS": "vehicle", "ARTICULATED_BUS": "vehicle", "MOTORCYCLE": "vehicle",
+    "PEDESTRIAN": "person", "BICYCLIST": "person", "MOTORCYCLIST": "person",
+    "WHEELED_RIDER": "person", "BOLLARD": "post", "SIGN": "post", "STOP_SIGN": "post",
+    "CONSTRUCTION_CONE": "post", "CONSTRUCTION_BARREL": "post",
+}  # fmt: skip
+
+
+def truth_boxes_to_world(boxes: ObjectBoxes, T_world_frame: np.ndarray) -> ObjectBoxes:
+    """Boxes given in a moving frame, moved to the world with that frame's pose (4x4)."""
+    R, t = T_world_frame[:3, :3], T_world_frame[:3, 3]
+    yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    return ObjectBoxes(
+        boxes.t_ns, "world", boxes.ids,
+        [CLASS_ALIASES.get(c, c) for c in boxes.classes],
+        boxes.centers @ R.T + t, boxes.sizes, boxes.yaws + yaw,
+        np.nan_to_num(boxes.velocities) @ R.T, boxes.topic,
+    )  # fmt: skip
 
 
 def footprint_distance(
