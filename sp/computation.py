@@ -34,6 +34,8 @@ class SegmentAttributes:
     intensity:       (K,) mean intensity (sensor units).
     curvature:       (K,) smallest over summed eigenvalue of the 3D scatter (0 plane, 1/3 ball).
     verticality:     (K,) |z| of the scatter's normal (smallest eigenvector): 0 wall, 1 flat.
+    thickness_m, breadth_m: (K,) standard deviation of the points along the scatter's normal
+                     and along its middle axis (a planar patch: thin and broad).
     range_m:         (K,) nearest range from the sensor.
     t_offset_ns:     (K,) int64 mean time of the segment's returns after the sweep's stamp.
     """
@@ -51,6 +53,8 @@ class SegmentAttributes:
     intensity: np.ndarray
     curvature: np.ndarray
     verticality: np.ndarray
+    thickness_m: np.ndarray
+    breadth_m: np.ndarray
     range_m: np.ndarray
     t_offset_ns: np.ndarray
 
@@ -62,15 +66,42 @@ class SegmentAttributes:
         return SegmentAttributes(**{k: getattr(self, k)[keep] for k in self.__slots__})
 
 
-def ground_below(ground: np.ndarray, z_world: np.ndarray) -> np.ndarray:
-    """(H, W) float64: for each pixel the world height of the nearest ground return below it
-    in its column (rows grow downwards), NaN where the column has none below."""
+def ground_below(
+    ground: np.ndarray,
+    z_world: np.ndarray,
+    r_m: np.ndarray | None = None,
+    max_slope: float = 0.3,
+    max_reach_m: float = 15.0,
+) -> np.ndarray:
+    """(H, W) float64: for each pixel the world height of the ground below it in its column
+    (rows grow downwards), NaN where the column has none below.
+
+    Without ``r_m`` it is the height of the nearest ground return below. With ``r_m`` ((H, W)
+    horizontal range from the sensor, m) the ground is continued from that return along the
+    slope of the column's last two ground returns (reference 001, 4.5.2: grouping by
+    continuity), the slope clipped to +-``max_slope`` and the reach to ``max_reach_m``, so a
+    patch of a hillside seen past a gap is not taken for an object standing on the lower
+    ground in front of it.
+    """
     H, W = ground.shape
     out = np.full((H, W), np.nan)
-    last = np.full(W, np.nan)
+    z1 = np.full(W, np.nan)
+    r1 = np.zeros(W)
+    slope = np.zeros(W)
     for i in range(H - 1, -1, -1):
-        out[i] = last
-        last = np.where(ground[i], z_world[i], last)
+        if r_m is None:
+            out[i] = z1
+        else:
+            reach = np.clip(r_m[i] - r1, 0.0, max_reach_m)
+            out[i] = z1 + slope * reach
+        g = ground[i]
+        if r_m is not None and g.any():
+            dr = r_m[i] - r1
+            fresh = g & np.isfinite(z1) & (dr > 0.5)
+            s = np.clip((z_world[i] - z1) / np.where(fresh, dr, 1.0), -max_slope, max_slope)
+            slope = np.where(fresh, s, slope)
+            r1 = np.where(g, r_m[i], r1)
+        z1 = np.where(g, z_world[i], z1)
     return out
 
 
@@ -159,6 +190,8 @@ def segment_attributes(
         intensity=mean(inten),
         curvature=curvature,
         verticality=verticality,
+        thickness_m=np.sqrt(np.maximum(evals[:, 0], 0.0)),
+        breadth_m=np.sqrt(np.maximum(evals[:, 1], 0.0)),
         range_m=reduce(np.minimum, rng, np.inf),
         t_offset_ns=np.round(mean(t_off)).astype(np.int64),
     )

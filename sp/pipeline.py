@@ -14,9 +14,13 @@ to 5). One call of :meth:`SensoryProcessor.process` is one cycle:
 5. level 5: groups of objects (:mod:`sp.groups`);
 6. entity images per level, entity frames, pointers and events (:mod:`sp.events`) in the KD.
 
-Deskewing: the sweep's points are taken as they are, at the one pose ``T_world_ladar`` of the
-sweep's stamp (no deskew here: a caller that deskews passes deskewed points). Each object's
-state is stamped at the mean time of its own returns.
+Deskewing: ``T_world_ladar`` is the sensor pose at ``pose_t_ns`` (the sweep's stamp unless the
+caller says otherwise). Each column of the image fired at its own time; its points go to the
+world with the pose at that time, interpolated (or extrapolated) at constant velocity between
+the previous sweep's pose and this one (:func:`column_poses`), so a static object does not
+smear or jump by the vehicle's motion during the sweep (up to a metre at 10 m/s). The first
+sweep, or one after a gap of more than ``deskew_max_gap_s``, is taken at the one pose. Each
+object's state is stamped at the mean time of its own returns.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import numpy as np
 
 import kd_store
 from kd_store import Attribute, Level, StateBatch, Status
-from maps.frames import check_pose, matrix_to_quat, rot_z
+from maps.frames import check_pose, interpolate_pose, matrix_to_quat, rot_z
 from sp.classify import Classifier, ClassifyConfig
 from sp.computation import SegmentAttributes, ground_below, segment_attributes
 from sp.egosphere import EgosphereConfig, EgosphereImage, to_egosphere
@@ -77,6 +81,11 @@ class SPConfig:
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 boundary lists of confirmed objects
+    terrain_tilt_deg: float = 25.0  # a broad thin plane tilted less than this is ground ...
+    terrain_breadth_m: float = 0.4  # ... when its points spread this far along its middle axis
+    terrain_thick_m: float = 0.12  # ... and this little across its plane (std, m)
+    terrain_max_height_m: float = 1.2  # ... and it rises less than this over the ground
+    deskew_max_gap_s: float = 0.5  # no constant-velocity deskew over a longer gap between poses
 
 
 @dataclass
@@ -161,6 +170,7 @@ class SensoryProcessor:
         self.track_list: dict[int, int] = {}  # object id -> its boundary list id
         self.groups: dict[int, frozenset[int]] = {}
         self._attention = np.zeros((0, 0), dtype=bool)
+        self._last_pose: tuple[int, np.ndarray] | None = None
         self.n_failed = 0
 
     # ------------------------------------------------------------------ the cycle
@@ -173,13 +183,15 @@ class SensoryProcessor:
         camera: CameraFrame | None = None,
         T_world_camera: np.ndarray | None = None,
         attention_world_xyz: np.ndarray | None = None,
+        pose_t_ns: int | None = None,
     ) -> SPResult:
         """One cycle on one sweep (points in the sensor frame, ``T_world_ladar`` the sensor pose
-        at ``scan.t_ns``). A sweep that fails is logged and skipped; the tracks are kept.
-        The camera is accepted for the interface and not used yet."""
+        at ``pose_t_ns``, by default ``scan.t_ns``). A sweep that fails is logged and skipped;
+        the tracks are kept. The camera is accepted for the interface and not used yet."""
         try:
             T = check_pose(np.asarray(T_world_ladar, dtype=np.float64), "T_world_ladar")
-            return self._process(scan, T, attention_world_xyz)
+            t_pose = int(scan.t_ns if pose_t_ns is None else pose_t_ns)
+            return self._process(scan, T, t_pose, attention_world_xyz)
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
             self.n_failed += 1
             log.warning("SP skipped the sweep at t_ns=%s: %s", getattr(scan, "t_ns", "?"), e)
@@ -199,7 +211,11 @@ class SensoryProcessor:
             )
 
     def _process(
-        self, scan: LadarScan, T_world_ladar: np.ndarray, attention_world_xyz: np.ndarray | None
+        self,
+        scan: LadarScan,
+        T_world_ladar: np.ndarray,
+        pose_t_ns: int,
+        attention_world_xyz: np.ndarray | None,
     ) -> SPResult:
         cfg = self.config
         clock = _Clock()
@@ -210,9 +226,9 @@ class SensoryProcessor:
         valid = img.valid_first
         H, W = valid.shape
         xyz_s = np.where(valid[..., None], img.xyz[..., 0, :], 0.0).astype(np.float64)
-        R, t = T_world_ladar[:3, :3], T_world_ladar[:3, 3]
+        R = T_world_ladar[:3, :3]
         xyz_g = xyz_s @ R.T
-        xyz_w = xyz_g + t
+        xyz_w = self._deskew(xyz_s, img, t_ns, T_world_ladar, pose_t_ns)
         rng = np.where(valid, img.range_first, np.inf)
         row_el = _row_elevations(img)
         clock.lap("egosphere")
@@ -235,7 +251,7 @@ class SensoryProcessor:
         labels = _drop_small(labels, attention, seg_cfg.min_pixels, cfg.min_pixels_attended)
         clock.lap("grouping")
 
-        gz = ground_below(ground, xyz_w[..., 2])
+        gz = ground_below(ground, xyz_w[..., 2], np.hypot(xyz_g[..., 0], xyz_g[..., 1]))
         attrs = segment_attributes(
             labels,
             xyz_w,
@@ -244,8 +260,9 @@ class SensoryProcessor:
             img.t_offset_ns[..., 0],
             gz,
         )
-        # too low to stand out of the terrain: bumps and ruts are ground, not objects
-        low = attrs.height_m < cfg.min_object_height_m
+        # too low to stand out of the terrain (bumps, ruts), or a gently sloping plane (a
+        # hillside seen past a gap): ground, not objects
+        low = (attrs.height_m < cfg.min_object_height_m) | terrain_patch(attrs, cfg)
         if low.any():
             flat_low = np.isin(labels, np.flatnonzero(low))
             ground = ground | flat_low
@@ -301,6 +318,24 @@ class SensoryProcessor:
         clock.lap("images")
         result.timings_s = clock.laps
         return result
+
+    def _deskew(
+        self,
+        xyz_s: np.ndarray,
+        img: EgosphereImage,
+        t_ns: int,
+        T_world_ladar: np.ndarray,
+        pose_t_ns: int,
+    ) -> np.ndarray:
+        """(H, W, 3) world points, each column moved with the pose at its firing time."""
+        last, self._last_pose = self._last_pose, (pose_t_ns, T_world_ladar)
+        gap_ns = pose_t_ns - last[0] if last is not None else 0
+        if last is None or not 0 < gap_ns <= self.config.deskew_max_gap_s * 1e9:
+            return xyz_s @ T_world_ladar[:3, :3].T + T_world_ladar[:3, 3]
+        T_cols = column_poses(img, t_ns, last[1], last[0], T_world_ladar, pose_t_ns)
+        R_cols = T_cols[None, :, :3, :3]  # (1, W, 3, 3)
+        rotated = sum(R_cols[..., k] * xyz_s[..., k : k + 1] for k in range(3))
+        return rotated + T_cols[None, :, :3, 3]
 
     # ------------------------------------------------------------------ windowing
 
@@ -621,6 +656,33 @@ class SensoryProcessor:
         last = self.kd.get(gid).state
         t = max(t_ns, last.t_ns + 1) if last is not None else t_ns
         self.kd.observe(gid, kd_store.State(t, "world", p.mean(axis=0), velocity_xyz=v.mean(0)))
+
+
+def column_poses(
+    img: EgosphereImage,
+    t_ns: int,
+    T_world_prev: np.ndarray,
+    t_prev_ns: int,
+    T_world_ladar: np.ndarray,
+    pose_t_ns: int,
+) -> np.ndarray:
+    """(W, 4, 4) sensor pose at each column's firing time (the mean time of its returns,
+    ``t_ns`` + offset), at constant velocity through the two poses (slerp, extrapolated past
+    ``pose_t_ns`` when the column fired later)."""
+    v = img.valid_first
+    off = np.where(v, img.t_offset_ns[..., 0], 0).sum(axis=0, dtype=np.float64)
+    mid = off / np.maximum(v.sum(axis=0), 1)
+    alpha = (t_ns + mid - t_prev_ns) / float(pose_t_ns - t_prev_ns)
+    return interpolate_pose(T_world_prev, T_world_ladar, alpha.astype(np.float64))
+
+
+def terrain_patch(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:
+    """(K,) bool: segments that are a broad, thin plane tilted less than ``terrain_tilt_deg``
+    and lower than ``terrain_max_height_m`` (a roof is higher): level 3 surfaces of the ground
+    (reference 001, 4.5.6), not objects standing on it."""
+    flat = a.verticality >= math.cos(math.radians(cfg.terrain_tilt_deg))
+    plane = (a.breadth_m >= cfg.terrain_breadth_m) & (a.thickness_m <= cfg.terrain_thick_m)
+    return flat & plane & (a.height_m < cfg.terrain_max_height_m)
 
 
 def status_code(s: Status) -> int:
