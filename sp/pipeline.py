@@ -43,7 +43,7 @@ from sp.events import EventClass, emit
 from sp.ground import GroundConfig, ground_mask
 from sp.groups import GroupConfig, group_labels, match_groups
 from sp.logs.types import CameraFrame, LadarScan
-from sp.segments import SegmentConfig, label_objects, range_edges
+from sp.segments import SegmentConfig, label_objects, merge_collinear, range_edges
 from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
 from sp.windowing import WindowConfig, window_mask
 
@@ -78,6 +78,7 @@ class SPConfig:
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
     max_object_range_m: float = 120.0  # farther segments are left ungrouped
     min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)
+    speed_sigmas: float = 2.0  # classification uses the speed less this many std devs
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 boundary lists of confirmed objects
@@ -252,14 +253,18 @@ class SensoryProcessor:
         clock.lap("grouping")
 
         gz = ground_below(ground, xyz_w[..., 2], np.hypot(xyz_g[..., 0], xyz_g[..., 1]))
-        attrs = segment_attributes(
-            labels,
-            xyz_w,
-            np.nan_to_num(img.intensity[..., 0]),
-            np.where(valid, img.range_first, 0.0),
-            img.t_offset_ns[..., 0],
-            gz,
-        )
+        inten = np.nan_to_num(img.intensity[..., 0])
+        rng0 = np.where(valid, img.range_first, 0.0)
+        t_off = img.t_offset_ns[..., 0]
+        attrs = segment_attributes(labels, xyz_w, inten, rng0, t_off, gz)
+        # continuity: pieces of one wall or fence cut by occluders are one object
+        merged = merge_collinear(
+            attrs.center_xyz[:, :2], attrs.yaw_rad, attrs.length_m, attrs.width_m,
+            attrs.range_m, seg_cfg,
+        )  # fmt: skip
+        if merged.size and merged.max() + 1 < len(attrs):
+            labels = np.where(labels >= 0, merged[np.maximum(labels, 0)], -1)
+            attrs = segment_attributes(labels, xyz_w, inten, rng0, t_off, gz)
         # too low to stand out of the terrain (bumps, ruts), or a gently sloping plane (a
         # hillside seen past a gap): ground, not objects
         low = (attrs.height_m < cfg.min_object_height_m) | terrain_patch(attrs, cfg)
@@ -374,7 +379,7 @@ class SensoryProcessor:
         kd = self.kd
         cfg = self.config
         what = np.stack([a.length_m, a.width_m, a.height_m, a.yaw_rad], axis=1)
-        meas = Measurements(a.center_xyz, t_ns + a.t_offset_ns, what)
+        meas = Measurements(a.center_xyz, t_ns + a.t_offset_ns, what, a.range_m)
         born: list[int] = []
 
         def new_ids(n: int) -> np.ndarray:
@@ -456,7 +461,7 @@ class SensoryProcessor:
         events: list[int] = []
         for k in range(len(tr)):
             tid = int(tr.id[k])
-            speed = float(np.hypot(tr.x[k, 3], tr.x[k, 4]))
+            speed = evident_speed(tr.x[k], tr.P[k], self.config.speed_sigmas)
             l, w, h = (float(v) for v in tr.w[k, :3])
             m = self.classifier.classify(
                 {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
@@ -674,6 +679,15 @@ def column_poses(
     mid = off / np.maximum(v.sum(axis=0), 1)
     alpha = (t_ns + mid - t_prev_ns) / float(pose_t_ns - t_prev_ns)
     return interpolate_pose(T_world_prev, T_world_ladar, alpha.astype(np.float64))
+
+
+def evident_speed(x: np.ndarray, P: np.ndarray, n_sigma: float) -> float:
+    """Ground speed (m/s) the filter is sure of: |v_xy| less ``n_sigma`` standard deviations
+    of it (0 when the motion is within its uncertainty), so a static object whose centre
+    wanders as more of it comes into view is not taken for a moving one. x (6,), P (6, 6)."""
+    v = float(np.hypot(x[3], x[4]))
+    sd = math.sqrt(max(0.5 * (P[3, 3] + P[4, 4]), 0.0))
+    return max(v - n_sigma * sd, 0.0)
 
 
 def terrain_patch(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:

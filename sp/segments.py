@@ -9,6 +9,10 @@ closer than a range-scaled distance (proximity and contiguity); the connected co
 that graph are the object hypotheses. Components with fewer than ``min_pixels`` returns are
 left ungrouped (speckle). Azimuth wraps around.
 
+Continuity (:func:`merge_collinear`): a long straight segment (a wall, a fence, a building
+face) that an occluder or a grazing angle cut into pieces is joined again when the pieces lie
+on its axis with a short gap between them.
+
 Edges (level 2): pixels whose range jumps by more than ``edge_jump_m`` (plus a fraction of the
 range) to a neighbour, each labelled by the object or the ground it lies on.
 """
@@ -36,6 +40,12 @@ class SegmentConfig:
                      enough to join a wall seen at a grazing angle) ...
     join_per_rad_row: ... and across rows.
     min_pixels:      smallest object hypothesis (returns).
+    line_*:          continuity: a segment at least ``line_min_length_m`` long and
+                     ``line_min_aspect`` times longer than wide is a line; another segment whose
+                     centre lies within ``line_offset_m`` of that line, whose extent along it
+                     leaves a gap of at most ``line_gap_m`` (both plus ``line_per_m`` per metre
+                     of range), and which is short (under 2 m) or turned by at most
+                     ``line_max_turn_deg`` from it, continues it.
     edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
     """
 
@@ -45,6 +55,12 @@ class SegmentConfig:
     min_pixels: int = 4
     edge_jump_m: float = 0.5
     edge_jump_frac: float = 0.05
+    line_min_length_m: float = 3.0
+    line_min_aspect: float = 3.0
+    line_offset_m: float = 0.5
+    line_gap_m: float = 1.5
+    line_per_m: float = 0.03
+    line_max_turn_deg: float = 15.0
 
     def __post_init__(self) -> None:
         if self.join_m <= 0 or self.join_per_rad < 0 or self.min_pixels < 1:
@@ -117,6 +133,57 @@ def label_objects(
     new_id[keep] = np.arange(int(keep.sum()))
     labels[idx] = new_id[comp]
     return labels.reshape(H, W)
+
+
+def merge_collinear(
+    center_xy: np.ndarray,
+    yaw_rad: np.ndarray,
+    length_m: np.ndarray,
+    width_m: np.ndarray,
+    range_m: np.ndarray,
+    config: SegmentConfig | None = None,
+) -> np.ndarray:
+    """Continuity of lines: (K,) int64 new label of each of K segments (0..K'-1, in order of
+    first appearance), pieces of one line sharing a label.
+
+    center_xy (K, 2) m footprint centres, yaw_rad (K,) long-axis headings, length_m / width_m
+    (K,) extents along and across it, range_m (K,) nearest range from the sensor.
+    """
+    cfg = config or SegmentConfig()
+    K = center_xy.shape[0]
+    parent = np.arange(K)
+    line = (length_m >= cfg.line_min_length_m) & (
+        length_m >= cfg.line_min_aspect * np.maximum(width_m, 0.1)
+    )
+    if K < 2 or not line.any():
+        return parent.astype(np.int64)
+    li = np.flatnonzero(line)
+    c, s = np.cos(yaw_rad[li]), np.sin(yaw_rad[li])
+    d = center_xy[None, :, :] - center_xy[li, None, :]  # (L, K, 2)
+    along = np.abs(d[..., 0] * c[:, None] + d[..., 1] * s[:, None])
+    across = np.abs(-d[..., 0] * s[:, None] + d[..., 1] * c[:, None])
+    turn = np.abs((yaw_rad[None, :] - yaw_rad[li, None] + np.pi / 2) % np.pi - np.pi / 2)
+    slack = cfg.line_per_m * np.minimum(range_m[li, None], range_m[None, :])
+    gap = along - 0.5 * (length_m[li, None] + length_m[None, :])
+    ok = (
+        (across <= cfg.line_offset_m + slack)
+        & (gap <= cfg.line_gap_m + slack)
+        & ((length_m[None, :] < 2.0) | (turn <= np.radians(cfg.line_max_turn_deg)))
+    )
+    ok[np.arange(li.size), li] = False
+    for a, b in zip(*np.nonzero(ok), strict=True):
+        ra, rb = _root(parent, int(li[a])), _root(parent, int(b))
+        parent[max(ra, rb)] = min(ra, rb)
+    roots = np.array([_root(parent, k) for k in range(K)])
+    _, new = np.unique(roots, return_inverse=True)
+    return new.astype(np.int64)
+
+
+def _root(parent: np.ndarray, k: int) -> int:
+    while parent[k] != k:
+        parent[k] = parent[parent[k]]
+        k = int(parent[k])
+    return k
 
 
 def range_edges(range_m: np.ndarray, valid: np.ndarray, config: SegmentConfig | None = None):

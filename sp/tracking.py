@@ -55,10 +55,16 @@ class TrackerConfig:
     gate_chi2:      association gate on the squared Mahalanobis distance.
     gate_min_m:     ... never tighter than this Euclidean distance, never wider than
                     ``gate_max_m``.
-    q_size_m, sigma_size_m: random walk and measurement noise of the extents (m).
+    q_size_m, sigma_size_m: random walk and measurement noise of the extents (m); a
+                    smaller extent than the estimate has ``shrink_var_factor`` times the
+                    variance (a partial view).
+    part_margin_m:  a free measurement inside a track's footprint enlarged by this is a part
+                    of it; an unseen confirmed track inside another's footprint is a duplicate.
     alpha:          confidence gain per cycle; confirm / deny thresholds; min_hits to confirm.
-    max_misses:     cycles a confirmed track may go unseen before it is gone; a hypothesized
-                    one is denied after ``max_misses_hyp``.
+    max_misses:     cycles a confirmed track may go unseen before it is gone, plus
+                    ``max_misses_per_m`` per metre of its last range (far objects fall in and
+                    out of the sparse beams); a hypothesized one is denied after
+                    ``max_misses_hyp``.
     """
 
     q_accel: float = 2.0
@@ -71,23 +77,31 @@ class TrackerConfig:
     q_size_m: float = 0.05
     sigma_size_m: float = 0.5
     sigma_yaw_rad: float = 0.3
+    shrink_var_factor: float = 10.0
     alpha: float = 0.35
     confidence0: float = 0.3
     confirm: float = 0.7
     deny: float = 0.15
     min_hits: int = 3
     max_misses: int = 8
+    max_misses_per_m: float = 0.2
+    part_margin_m: float = 0.5
     max_misses_hyp: int = 2
 
 
 @dataclass
 class Measurements:
     """M observed entities: position (M, 3) world m, time (M,) int64 ns, what (M, 4):
-    length, width, height (m), yaw (rad)."""
+    length, width, height (m), yaw (rad); range (M,) m from the sensor (zeros if unknown)."""
 
     position_xyz: np.ndarray
     t_ns: np.ndarray
     what: np.ndarray
+    range_m: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.range_m is None:
+            self.range_m = np.zeros(self.position_xyz.shape[0])
 
     def __len__(self) -> int:
         return int(self.position_xyz.shape[0])
@@ -108,6 +122,7 @@ class Tracks:
     hits: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     misses: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     nis: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    range_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # at the last hit
 
     def __len__(self) -> int:
         return int(self.id.shape[0])
@@ -165,22 +180,44 @@ def wrap_half_pi(a: np.ndarray) -> np.ndarray:
     return (a + np.pi / 2) % np.pi - np.pi / 2
 
 
-def measurement_R(what: np.ndarray, config: TrackerConfig) -> np.ndarray:
-    """(M, 3, 3) position noise: grows with the larger footprint extent (m)."""
+def measurement_R(
+    what: np.ndarray, config: TrackerConfig, what_track: np.ndarray | None = None
+) -> np.ndarray:
+    """(M, 3, 3) position noise: grows with the larger footprint extent (m).
+
+    With ``what_track`` (M, 4), the estimated extents of the tracks the measurements update:
+    a partial view. When the visible length (width) differs from the estimate by d, the
+    footprint centre may have moved by up to d / 2 along (across) the long axis with no motion
+    of the object (more of a wall comes into view), so that much is added to R along that axis
+    and the velocity is not fed by the changing view."""
     s = config.sigma_pos_m + config.sigma_pos_per_m * np.maximum(what[:, 0], what[:, 1])
     R = np.zeros((what.shape[0], 3, 3))
     R[:, 0, 0] = R[:, 1, 1] = s**2
     R[:, 2, 2] = (0.5 * s + 0.5 * config.sigma_pos_per_m * what[:, 2]) ** 2
+    if what_track is not None:
+        u = np.stack([np.cos(what[:, 3]), np.sin(what[:, 3])], axis=1)
+        v = np.stack([-u[:, 1], u[:, 0]], axis=1)
+        dl = 0.5 * np.abs(what[:, 0] - what_track[:, 0])
+        dw = 0.5 * np.abs(what[:, 1] - what_track[:, 1])
+        R[:, :2, :2] += (dl**2)[:, None, None] * np.einsum("mi,mj->mij", u, u)
+        R[:, :2, :2] += (dw**2)[:, None, None] * np.einsum("mi,mj->mij", v, v)
     return R
 
 
 def associate(
-    x_pred: np.ndarray, P_pred: np.ndarray, meas: Measurements, config: TrackerConfig
+    x_pred: np.ndarray,
+    P_pred: np.ndarray,
+    meas: Measurements,
+    config: TrackerConfig,
+    first: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Optimal gated assignment of tracks to measurements.
 
     Returns (track_index, meas_index) int64 arrays of the assigned pairs. Cost is the squared
     Mahalanobis distance of the position innovation; pairs outside the gate are not assigned.
+    ``first`` (T,) bool: tracks assigned before the others (a cascade: confirmed entities
+    explain the measurements first; hypotheses, whose wide covariance would otherwise make
+    them the cheapest match for everything near, take what is left).
     """
     T, M = x_pred.shape[0], len(meas)
     if T == 0 or M == 0:
@@ -197,9 +234,35 @@ def associate(
     ok = (d2 <= config.gate_chi2) | (eucl <= config.gate_min_m)
     big = 1e9
     cost = np.where(ok, np.minimum(d2, config.gate_chi2), big)
-    rows, cols = linear_sum_assignment(cost)
-    keep = cost[rows, cols] < big
-    return rows[keep].astype(np.int64), cols[keep].astype(np.int64)
+    stages = [np.arange(T)] if first is None else [np.flatnonzero(first), np.flatnonzero(~first)]
+    taken = np.zeros(M, dtype=bool)
+    out_t, out_m = [], []
+    for rows_k in stages:
+        cols_k = np.flatnonzero(~taken)
+        if rows_k.size == 0 or cols_k.size == 0:
+            continue
+        sub = cost[np.ix_(rows_k, cols_k)]
+        r, c = linear_sum_assignment(sub)
+        keep = sub[r, c] < big
+        out_t.append(rows_k[r[keep]])
+        out_m.append(cols_k[c[keep]])
+        taken[cols_k[c[keep]]] = True
+    if not out_t:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(out_t).astype(np.int64), np.concatenate(out_m).astype(np.int64)
+
+
+def inside_footprint(
+    xy: np.ndarray, center_xy: np.ndarray, what: np.ndarray, config: TrackerConfig
+) -> np.ndarray:
+    """(N, T) bool: point n lies inside track t's footprint (length x width at yaw, from
+    ``what`` (T, 4)) enlarged by ``part_margin_m``. xy (N, 2), center_xy (T, 2), world m."""
+    d = xy[:, None, :] - center_xy[None, :, :]
+    c, s = np.cos(what[:, 3]), np.sin(what[:, 3])
+    u = np.abs(d[..., 0] * c + d[..., 1] * s)
+    v = np.abs(-d[..., 0] * s + d[..., 1] * c)
+    m = config.part_margin_m
+    return (u <= what[:, 0] / 2 + m) & (v <= what[:, 1] / 2 + m)
 
 
 class Tracker:
@@ -232,13 +295,13 @@ class Tracker:
         if M and not (np.all(np.isfinite(meas.position_xyz)) and np.all(np.isfinite(meas.what))):
             raise TrackingError(f"non-finite measurement at t_ref_ns={t_ref_ns}")
         x_pred, P_pred = self.predicted(t_ref_ns)
-        ti, mi = associate(x_pred, P_pred, meas, cfg)
+        ti, mi = associate(x_pred, P_pred, meas, cfg, tr.status == TrackStatus.CONFIRMED)
         prev = tr.status.copy()
         # update the assigned tracks at each measurement's own time
         if ti.size:
             dt = np.maximum((meas.t_ns[mi] - tr.t_ns[ti]) * 1e-9, 0.0)
             xp, Pp = predict(tr.x[ti], tr.P[ti], dt, cfg.q_accel)
-            R = measurement_R(meas.what[mi], cfg)
+            R = measurement_R(meas.what[mi], cfg, tr.w[ti])
             x_new, P_new, nis = update(xp, Pp, meas.position_xyz[mi], R)
             tr.x[ti], tr.P[ti], tr.nis[ti] = x_new, P_new, nis
             tr.t_ns[ti] = np.maximum(meas.t_ns[mi], tr.t_ns[ti] + 1)
@@ -247,14 +310,29 @@ class Tracker:
             tr.confidence[ti] += cfg.alpha * (score - tr.confidence[ti])
             tr.hits[ti] += 1
             tr.misses[ti] = 0
+            tr.range_m[ti] = meas.range_m[mi]
         missed = np.ones(T, dtype=bool)
         missed[ti] = False
         tr.confidence[missed] *= 1.0 - cfg.alpha
         tr.misses[missed] += 1
-        self._confirm_or_deny()
-        # births from the unassigned measurements
+        # a free measurement inside the footprint of a track hit this cycle is a part of that
+        # object (a piece cut off by an occluder), not a new one; a track left unseen inside
+        # such a footprint is a duplicate of it
         free = np.ones(M, dtype=bool)
         free[mi] = False
+        part_of = np.full(M, -1, dtype=np.int64)
+        if ti.size and free.any():
+            fm0 = np.flatnonzero(free)
+            inside = inside_footprint(meas.position_xyz[fm0, :2], tr.x[ti, :2], tr.w[ti], cfg)
+            has = inside.any(axis=1)
+            part_of[fm0[has]] = ti[np.argmax(inside[has], axis=1)]
+            free[fm0[has]] = False
+        if ti.size and missed.any():
+            mt = np.flatnonzero(missed & (tr.status == TrackStatus.CONFIRMED))
+            dup = inside_footprint(x_pred[mt, :2], tr.x[ti, :2], tr.w[ti], cfg).any(axis=1)
+            tr.misses[mt[dup]] = np.iinfo(np.int64).max // 2
+        self._confirm_or_deny()
+        # births from the unassigned measurements
         fm = np.flatnonzero(free)
         if new_ids is None:
             start = int(tr.id.max(initial=-1)) + 1
@@ -268,6 +346,7 @@ class Tracker:
         track_of = np.full(M, -1, dtype=np.int64)
         track_of[mi] = ti
         track_of[fm] = T + np.arange(fm.size)
+        track_of[part_of >= 0] = part_of[part_of >= 0]
         prev_all = np.concatenate([prev, np.full(fm.size, -1, np.int8)])
         return track_of, prev_all
 
@@ -275,9 +354,12 @@ class Tracker:
         cfg = self.config
         tr = self.tracks
         w, Pw = tr.w[ti], tr.Pw[ti] + (cfg.q_size_m**2) * np.maximum(dt_s, 0.1)[:, None]
-        r = np.array([cfg.sigma_size_m**2] * 3 + [cfg.sigma_yaw_rad**2])
+        r = np.tile([cfg.sigma_size_m**2] * 3 + [cfg.sigma_yaw_rad**2], (ti.size, 1))
         y = z - w
         y[:, 3] = wrap_half_pi(y[:, 3])
+        # a visible extent smaller than the estimate is more likely a partial view (occlusion,
+        # fewer beams far away) than a shrinking object: it counts for less
+        r[:, :3] *= np.where(y[:, :3] < 0.0, cfg.shrink_var_factor, 1.0)
         K = Pw / (Pw + r)
         w = w + K * y
         w[:, 3] = wrap_half_pi(w[:, 3])
@@ -294,7 +376,8 @@ class Tracker:
         tr.status[hyp & ((tr.confidence < cfg.deny) | (tr.misses > cfg.max_misses_hyp))] = (
             TrackStatus.DENIED
         )
-        tr.status[conf & (tr.misses > cfg.max_misses)] = TrackStatus.GONE
+        allowed = cfg.max_misses + cfg.max_misses_per_m * tr.range_m
+        tr.status[conf & (tr.misses > allowed)] = TrackStatus.GONE
 
     def _births(self, meas: Measurements, fm: np.ndarray, ids: np.ndarray) -> Tracks:
         cfg = self.config
@@ -317,6 +400,7 @@ class Tracker:
             hits=np.ones(n, np.int64),
             misses=np.zeros(n, np.int64),
             nis=np.zeros(n),
+            range_m=np.asarray(meas.range_m)[fm].astype(np.float64),
         )
 
     def drop_finished(self) -> Tracks:
