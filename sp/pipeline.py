@@ -75,6 +75,7 @@ class SPConfig:
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)
     groups: GroupConfig = field(default_factory=GroupConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
+    birth_hits: int = 2  # a hypothesis gets a KD frame (and "appeared") after this many hits
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
     max_object_range_m: float = 120.0  # farther segments are left ungrouped
     min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)
@@ -172,6 +173,8 @@ class SensoryProcessor:
         self.groups: dict[int, frozenset[int]] = {}
         self._attention = np.zeros((0, 0), dtype=bool)
         self._last_pose: tuple[int, np.ndarray] | None = None
+        self._next_provisional = -2  # ids of hypotheses without a frame yet: -2, -3, ...
+        self._provisional_segments = np.zeros(0, np.int64)
         self.n_failed = 0
 
     # ------------------------------------------------------------------ the cycle
@@ -301,7 +304,9 @@ class SensoryProcessor:
         events += events_g
         clock.lap("groups")
 
-        self._attention = has & np.isin(image4, self._born_ids)  # unexplained: new hypotheses
+        # unexplained: new and provisional hypotheses draw attention in the next cycle
+        provisional = np.isin(labels, self._provisional_segments)
+        self._attention = (has & np.isin(image4, self._born_ids)) | provisional
         flat = np.flatnonzero(valid.reshape(-1))
         pe = image4.reshape(-1)[flat]
         class_img = self._class_image(image4, ground)
@@ -380,26 +385,42 @@ class SensoryProcessor:
         cfg = self.config
         what = np.stack([a.length_m, a.width_m, a.height_m, a.yaw_rad], axis=1)
         meas = Measurements(a.center_xyz, t_ns + a.t_offset_ns, what, a.range_m)
-        born: list[int] = []
 
-        def new_ids(n: int) -> np.ndarray:
-            # the KD makes the frames first, so images, tracks and frames share the ids
-            for _ in range(n):
-                f = kd.add_entity(
-                    f"object@{t_ns}",
-                    Level.OBJECT,
-                    images=(IMAGE_NAMES[4],),
-                    confidence=cfg.tracker.confidence0,
-                )
-                born.append(f.id)
-            return np.array(born, dtype=np.int64)
+        def provisional_ids(n: int) -> np.ndarray:
+            # a new hypothesis has no KD frame until it has been seen ``birth_hits`` times
+            start = self._next_provisional
+            self._next_provisional -= n
+            return np.arange(start, start - n, -1, dtype=np.int64)
 
-        track_of, prev = self.tracker.step(meas, t_ns, new_ids)
+        track_of, prev = self.tracker.step(meas, t_ns, provisional_ids)
         tr = self.tracker.tracks
+        # M-of-N birth: hypotheses seen often enough get their frame (and "appeared") now; the
+        # KD makes the frame first, so images, tracks and frames share the id
+        promote = np.flatnonzero(
+            (tr.id < 0)
+            & ((tr.hits >= cfg.birth_hits) | (tr.status == TrackStatus.CONFIRMED))
+            & (tr.status != TrackStatus.DENIED)
+        )
+        born: list[int] = []
+        for k in promote:
+            f = kd.add_entity(
+                f"object@{t_ns}",
+                Level.OBJECT,
+                images=(IMAGE_NAMES[4],),
+                confidence=_unit(tr.confidence[k]),
+            )
+            tr.id[k] = f.id
+            prev[k] = -1
+            born.append(f.id)
         self._born_ids = np.array(born, dtype=np.int64)
         events: list[int] = []
         for i in born:
             events.append(emit(kd, EventClass.APPEARED, t_ns, [i], 4, cfg.tracker.confidence0))
+        # only tracks with a frame are written: provisional ones stay inside the tracker
+        framed = tr.id >= 0
+        track_of = np.where(
+            track_of >= 0, np.where(framed[np.maximum(track_of, 0)], track_of, -2), -1
+        )
         # states of the tracks updated this cycle
         upd = np.unique(track_of[track_of >= 0])
         if upd.size:
@@ -424,7 +445,7 @@ class SensoryProcessor:
         # frames: status, confidence, attributes
         seg_of_track = np.full(len(tr), -1, dtype=np.int64)
         seg_of_track[track_of[track_of >= 0]] = np.flatnonzero(track_of >= 0)
-        for k in range(len(tr)):
+        for k in np.flatnonzero(framed):
             tid = int(tr.id[k])
             status = _STATUS[TrackStatus(int(tr.status[k]))]
             was = int(prev[k])
@@ -443,9 +464,10 @@ class SensoryProcessor:
             if cls is not None:
                 events.append(emit(kd, cls, t_ns, [tid], 4, float(tr.confidence[k])))
         finished = self.tracker.drop_finished()
-        self._denied_ids = finished.id[finished.status == TrackStatus.DENIED]
+        self._denied_ids = finished.id[(finished.status == TrackStatus.DENIED) & (finished.id >= 0)]
         for tid in finished.id:
             self.track_class.pop(int(tid), None)
+        self._provisional_segments = np.flatnonzero(track_of == -2)
         # object id per segment
         ids_all = np.concatenate([tr.id])
         obj = np.full(len(meas), -1, dtype=np.int64)
@@ -459,7 +481,7 @@ class SensoryProcessor:
         kd = self.kd
         tr = self.tracker.tracks
         events: list[int] = []
-        for k in range(len(tr)):
+        for k in np.flatnonzero(tr.id >= 0):
             tid = int(tr.id[k])
             speed = evident_speed(tr.x[k], tr.P[k], self.config.speed_sigmas)
             l, w, h = (float(v) for v in tr.w[k, :3])
