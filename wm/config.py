@@ -14,8 +14,8 @@ from enum import StrEnum
 
 #: Map levels the node runs, finest first, and the period (s) of each level's slow work.
 DEFAULT_LEVEL_PERIODS_S: dict[str, float] = {
-    "primitive": 0.1,
-    "subsystem": 0.2,
+    "primitive": 0.2,
+    "subsystem": 0.5,  # as often as the subsystem planner replans (PlannerConfig)
     "vehicle": 1.0,
     "section": 5.0,
 }
@@ -131,6 +131,7 @@ class NodeConfig:
     vj: VJConfig = field(default_factory=VJConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     use_sp: bool = True  # run SP levels 2..5 when sp.pipeline is available
+    odometry_process: bool = True  # register sweeps in a child process, one sweep ahead
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ Per sweep, in the order of DESIGN.md section 3 and reference 001, 4.2 (the WM ke
 current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
 
 1. pose: LADAR odometry fused with wheel odometry (sp.odometry), or the log's ground truth;
-   the sweep is deskewed into the world with the pose at each slice's time;
+   the sweep is deskewed into the world with the pose at each slice's time. By default the
+   odometry runs in its own process (wm.odometry_worker), one sweep ahead of the rest;
 2. self state into the KD (entity ``self``, world frame);
 3. maps: every level scrolls to the new pose and fuses the points (maps.stack);
 4. SP levels 2..5 (sp.pipeline, when installed) write entity and event frames into the KD and
@@ -44,6 +45,7 @@ from sp.logs.types import (
 )
 from wm import predict, vj
 from wm.config import NodeConfig, PoseSource
+from wm.odometry_worker import OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.truth import truth_boxes_to_world
 
@@ -108,6 +110,7 @@ class WorldModelNode:
         self.track = PoseTrack()  # the poses the node uses (estimated, or truth)
         self.odometry: Any | None = None
         self.pending: deque[LadarScan] = deque()
+        self.inflight: deque[tuple[LadarScan, CameraFrame | None]] = deque()  # at the odometry
         self.camera: CameraFrame | None = None
         self.truth_boxes: ObjectBoxes | None = None
         self.last_t_ns: int | None = None
@@ -145,15 +148,32 @@ class WorldModelNode:
         self.last_t_ns = frame.t_ns if self.last_t_ns is None else max(self.last_t_ns, frame.t_ns)
         out = []
         while self.pending and self._ready(self.pending[0]):
-            out.append(self.cycle(self.pending.popleft()))
+            out += self._start(self.pending.popleft())
         return out
 
     def finish(self) -> list[CycleResult]:
-        """Run the sweeps still waiting (end of log)."""
+        """Run the sweeps still waiting (end of log) and stop the odometry process."""
         out = []
         while self.pending:
-            out.append(self.cycle(self.pending.popleft()))
+            out += self._start(self.pending.popleft())
+        while self.inflight:
+            out.append(self.cycle(*self.inflight.popleft()))
+        self.close()
         return out
+
+    def close(self) -> None:
+        """Stop the odometry process, if one runs (the node can still answer queries)."""
+        if isinstance(self.odometry, OdometryWorker):
+            self.odometry.close()
+
+    def _start(self, scan: LadarScan) -> list[CycleResult]:
+        """A sweep whose poses are in: run its cycle now, or, with the odometry process,
+        submit it and run the previous sweep's cycle while the process registers this one."""
+        if not (self._uses_odometry() and self.config.odometry_process):
+            return [self.cycle(scan, self.camera)]
+        self._odometry().submit(scan)
+        self.inflight.append((scan, self.camera))
+        return [self.cycle(*self.inflight.popleft())] if len(self.inflight) > 1 else []
 
     def _ready(self, scan: LadarScan) -> bool:
         end = scan.t_ns + (int(scan.t_offset_ns.max()) if scan.n_points else 0)
@@ -189,13 +209,17 @@ class WorldModelNode:
             T0 = None
             if self.truth.t_ns:  # align the odometry's world with the truth's start, if known
                 T0 = self.truth.poses[0]
-            self.odometry = LadarOdometry(T_body_sensor=self.T_body_ladar, T_world_body0=T0)
+            if self.config.odometry_process:
+                self.odometry = OdometryWorker(self.T_body_ladar, T0)
+            else:
+                self.odometry = LadarOdometry(T_body_sensor=self.T_body_ladar, T_world_body0=T0)
         return self.odometry
 
     # --- the cycle -------------------------------------------------------------------------
 
-    def cycle(self, scan: LadarScan) -> CycleResult:
-        """One node cycle on one sweep (module docstring, steps 1-6)."""
+    def cycle(self, scan: LadarScan, camera: CameraFrame | None = None) -> CycleResult:
+        """One node cycle on one sweep (module docstring, steps 1-6); ``camera`` is the latest
+        image when the sweep's poses came in."""
         stage = self.stats.stage_s
         t0 = time.perf_counter()
         self.kd.begin_cycle(scan.t_ns)
@@ -227,7 +251,7 @@ class WorldModelNode:
         t2 = time.perf_counter()
         stage["maps"] += t2 - t1
 
-        sp_result = self._sensory_processing(scan, T_world_ladar)
+        sp_result = self._sensory_processing(scan, T_world_ladar, camera)
         t3 = time.perf_counter()
         stage["sp"] += t3 - t2
 
@@ -253,7 +277,8 @@ class WorldModelNode:
                 )
             self.track = self.truth
             return "truth"
-        est = self._odometry().update(scan)
+        odo = self._odometry()
+        est = odo.result() if isinstance(odo, OdometryWorker) else odo.update(scan)
         self.track.add(est.t_ns, est.T_world_body)
         return str(est.status)
 
@@ -267,15 +292,17 @@ class WorldModelNode:
         except kd_store.KDError:  # a repeated time (same sweep middle): keep the first
             pass
 
-    def _sensory_processing(self, scan: LadarScan, T_world_ladar: np.ndarray) -> Any | None:
+    def _sensory_processing(
+        self, scan: LadarScan, T_world_ladar: np.ndarray, camera: CameraFrame | None
+    ) -> Any | None:
         """Step 4: SP levels 2..5 and their labels into the maps."""
         if self.sp is None:
             return None
         cam, T_world_camera = None, None
-        if self.camera is not None and self.T_body_camera is not None:
+        if camera is not None and self.T_body_camera is not None:
             try:
-                T_world_camera = self.track.at(self.camera.t_ns) @ self.T_body_camera
-                cam = self.camera
+                T_world_camera = self.track.at(camera.t_ns) @ self.T_body_camera
+                cam = camera
             except PoseError:
                 pass
         result = self.sp.process(

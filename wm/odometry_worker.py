@@ -1,0 +1,93 @@
+"""LADAR odometry (sp.odometry) in a child process, so that registering sweep k overlaps the
+maps, SP and predictions of sweep k-1 (KISS-ICP's registration holds the interpreter lock and
+runs on one core; the node's other stages need the other).
+
+Requests go through one queue in the order the node makes them (wheel-odometry frames, then
+the sweep they cover), so the child sees exactly what a serial :class:`~sp.odometry.
+LadarOdometry` would; estimates come back in sweep order.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import queue
+from typing import Any
+
+import numpy as np
+
+from sp.logs.types import LadarScan, OdometryFrame
+
+RESULT_TIMEOUT_S = 120.0
+
+
+class OdometryWorkerError(RuntimeError):
+    """The odometry process failed or stopped answering (names the sweep and the cause)."""
+
+
+def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0) -> None:
+    """The child's loop: feed wheel odometry, register sweeps, answer each sweep in order."""
+    from sp.odometry import LadarOdometry
+
+    odo = LadarOdometry(T_body_sensor=T_body_sensor, T_world_body0=T_world_body0)
+    while True:
+        kind, item = requests.get()
+        if kind == "stop":
+            return
+        if kind == "wheel":
+            odo.add_wheel_odometry(item)
+            continue
+        try:
+            results.put(odo.update(item))
+        except Exception as e:  # sent back: the node raises it with the sweep's time
+            results.put(e)
+
+
+class OdometryWorker:
+    """The odometry process: :meth:`add_wheel_odometry`, :meth:`submit` a sweep, then take its
+    :meth:`result` (estimates in submission order)."""
+
+    def __init__(self, T_body_sensor: np.ndarray | None, T_world_body0: np.ndarray | None):
+        # fork: the child needs nothing the parent holds, and a spawned child would re-run
+        # the caller's main script (scripts without a __main__ guard would loop)
+        ctx = mp.get_context("fork")
+        self._requests = ctx.Queue()
+        self._results = ctx.Queue()
+        self._proc = ctx.Process(
+            target=_serve,
+            args=(self._requests, self._results, T_body_sensor, T_world_body0),
+            daemon=True,
+            name="wm-odometry",
+        )
+        self._proc.start()
+        self._waiting: list[int] = []
+
+    def add_wheel_odometry(self, frame: OdometryFrame) -> None:
+        self._requests.put(("wheel", frame))
+
+    def submit(self, scan: LadarScan) -> None:
+        self._requests.put(("scan", scan))
+        self._waiting.append(int(scan.t_ns))
+
+    def result(self) -> Any:
+        """The estimate of the oldest submitted sweep (waits for it)."""
+        if not self._waiting:
+            raise OdometryWorkerError("asked for an odometry result with no sweep submitted")
+        t_ns = self._waiting.pop(0)
+        try:
+            out = self._results.get(timeout=RESULT_TIMEOUT_S)
+        except queue.Empty:
+            alive = "running" if self._proc.is_alive() else f"exit code {self._proc.exitcode}"
+            raise OdometryWorkerError(
+                f"no odometry for the sweep at t_ns={t_ns} within {RESULT_TIMEOUT_S:g} s "
+                f"(odometry process {alive})"
+            ) from None
+        if isinstance(out, Exception):
+            raise out
+        return out
+
+    def close(self) -> None:
+        if self._proc.is_alive():
+            self._requests.put(("stop", None))
+            self._proc.join(timeout=5)
+            if self._proc.is_alive():
+                self._proc.terminate()
