@@ -76,7 +76,7 @@ def _put_truth(kd, boxes: ObjectBoxes, near_xy, radius=40.0) -> dict[int, int]:
 
 def test_self_state_matches_the_true_pose(node, truth) -> None:
     poses, _ = truth
-    wi = WhatIs(node.kd, node.stack, node.self_id, node.T_body_ladar)
+    wi = node.whatis()
     hist = node.kd.history(node.self_id)
     assert len(hist) >= 15
     track = PoseTrack()

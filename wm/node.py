@@ -48,6 +48,7 @@ from wm.config import NodeConfig, PoseSource
 from wm.odometry_worker import OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.truth import truth_boxes_to_world
+from wm.whatis import WhatIs
 
 
 class NodeError(ValueError):
@@ -160,6 +161,10 @@ class WorldModelNode:
             out.append(self.cycle(*self.inflight.popleft()))
         self.close()
         return out
+
+    def whatis(self) -> WhatIs:
+        """What Is over this node's KD and maps, knowing the self entity and the LADAR mount."""
+        return WhatIs(self.kd, self.stack, self.self_id, self.T_body_ladar)
 
     def close(self) -> None:
         """Stop the odometry process, if one runs (the node can still answer queries)."""
