@@ -30,6 +30,7 @@ class SegmentAttributes:
     length_m, width_m, height_m: (K,) extents along the long axis, across it, and above the
                      ground under the segment.
     ground_z_m:      (K,) ground height under the segment (m), from the ground pixels below it.
+    clearance_m:     (K,) height of the segment's lowest point above that ground (m, >= 0).
     area_m2, volume_m3: (K,) footprint area (length x width) and box volume.
     intensity:       (K,) mean intensity (sensor units).
     curvature:       (K,) smallest over summed eigenvalue of the 3D scatter (0 plane, 1/3 ball).
@@ -48,6 +49,7 @@ class SegmentAttributes:
     width_m: np.ndarray
     height_m: np.ndarray
     ground_z_m: np.ndarray
+    clearance_m: np.ndarray
     area_m2: np.ndarray
     volume_m3: np.ndarray
     intensity: np.ndarray
@@ -185,6 +187,7 @@ def segment_attributes(
         width_m=width,
         height_m=height,
         ground_z_m=gz,
+        clearance_m=z0 - gz,
         area_m2=length * width,
         volume_m3=length * width * height,
         intensity=mean(inten),

@@ -84,9 +84,13 @@ class SPConfig:
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 boundary lists of confirmed objects
     terrain_tilt_deg: float = 25.0  # a broad thin plane tilted less than this is ground ...
-    terrain_breadth_m: float = 0.4  # ... when its points spread this far along its middle axis
+    terrain_breadth_m: float = 0.25  # ... when its points spread this far along its middle axis
     terrain_thick_m: float = 0.12  # ... and this little across its plane (std, m)
     terrain_max_height_m: float = 1.2  # ... and it rises less than this over the ground
+    terrain_clearance_m: float = 0.3  # ... from no higher than this above it (a car's hood is)
+    face_tilt_deg: float = 20.0  # a plane within this of vertical is a face (level 3) ...
+    face_breadth_m: float = 0.3  # ... when its points spread this far along its middle axis
+    face_thick_m: float = 0.15  # ... and this little across it (std, m)
     deskew_max_gap_s: float = 0.5  # no constant-velocity deskew over a longer gap between poses
 
 
@@ -170,6 +174,8 @@ class SensoryProcessor:
         self.ground_id: int | None = None
         self.track_class: dict[int, tuple[str | None, float]] = {}
         self.track_list: dict[int, int] = {}  # object id -> its boundary list id
+        self.track_surface: dict[int, tuple[int, int]] = {}  # object -> (face, contact) ids
+        self._surface_classifier = Classifier(kd.classes, Level.SURFACE, self.config.classify)
         self.groups: dict[int, frozenset[int]] = {}
         self._attention = np.zeros((0, 0), dtype=bool)
         self._last_pose: tuple[int, np.ndarray] | None = None
@@ -298,7 +304,9 @@ class SensoryProcessor:
             image4[np.isin(image4, denied)] = -1  # a denied hypothesis releases its pixels
         image3 = np.full((H, W), -1, dtype=np.int64)
         image3[ground] = self._ground_entity(t_ns, xyz_w[ground], T_world_ladar)
+        image3, contact = self._surfaces(t_ns, image3, labels, attrs, obj_ids, ground)
         image2 = self._lists(t_ns, image4, image3, rng, valid) if cfg.lists else image3 * 0 - 1
+        image2[contact >= 0] = contact[contact >= 0]
         clock.lap("level3+2")
         image5, events_g = self._groups(t_ns, image4)
         events += events_g
@@ -467,6 +475,8 @@ class SensoryProcessor:
         self._denied_ids = finished.id[(finished.status == TrackStatus.DENIED) & (finished.id >= 0)]
         for tid in finished.id:
             self.track_class.pop(int(tid), None)
+            for part in self.track_surface.pop(int(tid), ()):
+                kd.update_entity(part, status=Status.GONE)  # the object's face goes with it
         self._provisional_segments = np.flatnonzero(track_of == -2)
         # object id per segment
         ids_all = np.concatenate([tr.id])
@@ -567,6 +577,74 @@ class SensoryProcessor:
                 pos = (T_world_ladar[0, 3], T_world_ladar[1, 3], z0)
                 kd.observe(gid, kd_store.State(t_ns, "world", pos))
         return gid
+
+    def _surfaces(
+        self,
+        t_ns: int,
+        image3: np.ndarray,
+        labels: np.ndarray,
+        a: SegmentAttributes,
+        obj_ids: np.ndarray,
+        ground: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Level 3 beyond the ground: the vertical planar face of a confirmed object (a wall, a
+        building side) is a surface entity, part of that object, classified among the level's
+        prototypes (slope, roughness, height); where it meets the ground, the pixels of the
+        face just above a ground pixel are its contact boundary (a level-2 list lying on the
+        ground). Returns (image3 with the faces, (H, W) int64 contact-boundary ids, -1 none)."""
+        kd = self.kd
+        tr = self.tracker.tracks
+        confirmed = set(tr.id[tr.status == TrackStatus.CONFIRMED].tolist())
+        face_of = np.full(len(a) + 1, -1, dtype=np.int64)  # per segment (last: no segment)
+        contact_of = face_of.copy()
+        for s in np.flatnonzero(vertical_face(a, self.config)):
+            oid = int(obj_ids[s])
+            if oid not in confirmed:
+                continue
+            face_of[s], contact_of[s] = self._surface_of(oid, t_ns)
+            attrs = {
+                "slope_rad": math.acos(min(float(a.verticality[s]), 1.0)),
+                "roughness_m": float(a.thickness_m[s]),
+                "height_m": float(a.height_m[s]),
+                "length_m": float(a.length_m[s]),
+            }
+            m = self._surface_classifier.classify(attrs)
+            kd.update_entity(
+                int(face_of[s]),
+                attributes={k: Attribute(observed=v) for k, v in attrs.items()},
+                generic_classes=m.generic,
+            )
+        face = face_of[labels]  # labels -1 picks the last entry: no face
+        image3 = np.where(face >= 0, face, image3)
+        above_ground = np.zeros_like(ground)
+        above_ground[:-1] = ground[1:]
+        contact = np.where((face >= 0) & above_ground, contact_of[labels], -1)
+        return image3, contact
+
+    def _surface_of(self, oid: int, t_ns: int) -> tuple[int, int]:
+        """(surface id, contact boundary id) of object ``oid``'s face, made on first sight."""
+        if oid not in self.track_surface:
+            kd = self.kd
+            sid = kd.add_entity(
+                f"face of {oid}",
+                Level.SURFACE,
+                images=(IMAGE_NAMES[3],),
+                status=Status.CONFIRMED,
+                confidence=1.0,
+            ).id
+            kd.relate(sid, "belongs_to", oid, t_ns=t_ns)
+            bid = kd.add_entity(
+                f"contact of {sid}",
+                Level.LIST,
+                images=(IMAGE_NAMES[2],),
+                status=Status.CONFIRMED,
+                confidence=1.0,
+            ).id
+            kd.relate(bid, "belongs_to", sid, t_ns=t_ns)
+            if self.ground_id is not None:
+                kd.relate(bid, "on_top_of", self.ground_id, t_ns=t_ns)
+            self.track_surface[oid] = (sid, bid)
+        return self.track_surface[oid]
 
     def _lists(
         self,
@@ -712,13 +790,22 @@ def evident_speed(x: np.ndarray, P: np.ndarray, n_sigma: float) -> float:
     return max(v - n_sigma * sd, 0.0)
 
 
+def vertical_face(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:
+    """(K,) bool: segments that are a broad, thin plane within ``face_tilt_deg`` of vertical
+    (a wall or a building side: a level-3 surface, reference 001, 4.5.6)."""
+    upright = a.verticality <= math.sin(math.radians(cfg.face_tilt_deg))
+    return upright & (a.breadth_m >= cfg.face_breadth_m) & (a.thickness_m <= cfg.face_thick_m)
+
+
 def terrain_patch(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:
-    """(K,) bool: segments that are a broad, thin plane tilted less than ``terrain_tilt_deg``
-    and lower than ``terrain_max_height_m`` (a roof is higher): level 3 surfaces of the ground
-    (reference 001, 4.5.6), not objects standing on it."""
+    """(K,) bool: segments that are a broad, thin plane tilted less than ``terrain_tilt_deg``,
+    lower than ``terrain_max_height_m`` (a roof is higher) and starting within
+    ``terrain_clearance_m`` of the ground under it (a car's hood does not): level 3 surfaces
+    of the ground (reference 001, 4.5.6), not objects standing on it."""
     flat = a.verticality >= math.cos(math.radians(cfg.terrain_tilt_deg))
     plane = (a.breadth_m >= cfg.terrain_breadth_m) & (a.thickness_m <= cfg.terrain_thick_m)
-    return flat & plane & (a.height_m < cfg.terrain_max_height_m)
+    low = (a.height_m < cfg.terrain_max_height_m) & (a.clearance_m <= cfg.terrain_clearance_m)
+    return flat & plane & low
 
 
 def status_code(s: Status) -> int:

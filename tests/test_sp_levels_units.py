@@ -301,9 +301,23 @@ def test_pipeline_images_point_to_frames_and_back() -> None:
     assert obj.state.velocity_xyz[0] == pytest.approx(5.0, abs=1.0)
     assert obj.state.position_xyz[2] == pytest.approx(0.75, abs=0.3)  # half the box height
     img3 = result.entity_images[3]
-    g = np.unique(img3[img3 >= 0])
+    g = np.unique(img3[result.ground_mask])
     assert g.size == 1 and kd.get(int(g[0])).level == Level.SURFACE
-    assert np.array_equal(img3 >= 0, result.ground_mask)
+    assert np.all(img3[result.ground_mask] >= 0)
+    # the box's front is a vertical face: a level-3 surface, part of the object, on its pixels
+    faces = np.unique(img3[(img3 >= 0) & ~result.ground_mask])
+    assert faces.size == 1
+    face = kd.get(int(faces[0]))
+    assert face.level == Level.SURFACE and IMAGE_NAMES[3] in face.images
+    assert kd.parent(face.id) == obj.id
+    assert np.all(img4[img3 == face.id] == obj.id)
+    assert "wall" in face.generic_classes
+    # its contact with the ground is a level-2 list lying on the ground, just above it
+    contact = [i for i in kd.parts(face.id) if kd.get(i).level == Level.LIST]
+    assert len(contact) == 1
+    assert g[0] in kd.pointers(contact[0], "on_top_of")
+    rows, _ = np.nonzero(result.entity_images[2] == contact[0])
+    assert rows.size and np.all(result.ground_mask[rows + 1, _])
     img2 = result.entity_images[2]
     for lid in np.unique(img2[img2 >= 0]):
         lst = kd.get(int(lid))
