@@ -2,7 +2,9 @@
 
 Figures: batch ingest of 1 M entity-state updates against a plain DuckDB insert of the same
 rows from one Arrow table; get-by-id; region query over 100 k entities against a brute-force
-numpy scan; an SQL aggregate over 1 M state rows; memory per short-term entity frame.
+numpy scan; an SQL aggregate over 1 M state rows; memory per short-term entity frame;
+``expect()`` of 100 states against checking them one by one with ``check_state`` (the way
+the KD checked expectations before the batched check).
 """
 
 from __future__ import annotations
@@ -18,8 +20,9 @@ import duckdb
 import numpy as np
 
 import kd_store
-from bench.results import median_time, record
-from kd_store import Attribute, Circle, Level, StateBatch, Status
+from bench.results import median_time, median_times_interleaved, record
+from kd_store import Attribute, Circle, Level, State, StateBatch, Status
+from kd_store.frames import check_state
 from kd_store.states import check_batch
 
 N_ENTITIES = 10_000
@@ -222,6 +225,36 @@ def bench_memory_per_frame() -> None:
     kd.close()
 
 
+def bench_expect() -> None:
+    """expect() of 100 predicted states with full covariances (what wm.predict writes)."""
+    rng = np.random.default_rng(3)
+    kd = kd_store.open()
+    kd.add_entity("car", Level.OBJECT, id=0)
+    kd.observe(0, State(0, "world", (0.0, 0.0, 0.0)))
+    A = rng.normal(size=(100, 6, 6)) * 0.3
+    P = A @ A.transpose(0, 2, 1) + 0.01 * np.eye(6)
+    queue = [
+        State(1_000_000 * (i + 1), "world", (i, 0.0, 0.0), velocity_xyz=(10.0, 0, 0), covariance=c)
+        for i, c in enumerate(P)
+    ]
+
+    def one_by_one() -> None:
+        for s in queue:
+            check_state(s, "entity 0 expectation")
+
+    t = median_times_interleaved({"expect": lambda: kd.expect(0, queue), "base": one_by_one}, 15)
+    record(
+        "kd_expect_100_states",
+        t["expect"] * 1e3,
+        "ms",
+        baseline="check_state on each of the 100 states (the check expect() made before)",
+        baseline_value=t["base"] * 1e3,
+        target="<= 1 ms (10 us a state)",
+        command="python -m bench kd",
+    )
+    kd.close()
+
+
 def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         _, con, kd = bench_ingest(Path(d))
@@ -230,6 +263,7 @@ def main() -> None:
         con.close()
     bench_get_and_region()
     bench_memory_per_frame()
+    bench_expect()
 
 
 if __name__ == "__main__":

@@ -13,13 +13,13 @@ Units: metres, radians, seconds as int64 nanoseconds (``t_ns``); quaternions (x,
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
 
 import numpy as np
 
-from kd_store.covariance import FLAT_UP, UNPACK_FLAT, psd_mask
+from kd_store.covariance import DIAG, FLAT_UP, UNPACK_FLAT, psd_mask
 from kd_store.errors import KDError
 
 #: Order of the 6x6 state covariance: position then velocity.
@@ -349,6 +349,51 @@ def check_state(s: State, where: str, cov_tol: float = 1e-9, quat_tol: float = 1
         )
 
 
+def check_expectations(
+    states: Sequence[State],
+    current: State | None,
+    where: str,
+    cov_tol: float = 1e-9,
+    quat_tol: float = 1e-6,
+) -> None:
+    """Refuse an expectation queue that :func:`check_state` would refuse state by state, or
+    whose times do not strictly increase after ``current`` (the entity's state, if any).
+
+    One batched test over all states (finite values, unit quaternions, variances >= 0,
+    symmetry, and the positive-semidefinite test of :func:`~kd_store.covariance.psd_mask`
+    on the stacked covariances); only a refused queue is checked state by state, so the
+    message names the first bad state exactly as :func:`check_state` does."""
+    if not states:
+        return
+    for s in states:
+        if not isinstance(s, State):
+            raise KDError(f"{where}: expectation {s!r} is not a State")
+        if s.vector.shape != (34,):  # made from a malformed vector: name the bad field
+            check_state(s, f"{where} expectation", cov_tol, quat_tol)
+    V = np.stack([s.vector for s in states])
+    t = np.fromiter((s.t_ns for s in states), np.int64, len(states))
+    asym = np.fromiter((s.asymmetry for s in states), np.float64, len(states))
+    cov21 = V[:, _C]
+    scale = np.maximum(1.0, cov21[:, DIAG].max(axis=1))
+    ok = np.isfinite(V).all(axis=1)
+    ok &= np.abs(np.linalg.norm(V[:, _Q], axis=1) - 1.0) <= quat_tol
+    ok &= (V[:, _R] >= 0).all(axis=1)
+    ok &= asym <= cov_tol * scale
+    ok &= psd_mask(cov21, cov_tol, scale)
+    if not ok.all():
+        bad = states[int(np.flatnonzero(~ok)[0])]
+        check_state(bad, f"{where} expectation", cov_tol, quat_tol)
+        raise KDError(f"{where}: expectation {bad!r} is not a valid state")  # not reached
+    prev = np.r_[np.iinfo(np.int64).min if current is None else current.t_ns, t[:-1]]
+    back = np.flatnonzero(t <= prev)
+    if len(back):
+        i = int(back[0])
+        raise KDError(
+            f"{where}: expectation at t_ns={int(t[i])} is not after the state before it "
+            f"(t_ns={int(prev[i])})"
+        )
+
+
 def check_attribute(a: Attribute, name: str, where: str) -> None:
     """Values may be NaN (not available) but not inf; variances NaN or >= 0."""
     for k in ATTRIBUTE_FIELDS:
@@ -386,15 +431,7 @@ def check_entity(
         check_attribute(a, name, where)
     if f.state is not None:
         check_state(f.state, where, cov_tol, quat_tol)
-    prev = f.state.t_ns if f.state is not None else None
-    for s in f.expectations:
-        check_state(s, f"{where} expectation", cov_tol, quat_tol)
-        if prev is not None and s.t_ns <= prev:
-            raise KDError(
-                f"{where}: expectation at t_ns={s.t_ns} is not after the state before it "
-                f"(t_ns={prev})"
-            )
-        prev = s.t_ns
+    check_expectations(f.expectations, f.state, where, cov_tol, quat_tol)
     check_value(f.value, where)
     for cell in f.map_cells:
         if len(cell) != 3:

@@ -38,6 +38,7 @@ from kd_store.frames import (
     Status,
     check_entity,
     check_event,
+    check_expectations,
     check_state,
 )
 from kd_store.memory import ImmediateExperience, ShortTermMemory
@@ -46,6 +47,7 @@ from kd_store.spatial import Box, GridIndex, Region, check_region
 from kd_store.states import StateBatch, StateColumns, check_batch
 
 NO_TIME = np.iinfo(np.int64).min
+NO_EXPECTATION = np.iinfo(np.int64).max
 K = RelationKind
 _SPATIAL = {K.ON_TOP_OF, K.BENEATH, K.BESIDE, K.IN_FRONT_OF, K.BEHIND, K.INSIDE_OF, K.NEAR}
 
@@ -71,6 +73,7 @@ class _Columns:
         self.noteworthy = np.zeros(capacity, bool)
         self.klass = np.full(capacity, -1, np.int32)
         self.created_ns = np.zeros(capacity, np.int64)
+        self.exp_t0 = np.full(capacity, NO_EXPECTATION, np.int64)  # first expectation's t_ns
         self.ltm = np.zeros(capacity, bool)  # in long-term memory
         self.dirty = np.zeros(capacity, bool)  # changed since the last flush
         self.stale = np.zeros(capacity, bool)  # frame.state older than the columns
@@ -81,6 +84,8 @@ class _Columns:
                 extra = np.zeros((v.shape[0] // 2, *v.shape[1:]), v.dtype)  # grow by 1.5
                 if k == "t_ns":
                     extra[:] = NO_TIME
+                elif k == "exp_t0":
+                    extra[:] = NO_EXPECTATION
                 elif k in ("frame", "klass"):
                     extra[:] = -1
                 setattr(self, k, np.concatenate([v, extra]))
@@ -264,7 +269,8 @@ class KnowledgeDatabase:
         return new
 
     def observe(self, entity_id: int, state: State) -> EntityFrame:
-        """Add one state to an entity's history; it becomes the current state."""
+        """Add one state to an entity's history; it becomes the current state. Expectations
+        at or before it are dropped: the present has overtaken them (see :meth:`ingest`)."""
         f = self.get(entity_id)
         check_state(state, f"entity {entity_id} ({f.name!r})", **self._tols())
         self.ingest(
@@ -284,10 +290,13 @@ class KnowledgeDatabase:
     def expect(self, entity_id: int, states: Iterable[State]) -> EntityFrame:
         """Replace an entity's short-term expectation queue (predicted states, time order)."""
         old = self.get(entity_id)
-        new = dataclasses.replace(old, expectations=tuple(states))
-        check_entity(new, **self._tols())
-        self._frames[self._slot[entity_id]] = new
-        self._cols.dirty[self._slot[entity_id]] = True
+        queue = tuple(states)
+        check_expectations(queue, old.state, f"entity {entity_id} ({old.name!r})", **self._tols())
+        new = dataclasses.replace(old, expectations=queue)
+        slot = self._slot[entity_id]
+        self._frames[slot] = new
+        self._cols.exp_t0[slot] = queue[0].t_ns if queue else NO_EXPECTATION
+        self._cols.dirty[slot] = True
         return new
 
     def mark_noteworthy(self, frame_id: int) -> None:
@@ -309,7 +318,9 @@ class KnowledgeDatabase:
         """Add a batch of state updates (see :class:`StateBatch`); returns rows added.
 
         Refuses, keeping nothing of the batch: unknown ids, NaN/inf, bad covariances, and times
-        that do not strictly increase per entity or are not after its current state."""
+        that do not strictly increase per entity or are not after its current state.
+        Expectations an entity holds at or before its new state are dropped (history now, not
+        a contradiction: 4.4.11, short-term expectations are of the future); later ones stay."""
         where = f"state batch in frame {batch.frame!r}"
         c = check_batch(batch, where, **self._tols())
         if not len(c):
@@ -336,6 +347,7 @@ class KnowledgeDatabase:
         # -- checked: from here on nothing raises
         last = order[np.r_[e[1:] != e[:-1], True]]
         self._set_state_columns(slots[last], c.take(last))
+        self._drop_overtaken(slots[last], c.t_ns[last])
         self._append_history(c, slots)
         in_ltm = self._cols.ltm[slots]
         if in_ltm.all():
@@ -357,6 +369,16 @@ class KnowledgeDatabase:
         cols.stale[slots] = True
         cols.dirty[slots] = True
         self._grid.clear()
+
+    def _drop_overtaken(self, slots: np.ndarray, t_ns: np.ndarray) -> None:
+        """Drop the expectations at or before ``t_ns`` (N,) of entities in ``slots`` (N,)."""
+        over = np.flatnonzero(self._cols.exp_t0[slots] <= t_ns)
+        for slot, t in zip(slots[over].tolist(), t_ns[over].tolist(), strict=True):
+            f = self._frames[slot]
+            assert f is not None
+            keep = tuple(s for s in f.expectations if s.t_ns > t)
+            self._frames[slot] = dataclasses.replace(f, expectations=keep)
+            self._cols.exp_t0[slot] = keep[0].t_ns if keep else NO_EXPECTATION
 
     def _append_history(self, c: StateColumns, slots: np.ndarray) -> None:
         nodes = self.config.memory.node_of_sp_level
@@ -436,6 +458,7 @@ class KnowledgeDatabase:
         cols.klass[slot] = (
             -1 if name is None else self._class_code.setdefault(name, len(self._class_code))
         )
+        cols.exp_t0[slot] = f.expectations[0].t_ns if f.expectations else NO_EXPECTATION
         cols.dirty[slot] = True
 
     def _remove_entity(self, entity_id: int) -> None:

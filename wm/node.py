@@ -119,7 +119,6 @@ class WorldModelNode:
         self.attention_world_xyz: np.ndarray | None = None
         self.prediction: predict.RangePrediction | None = None
         self.surprises = predict.SurpriseEvents()
-        self.expecting: set[int] = set()  # entities that may hold expectations
         self.self_id = kd.add_entity(
             "self",
             Level.OBJECT,
@@ -247,7 +246,6 @@ class WorldModelNode:
         t1 = time.perf_counter()
         stage["pose"] += t1 - t0
 
-        predict.drop_stale_expectations(self.kd, self.expecting, scan.t_ns + span)
         if self.prediction is not None:  # last cycle's expectation of this sweep
             self._compare_prediction(pts, T_world_ladar)
         self.stack.move_to_pose(T_world_body)
@@ -351,10 +349,8 @@ class WorldModelNode:
     def _predict(self, scan: LadarScan, T_world_body: np.ndarray, span_ns: int) -> None:
         """Step 6: expected entity states; every few sweeps a predicted range image."""
         cfg = self.config.prediction
-        self.expecting.update(
-            predict.expect_entities(
-                self.kd, cfg.expectation_steps_s, cfg.expect_min_confidence, skip=self.self_id
-            )
+        predict.expect_entities(
+            self.kd, cfg.expectation_steps_s, cfg.expect_min_confidence, skip=self.self_id
         )
         every = cfg.range_image_every
         self.prediction = None

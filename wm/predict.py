@@ -39,8 +39,7 @@ def expect_entities(
     """Write expectation queues (``steps_s`` seconds after each state) for the object and
     group entities confirmed, observed this cycle with at least ``min_confidence`` and moving
     (a static entity's expectation is its state);
-    returns their ids. The first step should lie beyond the next sweep (see
-    :func:`drop_stale_expectations`)."""
+    returns their ids. The KD drops expectations a later observation overtakes."""
     out = []
     for eid in kd.observed_this_cycle().tolist():
         if eid == skip:
@@ -61,23 +60,6 @@ def expect_entities(
         kd.expect(f.id, [propagate(s, dt) for dt in steps_s])
         out.append(f.id)
     return out
-
-
-def drop_stale_expectations(kd: kd_store.KnowledgeDatabase, ids: set[int], t_ns: int) -> None:
-    """Keep only expectations after ``t_ns`` (the KD refuses a new state later than an
-    entity's expectations, so SP's next observation needs them gone); ``ids`` loses the
-    entities left without expectations."""
-    for i in list(ids):
-        try:
-            f = kd.get(i)
-        except kd_store.KDError:
-            ids.discard(i)
-            continue
-        if f.expectations and f.expectations[0].t_ns <= t_ns:
-            keep = [s for s in f.expectations if s.t_ns > t_ns]
-            kd.expect(i, keep)
-            if not keep:
-                ids.discard(i)
 
 
 def propagate(s: State, dt_s: float) -> State:
