@@ -351,9 +351,10 @@ class SensoryProcessor:
         if last is None or not 0 < gap_ns <= self.config.deskew_max_gap_s * 1e9:
             return xyz_s @ T_world_ladar[:3, :3].T + T_world_ladar[:3, 3]
         T_cols = column_poses(img, t_ns, last[1], last[0], T_world_ladar, pose_t_ns)
-        R_cols = T_cols[None, :, :3, :3]  # (1, W, 3, 3)
-        rotated = sum(R_cols[..., k] * xyz_s[..., k : k + 1] for k in range(3))
-        return rotated + T_cols[None, :, :3, 3]
+        # one small matmul per column: (W, H, 3) @ (W, 3, 3)'
+        p_w = np.matmul(xyz_s.transpose(1, 0, 2), T_cols[:, :3, :3].transpose(0, 2, 1))
+        p_w += T_cols[:, None, :3, 3]
+        return p_w.transpose(1, 0, 2)
 
     # ------------------------------------------------------------------ windowing
 
