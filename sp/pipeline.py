@@ -36,6 +36,7 @@ import numpy as np
 import kd_store
 from kd_store import Attribute, Level, StateBatch, Status
 from maps.frames import check_pose, interpolate_pose, matrix_to_quat, rot_z
+from sp.appearance import object_appearance
 from sp.classify import Classifier, ClassifyConfig
 from sp.computation import SegmentAttributes, ground_below, segment_attributes
 from sp.egosphere import EgosphereConfig, EgosphereImage, to_egosphere
@@ -197,28 +198,41 @@ class SensoryProcessor:
     ) -> SPResult:
         """One cycle on one sweep (points in the sensor frame, ``T_world_ladar`` the sensor pose
         at ``pose_t_ns``, by default ``scan.t_ns``). A sweep that fails is logged and skipped;
-        the tracks are kept. The camera is accepted for the interface and not used yet."""
+        the tracks are kept. With a camera frame and its pose, each confirmed object's returns
+        are projected into it for its camera intensity and coverage (:mod:`sp.appearance`); a
+        camera frame that fails is logged and skipped, the sweep's result kept."""
         try:
             T = check_pose(np.asarray(T_world_ladar, dtype=np.float64), "T_world_ladar")
             t_pose = int(scan.t_ns if pose_t_ns is None else pose_t_ns)
-            return self._process(scan, T, t_pose, attention_world_xyz)
+            result = self._process(scan, T, t_pose, attention_world_xyz)
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
-            self.n_failed += 1
-            log.warning("SP skipped the sweep at t_ns=%s: %s", getattr(scan, "t_ns", "?"), e)
-            H, W = self.config.egosphere.n_rows, self.config.egosphere.n_cols
-            return SPResult(
-                t_ns=int(getattr(scan, "t_ns", 0)),
-                entity_images={k: np.full((H, W), -1, np.int64) for k in IMAGE_NAMES},
-                ground_mask=np.zeros((H, W), bool),
-                points_world=np.zeros((0, 3), np.float32),
-                point_entity_ids=np.zeros(0, np.int64),
-                point_class_ids=np.zeros(0, np.int32),
-                objects=[],
-                events=[],
-                timings_s={},
-                class_names=self.class_names,
-                ok=False,
-            )
+            return self._failed(scan, e)
+        if camera is not None and T_world_camera is not None:
+            try:
+                self._appearance(result, camera, T_world_camera)
+            except (ValueError, np.linalg.LinAlgError) as e:  # the camera frame is skipped
+                self.n_failed += 1
+                log.warning("SP skipped the camera frame at t_ns=%s: %s", camera.t_ns, e)
+        return result
+
+    def _failed(self, scan: LadarScan, e: Exception) -> SPResult:
+        """An empty result for a sweep that failed (logged; the tracks are kept)."""
+        self.n_failed += 1
+        log.warning("SP skipped the sweep at t_ns=%s: %s", getattr(scan, "t_ns", "?"), e)
+        H, W = self.config.egosphere.n_rows, self.config.egosphere.n_cols
+        return SPResult(
+            t_ns=int(getattr(scan, "t_ns", 0)),
+            entity_images={k: np.full((H, W), -1, np.int64) for k in IMAGE_NAMES},
+            ground_mask=np.zeros((H, W), bool),
+            points_world=np.zeros((0, 3), np.float32),
+            point_entity_ids=np.zeros(0, np.int64),
+            point_class_ids=np.zeros(0, np.int32),
+            objects=[],
+            events=[],
+            timings_s={},
+            class_names=self.class_names,
+            ok=False,
+        )
 
     def _process(
         self,
@@ -336,6 +350,20 @@ class SensoryProcessor:
         clock.lap("images")
         result.timings_s = clock.laps
         return result
+
+    def _appearance(self, r: SPResult, camera: CameraFrame, T_world_camera: np.ndarray) -> None:
+        """Camera intensity and coverage of the confirmed objects of this cycle into the KD."""
+        tr = self.tracker.tracks
+        confirmed = tr.id[(tr.status == TrackStatus.CONFIRMED) & (tr.id >= 0)]
+        sel = np.isin(r.point_entity_ids, confirmed)
+        if not sel.any():
+            return
+        a = object_appearance(r.points_world[sel], r.point_entity_ids[sel], camera, T_world_camera)
+        for oid, inten, cov in zip(a.ids, a.intensity, a.coverage, strict=True):
+            attrs = dict(self.kd.get(int(oid)).attributes)
+            attrs["camera_intensity"] = Attribute(observed=float(inten), observed_var=0.01)
+            attrs["camera_coverage"] = Attribute(observed=float(cov))
+            self.kd.update_entity(int(oid), attributes=attrs)
 
     def _deskew(
         self,

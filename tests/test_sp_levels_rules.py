@@ -1,6 +1,7 @@
 """Unit tests of the second round of SP levels 2-5 rules, each against analytic truth:
 deskewing, ground continuity along the column's slope, terrain patches, line continuity,
-cascade association, parts and duplicates, partial views, evident speed, M-of-N birth."""
+cascade association, parts and duplicates, partial views, evident speed, M-of-N birth, camera
+appearance."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ import numpy as np
 import pytest
 
 import kd_store
+from sp.appearance import object_appearance
 from sp.computation import ground_below, segment_attributes
 from sp.egosphere import EgosphereConfig
-from sp.logs.types import LadarScan
+from sp.logs.types import CameraFrame, LadarScan
 from sp.pipeline import SensoryProcessor, SPConfig, evident_speed, terrain_patch
 from sp.segments import merge_collinear
 from sp.tracking import (
@@ -203,3 +205,59 @@ def test_a_one_sweep_blob_gets_no_frame_and_no_event() -> None:
     obj = kd.get(r1.objects[0])
     assert obj.status == kd_store.Status.HYPOTHESIZED
     assert kd.events(class_name="appeared", participant=obj.id)
+
+
+# ---------------------------------------------------------------- camera appearance
+
+R_WORLD_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def _camera(depth_m: float | None = None, t_ns: int = 0) -> tuple[CameraFrame, np.ndarray]:
+    """A 256 x 256 camera at the world origin looking along +x; the image's left half (world
+    +y) is grey 200, its right half 50."""
+    img = np.full((256, 256), 50, np.uint8)
+    img[:, :128] = 200
+    K = np.array([[128.0, 0.0, 127.5], [0.0, 128.0, 127.5], [0.0, 0.0, 1.0]])
+    depth = None if depth_m is None else np.full((256, 256), depth_m, np.float32)
+    T = np.eye(4)
+    T[:3, :3] = R_WORLD_OPTICAL
+    return CameraFrame(t_ns, "camera", img, K, depth), T
+
+
+def test_appearance_is_the_mean_grey_where_the_returns_land() -> None:
+    cam, T = _camera()
+    left = np.c_[np.full(5, 10.0), np.linspace(1.0, 2.0, 5), np.zeros(5)]
+    right = left * [1, -1, 1]
+    behind = left * [-1, 1, 1]
+    pts = np.vstack([left, right, behind])
+    ids = np.repeat([1, 2, 3], 5)
+    a = object_appearance(pts, ids, cam, T)
+    assert a.ids.tolist() == [1, 2]  # nothing of object 3 is in front of the camera
+    np.testing.assert_allclose(a.intensity, [200 / 255, 50 / 255])
+    np.testing.assert_allclose(a.coverage, [1.0, 1.0])
+    # with a depth image, returns hidden behind something nearer are not counted
+    cam_near, _ = _camera(depth_m=5.0)
+    assert object_appearance(pts, ids, cam_near, T).ids.size == 0
+
+
+def test_pipeline_writes_camera_appearance_of_confirmed_objects() -> None:
+    kd = kd_store.open(":memory:")
+    cfg = SPConfig(egosphere=EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1))
+    sp = SensoryProcessor(kd, cfg)
+    wall = _wall_world(15.0)
+    wall = wall[wall[:, 1] > 0.5]  # only the left half: all of it lands on grey 200
+    cam, T_cam = _camera()
+    T_cam[2, 3] = 1.8
+    for k in range(6):
+        t = k * SWEEP_NS
+        r = sp.process(_moving_sweep(wall, t, 0.0), _pose(t, 0.0), camera=cam, T_world_camera=T_cam)
+    obj = kd.get(r.objects[0])
+    assert obj.status == kd_store.Status.CONFIRMED
+    assert obj.attributes["camera_intensity"].observed == pytest.approx(200 / 255)
+    assert obj.attributes["camera_coverage"].observed > 0.5
+    assert "height_m" in obj.attributes  # the LADAR attributes are kept beside it
+    # a broken camera frame is skipped, the sweep's result kept
+    bad = CameraFrame(0, "camera", np.zeros((4, 4), np.uint8), np.eye(3) * 0.0)
+    r = sp.process(_moving_sweep(wall, 6 * SWEEP_NS, 0.0), _pose(6 * SWEEP_NS, 0.0), camera=bad,
+                   T_world_camera=T_cam)  # fmt: skip
+    assert r.ok and r.objects

@@ -1,0 +1,80 @@
+"""Appearance of objects in the camera image: the camera's share of the SP computation function.
+
+Reference 001, 4.5.1 (computation: attributes such as "colour" integrated over the group),
+4.4.6 (a camera image is a patch of its sensor egosphere; LADAR points give its pixels range).
+Each object's LADAR returns are projected into the camera image taken closest in time; the
+mean grey value of the pixels they land on (0..1) is the object's observed camera intensity,
+and the share of its returns the camera sees is its camera coverage. Where the frame carries a
+depth image, a return whose depth disagrees with the pixel's by more than ``max_depth_gap_m``
+is hidden behind something nearer and is not counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from maps.frames import check_pose, se3_inverse
+from sp.camera import PinholeCamera
+from sp.logs.types import CameraFrame
+
+
+class AppearanceError(ValueError):
+    """Points, ids or camera pose of the wrong shape; names them."""
+
+
+@dataclass(frozen=True)
+class AppearanceConfig:
+    max_depth_gap_m: float = 0.5  # occlusion test against the frame's depth image
+    min_pixels: int = 3  # fewer projected returns: no appearance for that object
+
+
+@dataclass
+class Appearance:
+    """Per object: ids (A,) int64, intensity (A,) float64 mean grey 0..1, coverage (A,)
+    float64 share of the object's returns seen by the camera, n (A,) int64 returns seen."""
+
+    ids: np.ndarray
+    intensity: np.ndarray
+    coverage: np.ndarray
+    n: np.ndarray
+
+
+def object_appearance(
+    points_world: np.ndarray,
+    ids: np.ndarray,
+    camera: CameraFrame,
+    T_world_camera: np.ndarray,
+    config: AppearanceConfig | None = None,
+) -> Appearance:
+    """Appearance of every object of ``ids`` ((N,) int64, >= 0) from its returns
+    ``points_world`` ((N, 3) world metres) in ``camera`` (optical frame pose
+    ``T_world_camera``)."""
+    cfg = config or AppearanceConfig()
+    p = np.asarray(points_world, dtype=np.float64)
+    ids = np.asarray(ids, dtype=np.int64)
+    if p.ndim != 2 or p.shape[1] != 3 or ids.shape != (p.shape[0],):
+        raise AppearanceError(f"points {p.shape} and ids {ids.shape} do not pair up")
+    T_cam_world = se3_inverse(check_pose(T_world_camera, "T_world_camera"))
+    model = PinholeCamera.from_frame(camera)
+    p_cam = p @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    uv, on = model.project(p_cam)
+    col = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, model.width - 1)
+    row = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, model.height - 1)
+    if camera.depth is not None:
+        d = camera.depth[row, col].astype(np.float64)
+        on &= np.isfinite(d) & (np.abs(d - p_cam[:, 2]) <= cfg.max_depth_gap_m)
+    img = camera.image.astype(np.float64)
+    grey = img.mean(axis=2) if img.ndim == 3 else img
+    uniq, inv = np.unique(ids, return_inverse=True)
+    total = np.bincount(inv, minlength=uniq.size)
+    seen = np.bincount(inv[on], minlength=uniq.size)
+    sums = np.bincount(inv[on], weights=grey[row[on], col[on]] / 255.0, minlength=uniq.size)
+    keep = seen >= cfg.min_pixels
+    return Appearance(
+        ids=uniq[keep],
+        intensity=sums[keep] / seen[keep],
+        coverage=seen[keep] / total[keep],
+        n=seen[keep].astype(np.int64),
+    )
