@@ -1,8 +1,9 @@
 """Benchmarks of SP levels 2-5 (``python -m bench sp_levels``).
 
 1. One 64 x 1024 simulated sweep through :meth:`SensoryProcessor.process` (levels 2-5 with its
-   KD writes), median over sweeps of the default drive after a warm-up (target 40 ms; the
-   camera's 256 x 256 image is not processed by SP levels 2-5 yet, so it adds nothing).
+   KD writes) together with the latest camera image (the confirmed objects' appearance,
+   :mod:`sp.appearance`), median over sweeps of the default drive after a warm-up (target
+   40 ms).
 2. Association plus filter updates for 50 tracks: our batched filters and gated optimal
    assignment (:mod:`sp.tracking`) against a plain baseline written here, one filterpy
    ``KalmanFilter`` per track and ``linear_sum_assignment`` on Euclidean distances, on the
@@ -24,7 +25,7 @@ from bench.results import median_times_interleaved, record
 from fixtures.scenario import load_scenario
 from fixtures.sensors import LADAR_BENCH, SensorSuiteConfig
 from fixtures.simulate import Simulator
-from sp.logs.types import GroundTruthPose, LadarScan, TransformFrame
+from sp.logs.types import CameraFrame, GroundTruthPose, LadarScan, TransformFrame
 from sp.pipeline import SensoryProcessor
 from sp.tracking import F_Q, Measurements, Tracker, TrackerConfig
 
@@ -38,17 +39,23 @@ def bench_sweep(seconds: float = 6.0, warmup: int = 10) -> float:
     sim = Simulator(scenario)
     kd = kd_store.open(":memory:")
     sp = SensoryProcessor(kd)
-    T_body_ladar = T_world_body = None
+    T_body_ladar = T_world_body = T_body_camera = None
+    camera: CameraFrame | None = None
     times = []
     for f in sim.frames(seconds=seconds):
         if isinstance(f, TransformFrame) and f.child_frame_id == "ladar":
             T_body_ladar = f.T_parent_child
+        elif isinstance(f, TransformFrame) and f.child_frame_id == "camera":
+            T_body_camera = f.T_parent_child
         elif isinstance(f, GroundTruthPose):
             T_world_body = f.T_parent_child
+        elif isinstance(f, CameraFrame):
+            camera = f
         elif isinstance(f, LadarScan) and T_body_ladar is not None:
             T = T_world_body @ T_body_ladar
+            T_cam = None if T_body_camera is None else T_world_body @ T_body_camera
             t0 = time.perf_counter()
-            sp.process(f, T)
+            sp.process(f, T, camera=camera, T_world_camera=T_cam)
             times.append(time.perf_counter() - t0)
     return statistics.median(times[warmup:])
 
