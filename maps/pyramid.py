@@ -16,19 +16,22 @@ Images are (H, W) float arrays indexed ``[row, col]``; offsets are ``(rows, cols
 the full-size image. Masks (attention windows, validity) are (H, W) bool or float weights in
 [0, 1]; a pixel with weight 0 takes no part in the correlation.
 
-Pure numpy (plus ``cv2.warpAffine`` for the optional rotation search).
+numpy, with OpenCV for block means, window sums and the optional rotation search.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 MIN_LEVEL_SIZE_PX = 8  # a pyramid level smaller than this per side carries no usable structure
 MAX_CLIMB_STEPS = 32  # 9-offset steps allowed per level while the peak is not yet the centre
 EAGER_WINDOW_PX = 64 * 64  # windows up to this size get all their offsets in one call
+TABLE_MAX_PX = 128 * 128  # regions up to this size get their window sums from summed-area tables
 CLIMB_REACH_PX = 2  # a correlation window serves offsets this far from where it was built
 CLIMB_MIN_GAIN = 1e-6  # the search moves only for a correlation at least this much better
 FLAT_STD = 1e-9  # an image window with a smaller standard deviation has no texture
@@ -88,22 +91,18 @@ def _as_weight(valid: np.ndarray | None, shape: tuple[int, ...], name: str) -> n
 
 def _centred(image: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
     """float32 image minus its (weighted) mean, so float32 correlation sums keep precision
-    even for attributes far from zero (ranges of 50 m varying by centimetres). The plain path
-    needs no centring: its window variances come from float64 summed-area tables and its
-    template is centred."""
+    even for attributes far from zero (ranges of 50 m varying by centimetres)."""
     if weight is None:
-        mean = float(np.einsum("ij->", image, dtype=np.float64)) / image.size
+        mean = cv2.sumElems(image)[0] / image.size  # double accumulators
     else:
         sw = float(weight.sum(dtype=np.float64))
         mean = float((image * weight).sum(dtype=np.float64) / sw) if sw > 0 else 0.0
-    return (image - mean).astype(np.float32)
+    return image - np.float32(mean)  # float32 throughout (the same as rounding afterwards)
 
 
 def downsample(image: np.ndarray) -> np.ndarray:
     """Average 2x2 blocks: (H, W) -> (H // 2, W // 2); an odd last row or column is dropped.
     (OpenCV's area resampling at exactly half size is this block mean, and fast.)"""
-    import cv2
-
     h, w = image.shape[0] // 2, image.shape[1] // 2
     a = image[: 2 * h, : 2 * w]
     if a.dtype in (np.float32, np.float64) and h > 0 and w > 0:
@@ -166,29 +165,54 @@ def build_pyramid(
     ]
 
 
-def _integrals(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Summed-area tables (H + 1, W + 1) float64 of an image and of its square."""
-    import cv2
-
-    a = np.ascontiguousarray(image, dtype=np.float32)
-    return cv2.integral(a, sdepth=cv2.CV_64F), cv2.integral(a * a, sdepth=cv2.CV_64F)
-
-
-def _box_sums(
-    ii: np.ndarray, top_left: tuple[int, int], shape: tuple[int, int], reach: int
+def _sliding_sums(
+    lines: np.ndarray, totals: np.ndarray, along: int, across: int, square: bool
 ) -> np.ndarray:
-    """Sums of the (h, w) = ``shape`` windows whose top-left corners lie in the
-    (2 reach + 1)^2 square from ``top_left``, from a summed-area table: a (2 reach + 1,
-    2 reach + 1) float64 array indexed by corner offset."""
-    h, w = shape
-    k = 2 * reach + 1
-    r, c = top_left
-    return (
-        ii[r + h : r + h + k, c + w : c + w + k]
-        - ii[r : r + k, c + w : c + w + k]
-        - ii[r + h : r + h + k, c : c + k]
-        + ii[r : r + k, c : c + k]
+    """Sums (float64) of every ``across`` x ``along`` window of ``lines`` (A, B) whose corner
+    lies in the first k x k entries, k = B - along + 1, from ``totals`` (A,): the sum of each
+    whole line (of its squares when ``square``). Returns (k, k) indexed [across, along].
+
+    Along a line, a window from b leaves out ``line[:b]`` and ``line[b + along:]``, both inside
+    the k - 1 entries at either end; across the lines, a running sum over k window rows."""
+    k = lines.shape[1] - along + 1
+    lo, hi = lines[:, : k - 1], lines[:, along:]
+    lo, hi = (
+        (np.square(lo, dtype=np.float64), np.square(hi, dtype=np.float64))
+        if square
+        else (lo, hi.astype(np.float64))
     )
+    rows = np.empty((lines.shape[0], k))
+    rows[:, 0] = totals - hi.sum(axis=1)
+    np.cumsum(hi - lo, axis=1, out=rows[:, 1:])
+    rows[:, 1:] += rows[:, :1]
+    run = np.cumsum(rows, axis=0)
+    out = run[across - 1 : across - 1 + k].copy()
+    out[1:] -= run[: k - 1]
+    return out
+
+
+def _window_sums(region: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Sums and sums of squares of every (h, w) = ``shape`` window of ``region``.
+
+    region: (h + k - 1, w + k - 1) float32. Returns two (k, k) float64 arrays indexed by the
+    window's top-left corner; squares are taken in double. A small region gets summed-area
+    tables (one OpenCV call); a large one would spill two float64 tables out of the cache, so
+    it is summed once along its rows (and its squares once along its columns) and the strips
+    each window leaves out come off (:func:`_sliding_sums`).
+    """
+    h, w = shape
+    k = region.shape[0] - h + 1
+    if region.size <= TABLE_MAX_PX:
+        ii, ii2 = cv2.integral2(region, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+        return tuple(
+            t[h : h + k, w : w + k] - t[:k, w : w + k] - t[h : h + k, :k] + t[:k, :k]
+            for t in (ii, ii2)
+        )
+    row_totals = cv2.reduce(region, 1, cv2.REDUCE_SUM, dtype=cv2.CV_64F)[:, 0]
+    col_squares = cv2.reduce(region, 0, cv2.REDUCE_SUM2, dtype=cv2.CV_64F)[0]
+    s = _sliding_sums(region, row_totals, w, h, square=False)
+    ss = _sliding_sums(region.T, col_squares, h, w, square=True).T
+    return s, ss
 
 
 class _Window:
@@ -209,7 +233,6 @@ class _Window:
         reach: int,
         w_ref: np.ndarray | None,
         w_mov: np.ndarray | None,
-        tables: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         h, w = mov.shape
         cr, cc = center_rc
@@ -224,6 +247,7 @@ class _Window:
         k = 2 * reach + 1
         self.table = np.full((k, k), np.nan)
         self.done = np.zeros((k, k), dtype=bool)
+        self.complete = False  # every entry of the table is known
         self.multiply_adds = 0
         t = mov[r0:r1, c0:c1]
         self.n = t.size
@@ -239,24 +263,26 @@ class _Window:
             self.cover = self.n / mov.size
             if self.t_norm < FLAT_STD * np.sqrt(self.n):
                 self.done[:] = True  # no texture: every offset correlates as NaN
+                self.complete = True
                 return
-            # Box sums come indexed by window top-left corner; flip to offset order.
-            ii, ii2 = tables if tables is not None else _integrals(ref)
-            corner = (rows.start, cols.start)
-            s = _box_sums(ii, corner, t.shape, reach)[::-1, ::-1]
-            ss = _box_sums(ii2, corner, t.shape, reach)[::-1, ::-1]
-            self.multiply_adds += self.n  # template norm (the tables are counted per level)
+            # Window sums come indexed by window top-left corner; flip to offset order.
+            s, ss = _window_sums(self.region, t.shape)
+            s, ss = s[::-1, ::-1], ss[::-1, ::-1]
+            self.multiply_adds += self.n + self.region.size  # template norm, region squares
             var = ss - s * s / self.n
             self.denominator = np.where(
                 var > (FLAT_STD**2) * self.n, self.t_norm * np.sqrt(np.maximum(var, 0.0)), np.nan
             )
             if self.n <= EAGER_WINDOW_PX:
                 # Small windows: all (2 reach + 1)^2 cross sums in one call beats a call each.
-                view = np.lib.stride_tricks.sliding_window_view(self.region, t.shape)
+                view = np.lib.stride_tricks.as_strided(
+                    self.region, (k, k, *t.shape), self.region.strides * 2, writeable=False
+                )
                 cross = np.einsum("abij,ij->ab", view, self.t)[::-1, ::-1]
                 self.multiply_adds += k * k * self.n
                 self.table = cross / self.denominator
                 self.done[:] = True
+                self.complete = True
         else:
             self.t = t
             self.wt = np.ones_like(t) if w_mov is None else w_mov[r0:r1, c0:c1]
@@ -275,6 +301,8 @@ class _Window:
         """(3, 3) correlation at ``center_rc + {-1, 0, 1}^2``, indexed ``[dr + 1, dc + 1]``."""
         i0 = center_rc[0] - self.center[0] + self.reach - 1
         j0 = center_rc[1] - self.center[1] + self.reach - 1
+        if self.complete:
+            return self.table[i0 : i0 + 3, j0 : j0 + 3].copy()
         for i in range(i0, i0 + 3):
             for j in range(j0, j0 + 3):
                 if not self.done[i, j]:
@@ -312,18 +340,26 @@ class _Window:
         return (sab - sa * sb / sw) / np.sqrt(va * vb)
 
 
-def _subpixel(surface: np.ndarray) -> np.ndarray:
+def _subpixel(surface: np.ndarray) -> tuple[float, float]:
     """Sub-pixel peak offset (rows, cols) in [-0.5, 0.5] from a 3x3 correlation surface, by a
-    parabola through the centre and its two neighbours along each axis."""
-    f = np.nan_to_num(surface, nan=-1.0)
-    d = np.zeros(2)
-    for axis, (lo, mid, hi) in enumerate(
-        ((f[0, 1], f[1, 1], f[2, 1]), (f[1, 0], f[1, 1], f[1, 2]))
-    ):
+    parabola through the centre and its two neighbours along each axis (NaN counts as -1)."""
+    f = [[-1.0 if v != v else v for v in row] for row in surface.tolist()]
+    mid = f[1][1]
+    d = [0.0, 0.0]
+    for axis, (lo, hi) in enumerate(((f[0][1], f[2][1]), (f[1][0], f[1][2]))):
         den = lo - 2.0 * mid + hi
         if den < 0:
-            d[axis] = np.clip(0.5 * (lo - hi) / den, -0.5, 0.5)
-    return d
+            d[axis] = min(max(0.5 * (lo - hi) / den, -0.5), 0.5)
+    return d[0], d[1]
+
+
+def _best_of_nine(values: list[float]) -> int:
+    """Index of the first largest non-NaN value (row-major over the 3x3), -1 if all are NaN."""
+    best = -1
+    for k, v in enumerate(values):
+        if v == v and (best < 0 or v > values[best]):
+            best = k
+    return best
 
 
 def _climb(
@@ -341,38 +377,34 @@ def _climb(
     direction (an edge) does not send it wandering. Returns the integer peak, its (3, 3)
     correlation surface indexed ``[dr + 1, dc + 1]``, the window coverage, the multiply-adds
     spent and whether the peak is pinned (at a limit, or out of steps)."""
-    center, ops = start_rc, 0
-    extent = np.array(mov.shape[:2]) // 2 - CLIMB_REACH_PX
+    extent = [max(s // 2 - CLIMB_REACH_PX, 0) for s in mov.shape[:2]]
     if limit_px is not None:
-        extent = np.minimum(extent, np.floor(limit_px))
-    extent = np.maximum(extent, 0)
+        extent = [max(min(e, math.floor(limit_px)), 0) for e in extent]
     center = (
-        int(np.clip(center[0], -extent[0], extent[0])),
-        int(np.clip(center[1], -extent[1], extent[1])),
+        min(max(int(start_rc[0]), -extent[0]), extent[0]),
+        min(max(int(start_rc[1]), -extent[1]), extent[1]),
     )
-    tables = None
-    if w_ref is None and w_mov is None:
-        tables = _integrals(ref)  # window sums for every window of this level
-        ops += ref.size  # the squares
-    win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov, tables)
-    steps = np.array([-1, 0, 1])
+    ops = 0
+    win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
     for _ in range(MAX_CLIMB_STEPS):
         if not win.covers(center):
             ops += win.multiply_adds
-            win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov, tables)
+            win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
         surface = win.surface(center)
-        rows = np.abs(center[0] + steps)[:, None] > extent[0]
-        cols = np.abs(center[1] + steps)[None, :] > extent[1]
-        surface[rows | cols] = np.nan
+        out_r = [abs(center[0] + d) > extent[0] for d in (-1, 0, 1)]
+        out_c = [abs(center[1] + d) > extent[1] for d in (-1, 0, 1)]
+        pinned = any(out_r) or any(out_c)
+        if pinned:  # offsets beyond the search limit take no part
+            surface[np.logical_or.outer(out_r, out_c)] = np.nan
+        values = surface.ravel().tolist()
+        best = _best_of_nine(values)
         done = ops + win.multiply_adds
-        if np.all(np.isnan(surface)):
+        if best < 0:
             return center, surface, win.cover, done, False
-        i, j = divmod(int(np.nanargmax(surface)), 3)
-        centre_value = surface[1, 1] if np.isfinite(surface[1, 1]) else -np.inf
-        if (i == 1 and j == 1) or surface[i, j] <= centre_value + CLIMB_MIN_GAIN:
-            pinned = bool(np.any(rows | cols))
+        centre_value = values[4] if math.isfinite(values[4]) else -math.inf
+        if best == 4 or values[best] <= centre_value + CLIMB_MIN_GAIN:
             return center, surface, win.cover, done, pinned
-        center = (center[0] + i - 1, center[1] + j - 1)
+        center = (center[0] + best // 3 - 1, center[1] + best % 3 - 1)
     return center, surface, win.cover, ops + win.multiply_adds, True
 
 
@@ -382,21 +414,20 @@ def _confidence(surface: np.ndarray, cover: float, pinned: bool) -> float:
     must fall away along rows, columns and both diagonals, and along the flattest of them by at
     least ``APERTURE_RATIO`` of the steepest (an edge or a flat patch correlates equally well
     along its length: the aperture problem)."""
-    f = surface
-    if pinned or not np.all(np.isfinite(f)):
+    f = surface.tolist()
+    if pinned or not all(math.isfinite(v) for row in f for v in row):
         return 0.0
-    c = f[1, 1]
-    curvatures = np.array(
-        [
-            f[0, 1] + f[2, 1] - 2 * c,  # rows
-            f[1, 0] + f[1, 2] - 2 * c,  # columns
-            (f[0, 0] + f[2, 2] - 2 * c) / 2,  # diagonals (their steps are sqrt(2) long)
-            (f[0, 2] + f[2, 0] - 2 * c) / 2,
-        ]
+    c = f[1][1]
+    curvatures = (
+        f[0][1] + f[2][1] - 2 * c,  # rows
+        f[1][0] + f[1][2] - 2 * c,  # columns
+        (f[0][0] + f[2][2] - 2 * c) / 2,  # diagonals (their steps are sqrt(2) long)
+        (f[0][2] + f[2][0] - 2 * c) / 2,
     )
-    if np.any(curvatures >= 0) or curvatures.max() > APERTURE_RATIO * curvatures.min():
+    flattest, steepest = max(curvatures), min(curvatures)
+    if flattest >= 0 or flattest > APERTURE_RATIO * steepest:
         return 0.0
-    return float(np.clip(c, 0.0, 1.0) * np.clip(cover, 0.0, 1.0))
+    return min(max(c, 0.0), 1.0) * min(max(float(cover), 0.0), 1.0)
 
 
 def _register_translation(
@@ -421,8 +452,8 @@ def _register_translation(
         ops += n
         if lev > 0:
             # Start the finer level from the sub-pixel peak, so it rarely needs to climb.
-            fine = 2.0 * (np.array(center, dtype=np.float64) + _subpixel(surface))
-            center = (round(fine[0]), round(fine[1]))
+            sub_r, sub_c = _subpixel(surface)
+            center = (round(2.0 * (center[0] + sub_r)), round(2.0 * (center[1] + sub_c)))
     peak = float(surface[1, 1]) if np.isfinite(surface[1, 1]) else -1.0
     if limit is not None and max(abs(center[0]), abs(center[1])) >= limit:
         pinned = True
@@ -440,7 +471,6 @@ def _register_translation(
 def rotate_image(image: np.ndarray, angle_rad: float, border: float = 0.0) -> np.ndarray:
     """Rotate an (H, W) image about its centre by ``angle_rad`` counter-clockwise in the
     (x right, y up) sense; bilinear; pixels from outside take ``border``."""
-    import cv2
 
     h, w = image.shape
     cy, cx = (h - 1) / 2.0, (w - 1) / 2.0
@@ -488,9 +518,8 @@ def register(
     wmov = _as_weight(valid_moving, np.shape(moving), "valid_moving")
     ref = _as_image(reference, "reference").astype(np.float32, copy=False)
     mov = _as_image(moving, "moving").astype(np.float32, copy=False)
-    if wref is not None or wmov is not None or rotations_rad is not None:
-        # The weighted sums are float32: take the mean out first so they keep their precision.
-        ref, mov = _centred(ref, wref), _centred(mov, wmov)
+    # The correlation sums are float32: take the mean out first so they keep their precision.
+    ref, mov = _centred(ref, wref), _centred(mov, wmov)
     if levels < 1:
         raise PyramidError(f"levels must be >= 1, got {levels}")
     if max_shift_px is not None and max_shift_px < 0:
