@@ -60,6 +60,9 @@ class KDConfig:
     grid_cell_m:      cell size (metres) of the spatial index over entity positions.
     covariance_tol:   relative tolerance of the symmetry and positive-semidefinite checks.
     quaternion_tol:   allowed deviation of a quaternion's norm from 1.
+    tile_write_batch: map tiles waiting in RAM before they are written on their own (one
+                      transaction); ``flush`` writes them too. Bounds RAM on long runs.
+    tile_cache:       clean map tiles kept decoded in RAM for reads.
     """
 
     memory: MemoryConfig = field(default_factory=MemoryConfig)
@@ -67,3 +70,5 @@ class KDConfig:
     grid_cell_m: float = 8.0
     covariance_tol: float = 1e-9
     quaternion_tol: float = 1e-6
+    tile_write_batch: int = 64
+    tile_cache: int = 64

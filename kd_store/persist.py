@@ -7,6 +7,7 @@ process dies mid-way (DuckDB's write-ahead log is replayed on the next open).
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -32,8 +33,12 @@ from kd_store.frames import (
 )
 from kd_store.relations import Relation, RelationKind
 from kd_store.states import StateColumns
+from kd_store.tiles import MapTile, TileKey
 
-SCHEMA_VERSION = 1
+#: 1: frames, states, events, relations, classes. 2: adds ``map_tile_rows`` (files of
+#: version 1 are migrated when opened for writing, and read as having no tiles when read-only).
+SCHEMA_VERSION = 2
+OLDEST_VERSION = 1
 TABLES = (
     "kd_meta",
     "entity_frames",
@@ -42,7 +47,10 @@ TABLES = (
     "event_frames",
     "relation_rows",
     "class_prototypes",
+    "map_tile_rows",
 )
+#: Tables each schema version has (for Parquet imports of older exports).
+TABLES_SINCE = {"map_tile_rows": 2}
 _ATTR = pa.struct([(k, pa.float64()) for k in ATTRIBUTE_FIELDS])
 _CELL = pa.struct([("map_level", pa.int32()), ("col", pa.int64()), ("row", pa.int64())])
 _STATE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw", "vx", "vy", "vz")
@@ -68,11 +76,14 @@ def connect(path: str | Path, read_only: bool = False) -> duckdb.DuckDBPyConnect
                 f"{where}: schema version {version} is newer than this engine's "
                 f"{SCHEMA_VERSION}; open it with a newer rcs-worldmodel"
             )
-        if version < SCHEMA_VERSION:
+        if version < OLDEST_VERSION:
             con.close()
             raise KDError(
-                f"{where}: schema version {version} is unknown (expected {SCHEMA_VERSION})"
+                f"{where}: schema version {version} is unknown (expected {OLDEST_VERSION}.."
+                f"{SCHEMA_VERSION})"
             )
+        if version < SCHEMA_VERSION and not read_only:
+            _migrate(con, version)
     elif read_only:
         con.close()
         raise KDError(f"{where}: not a KD file (no kd_meta table) and opened read-only")
@@ -83,6 +94,26 @@ def connect(path: str | Path, read_only: bool = False) -> duckdb.DuckDBPyConnect
         con.execute("INSERT INTO kd_meta VALUES ('next_id', '0')")
         con.execute("COMMIT")
     return con
+
+
+def _migrate(con: duckdb.DuckDBPyConnection, version: int) -> None:
+    """Bring a file of an older schema version up to this one, in one transaction. The schema
+    script only adds (``IF NOT EXISTS`` / ``OR REPLACE``), so running it again is the step."""
+    con.execute("BEGIN TRANSACTION")
+    try:
+        con.execute(resources.files("kd_store").joinpath("schema.sql").read_text())
+        con.execute(
+            "UPDATE kd_meta SET value = ? WHERE key = 'schema_version'", [str(SCHEMA_VERSION)]
+        )
+        con.execute("COMMIT")
+    except BaseException:
+        con.execute("ROLLBACK")
+        raise
+
+
+def _has_table(con: duckdb.DuckDBPyConnection, name: str) -> bool:
+    q = "SELECT count(*) FROM information_schema.tables WHERE table_name = ?"
+    return bool(con.execute(q, [name]).fetchall()[0][0])
 
 
 # ---------------------------------------------------------------- frames <-> Arrow
@@ -347,10 +378,18 @@ class Write:
     events: list[EventFrame] = field(default_factory=list)
     relations: list[Relation] = field(default_factory=list)
     classes: list[ClassPrototype] = field(default_factory=list)
+    tiles: list[MapTile] = field(default_factory=list)
     next_id: int = 0
 
     def __bool__(self) -> bool:
-        return bool(self.entities or self.states or self.events or self.relations or self.classes)
+        return bool(
+            self.entities
+            or self.states
+            or self.events
+            or self.relations
+            or self.classes
+            or self.tiles
+        )
 
 
 def _replace(con: duckdb.DuckDBPyConnection, table: str, key: str, rows: pa.Table) -> None:
@@ -399,6 +438,14 @@ def write(con: duckdb.DuckDBPyConnection, w: Write) -> None:
             con.unregister("_kd_rows")
         if w.classes:
             _replace(con, "class_prototypes", "name", classes_to_arrow(w.classes))
+        if w.tiles:
+            con.register("_kd_rows", tiles_to_arrow(w.tiles))
+            con.execute(
+                "DELETE FROM map_tile_rows r USING (SELECT DISTINCT level, tx, ty FROM _kd_rows) k "
+                "WHERE r.level = k.level AND r.tx = k.tx AND r.ty = k.ty"
+            )
+            con.execute("INSERT INTO map_tile_rows BY NAME SELECT * FROM _kd_rows")
+            con.unregister("_kd_rows")
         con.execute("UPDATE kd_meta SET value = ? WHERE key = 'next_id'", [str(w.next_id)])
         con.execute("COMMIT")
     except BaseException:
@@ -441,6 +488,53 @@ def read_states(con: duckdb.DuckDBPyConnection, entity_id: int) -> list[State]:
     return sorted(states, key=lambda s: s.t_ns)
 
 
+# ---------------------------------------------------------------- map tiles
+
+
+def tiles_to_arrow(tiles: list[MapTile]) -> pa.Table:
+    """``map_tile_rows`` rows: one per layer of each tile, data zlib-compressed (level 1)."""
+    rows = [(t, name, a) for t in tiles for name, a in t.layers.items()]
+    return pa.table(
+        {
+            "level": pa.array([t.key[0] for t, _, _ in rows], pa.string()),
+            "tx": pa.array([t.key[1] for t, _, _ in rows], pa.int64()),
+            "ty": pa.array([t.key[2] for t, _, _ in rows], pa.int64()),
+            "layer": pa.array([name for _, name, _ in rows], pa.string()),
+            "dtype": pa.array([a.dtype.str for _, _, a in rows], pa.string()),
+            "shape": pa.array([list(a.shape) for _, _, a in rows], pa.list_(pa.int32())),
+            "data": pa.array([zlib.compress(a.tobytes(), 1) for _, _, a in rows], pa.binary()),
+            "t_ns": pa.array([t.t_ns for t, _, _ in rows], pa.int64()),
+        }
+    )
+
+
+def read_tile_keys(con: duckdb.DuckDBPyConnection) -> list[TileKey]:
+    """Keys of every stored tile (none in a read-only file of schema version 1)."""
+    if not _has_table(con, "map_tile_rows"):
+        return []
+    rows = con.execute("SELECT DISTINCT level, tx, ty FROM map_tile_rows").fetchall()
+    return [(str(lv), int(tx), int(ty)) for lv, tx, ty in rows]
+
+
+def read_tile(con: duckdb.DuckDBPyConnection, key: TileKey) -> MapTile | None:
+    """One stored tile, or None. Refuses a row whose bytes do not match its dtype and shape."""
+    rows = con.execute(
+        "SELECT layer, dtype, shape, data, t_ns FROM map_tile_rows "
+        "WHERE level = ? AND tx = ? AND ty = ?",
+        list(key),
+    ).fetchall()
+    if not rows:
+        return None
+    layers = {}
+    for layer, dtype, shape, data, _ in rows:
+        try:
+            flat = np.frombuffer(zlib.decompress(data), dtype=np.dtype(dtype))
+            layers[layer] = flat.reshape(shape).copy()
+        except (zlib.error, TypeError, ValueError) as e:
+            raise KDError(f"map tile {key}: layer {layer!r} cannot be read ({e})") from None
+    return MapTile(key, layers, int(max(r[4] for r in rows)))
+
+
 # ---------------------------------------------------------------- Parquet
 
 
@@ -450,6 +544,8 @@ def export_parquet(con: duckdb.DuckDBPyConnection, folder: str | Path) -> list[P
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     for name in TABLES:
+        if not _has_table(con, name):  # a read-only file of an older schema version
+            continue
         path = folder / f"{name}.parquet"
         pq.write_table(con.sql(f"SELECT * FROM {name}").to_arrow_table(), path)
         out.append(path)
@@ -459,15 +555,19 @@ def export_parquet(con: duckdb.DuckDBPyConnection, folder: str | Path) -> list[P
 def import_parquet(con: duckdb.DuckDBPyConnection, folder: str | Path) -> None:
     """Load a folder written by :func:`export_parquet` into an empty KD, in one transaction."""
     folder = Path(folder)
-    missing = [n for n in TABLES if not (folder / f"{n}.parquet").is_file()]
-    if missing:
-        raise KDError(f"Parquet KD {folder}: missing {', '.join(m + '.parquet' for m in missing)}")
+    if not (folder / "kd_meta.parquet").is_file():
+        raise KDError(f"Parquet KD {folder}: missing kd_meta.parquet")
     meta = {r["key"]: r["value"] for r in pq.read_table(folder / "kd_meta.parquet").to_pylist()}
     version = int(meta.get("schema_version", 0))
-    if version != SCHEMA_VERSION:
+    if not OLDEST_VERSION <= version <= SCHEMA_VERSION:
         raise KDError(
-            f"Parquet KD {folder}: schema version {version}, this engine reads {SCHEMA_VERSION}"
+            f"Parquet KD {folder}: schema version {version}, this engine reads "
+            f"{OLDEST_VERSION}..{SCHEMA_VERSION}"
         )
+    tables = [n for n in TABLES if TABLES_SINCE.get(n, OLDEST_VERSION) <= version]
+    missing = [n for n in tables if not (folder / f"{n}.parquet").is_file()]
+    if missing:
+        raise KDError(f"Parquet KD {folder}: missing {', '.join(m + '.parquet' for m in missing)}")
     n = con.execute(
         "SELECT (SELECT count(*) FROM entity_frames) + (SELECT count(*) FROM event_frames)"
     ).fetchall()[0][0]
@@ -475,7 +575,7 @@ def import_parquet(con: duckdb.DuckDBPyConnection, folder: str | Path) -> None:
         raise KDError(f"Parquet KD {folder}: the target KD already holds {n} frames")
     con.execute("BEGIN TRANSACTION")
     try:
-        for name in TABLES[1:]:
+        for name in tables[1:]:
             _replace_all(con, name, pq.read_table(folder / f"{name}.parquet"))
         con.execute("UPDATE kd_meta SET value = ? WHERE key = 'next_id'", [meta["next_id"]])
         con.execute("COMMIT")

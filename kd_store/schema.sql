@@ -1,4 +1,4 @@
--- Long-term memory of the knowledge database, schema version 1.
+-- Long-term memory of the knowledge database, schema version 2 (2 added map_tile_rows).
 -- Units: metres, radians, m/s; times int64 nanoseconds (t_ns). Quaternions (qx, qy, qz, qw).
 -- cov_pv: the 21 upper-triangle entries, row-major, of the 6x6 covariance over
 -- (x, y, z, vx, vy, vz); var_rpy: variances of roll, pitch, yaw (rad^2).
@@ -101,6 +101,19 @@ CREATE TABLE IF NOT EXISTS class_prototypes (
     risk DOUBLE NOT NULL
 );
 
+-- One row per layer of a map tile (kd_store/tiles.py); a tile's rows are written together.
+-- data: the array's C-order bytes, zlib-compressed; dtype: numpy dtype string ('<f4', ...).
+CREATE TABLE IF NOT EXISTS map_tile_rows (
+    level VARCHAR NOT NULL,
+    tx BIGINT NOT NULL,
+    ty BIGINT NOT NULL,
+    layer VARCHAR NOT NULL,
+    dtype VARCHAR NOT NULL,
+    shape INTEGER[] NOT NULL,
+    data BLOB NOT NULL,
+    t_ns BIGINT NOT NULL
+);
+
 -- ---------------------------------------------------------------- views for notebooks
 
 CREATE OR REPLACE VIEW entities AS
@@ -154,6 +167,10 @@ CREATE OR REPLACE VIEW classes AS
 SELECT name, kind, level, is_a, attributes, weights,
        worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk
 FROM class_prototypes;
+
+CREATE OR REPLACE VIEW map_tiles AS
+SELECT level, tx, ty, layer, dtype, shape, data, octet_length(data) AS stored_bytes, t_ns
+FROM map_tile_rows;
 
 CREATE OR REPLACE MACRO entity_states_as_of(t) AS TABLE
 SELECT * FROM entity_states WHERE t_ns <= t

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
@@ -45,6 +45,7 @@ from kd_store.memory import ImmediateExperience, ShortTermMemory
 from kd_store.relations import Relation, RelationGraph, RelationKind
 from kd_store.spatial import Box, GridIndex, Region, check_region
 from kd_store.states import StateBatch, StateColumns, check_batch
+from kd_store.tiles import TileKey, TileMemory, check_tile
 
 NO_TIME = np.iinfo(np.int64).min
 NO_EXPECTATION = np.iinfo(np.int64).max
@@ -124,6 +125,11 @@ class KnowledgeDatabase:
         self._event_dirty: set[int] = set()
         self._pending: list[StateColumns] = []
         self._next_id = 0
+        self.tiles = TileMemory(
+            lambda: persist.read_tile_keys(self._con),
+            lambda key: persist.read_tile(self._con, key),
+            config.tile_cache,
+        )
         self._load(persist.read(con))
 
     # ================================================================ files
@@ -759,6 +765,7 @@ class KnowledgeDatabase:
             self._event_dirty.clear()
             self.graph.dirty.clear()
             self.classes.dirty.clear()
+            self.tiles.written(w.tiles)
             self._pending = []
             return sum(len(c) for c in w.states)
 
@@ -818,8 +825,42 @@ class KnowledgeDatabase:
             events=[self._events[i] for i in sorted(self._event_dirty & self._event_ltm)],
             relations=[r for r in rels if self._in_ltm(r.src) and self._in_ltm(r.dst)],
             classes=[self.classes.get(c) for c in self.classes.dirty if c in self.classes],
+            tiles=list(self.tiles.pending.values()),
             next_id=self._next_id,
         )
+
+    # ================================================================ map tiles
+
+    def put_tile(
+        self,
+        level: str,
+        tx: int,
+        ty: int,
+        layers: Mapping[str, np.ndarray],
+        t_ns: int | None = None,
+    ) -> None:
+        """Keep a map tile in long-term memory (4.4.11): ``layers`` name -> numeric array (any
+        shape; copied), replacing the tile ``(level, tx, ty)`` whole. ``t_ns`` defaults to
+        this cycle's time. Written at the next :meth:`flush`, or on its own once
+        ``config.tile_write_batch`` tiles wait (one transaction either way)."""
+        tile = check_tile(level, tx, ty, layers, self._now(t_ns))
+        with self._lock:
+            self.tiles.put(tile)
+            if len(self.tiles.pending) >= self.config.tile_write_batch and not self._read_only:
+                tiles = list(self.tiles.pending.values())
+                persist.write(self._con, persist.Write(tiles=tiles, next_id=self._next_id))
+                self.tiles.written(tiles)
+
+    def get_tile(self, level: str, tx: int, ty: int) -> dict[str, np.ndarray] | None:
+        """The tile ``(level, tx, ty)`` as layer name -> array (copies), or None if the KD has
+        none (from RAM if put since the last write or recently read, else from the file)."""
+        with self._lock:
+            return self.tiles.get((level, int(tx), int(ty)))
+
+    def tile_keys(self, level: str | None = None) -> list[TileKey]:
+        """Sorted ``(level, tx, ty)`` of every tile the KD holds (of ``level`` if given)."""
+        with self._lock:
+            return [k for k in self.tiles.keys() if level is None or k[0] == level]
 
     # ================================================================ queries
 
@@ -914,6 +955,7 @@ class KnowledgeDatabase:
         with self._lock:
             persist.import_parquet(self._con, folder)
             stored = persist.read(self._con)
+            self.tiles.reset()
         self.classes = ClassLibrary.default()
         self._load(stored)
 

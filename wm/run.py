@@ -3,6 +3,8 @@
 ``run_log(log, kd_path)`` reads any supported log (sp.logs.open_log), feeds every frame to a
 :class:`~wm.node.WorldModelNode`, scores against the log's ground truth when it has some
 (:mod:`wm.truth`), flushes the KD and returns a :class:`RunReport` (also written as JSON).
+With a KD file, map tiles leaving the windows (and the last windows) are kept in it
+(:mod:`wm.tiles`), and a later run over the same file starts from them.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from sp.logs import open_log
 from sp.logs.types import CameraFrame, LadarScan, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig
 from wm.node import WorldModelNode
+from wm.tiles import keep_windows, map_stack_over_kd
 from wm.truth import DetectionScore, OdometryScore, RasterTruth, TerrainTruth, elevation_error
 
 
@@ -131,7 +134,8 @@ def run_log(
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     with kd_store.open(kd_path) as kd:
-        node = WorldModelNode(kd, config)
+        stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
+        node = WorldModelNode(kd, config, stack)
         odo, det = OdometryScore(), DetectionScore()
         first_t, last_t = None, None
         for frame in _progress(source.frames(), total, progress, Path(log_path).name):
@@ -143,6 +147,8 @@ def run_log(
                 _score(node, c, odo, det)
         for c in node.finish():
             _score(node, c, odo, det)
+        if stack is not None:
+            keep_windows(stack)  # the last windows too, for the next run over this KD
         wall = time.perf_counter() - t_start
         report = _report(node, kd, log_path, kd_path, first_t, last_t, wall)
         report.metrics.update(_metrics(node, odo, det, terrain))
