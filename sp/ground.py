@@ -38,7 +38,8 @@ class GroundConfig:
     max_slope_deg:     steepest ground between successive ground returns of a column.
     step_m:            rise allowed on top of the slope (noise, curbs, ruts).
     resume_gap_m:      after a non-ground return, the ground resumes only at least this much
-                       farther (plus ``resume_gap_per_m`` times the range) than it.
+                       farther (plus ``resume_gap_per_m`` times the range) than it, and rising
+                       no steeper than ``resume_slope_deg`` from the last ground return.
     cell_m, n_sectors: polar grid of the refinement pass (radial cell length, sectors).
     refine_above_m:    in refinement, returns this far above the local lowest ground are
                        not ground; returns within ``refine_within_m`` of it are.
@@ -50,6 +51,7 @@ class GroundConfig:
     max_slope_deg: float = 32.0
     step_m: float = 0.06
     resume_gap_m: float = 0.8
+    resume_slope_deg: float = 15.0
     resume_gap_per_m: float = 0.04
     refine: bool = True
     cell_m: float = 2.0
@@ -91,6 +93,7 @@ def column_walk(
     """
     H, W = r_m.shape
     tan_s = np.tan(np.deg2rad(config.max_slope_deg))
+    tan_r = np.tan(np.deg2rad(config.resume_slope_deg))
     ground = np.zeros((H, W), dtype=bool)
     last_r = np.zeros(W)  # last ground return of each column
     last_z = np.full(W, -height_m)
@@ -104,7 +107,13 @@ def column_walk(
         dr = r - last_r
         rise_ok = (z - last_z) <= tan_s * np.maximum(dr, 0.0) + config.step_m
         drop_ok = (last_z - z) <= tan_s * np.maximum(dr, 0.0) + config.step_m + 0.1 * dr
-        gap_ok = prev_ground | (r - prev_r >= config.resume_gap_m + config.resume_gap_per_m * r)
+        # the ground resumes behind an object only past a range gap, and no steeper than
+        # ``resume_slope_deg`` from the ground in front of it (a car's hood seen past its
+        # bumper is not ground)
+        resume_ok = (r - prev_r >= config.resume_gap_m + config.resume_gap_per_m * r) & (
+            (z - last_z) <= tan_r * np.maximum(dr, 0.0) + config.step_m
+        )
+        gap_ok = prev_ground | resume_ok
         cont = v & have & (dr > 0.0) & rise_ok & drop_ok & gap_ok
         g = start | cont
         ground[i] = g
