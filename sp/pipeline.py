@@ -6,13 +6,19 @@ images whose pixels hold frame ids, frames that point back to their images), 4.5
 to 5). One call of :meth:`SensoryProcessor.process` is one cycle:
 
 1. egosphere image of the sweep (level 1, :mod:`sp.egosphere`), points to the world frame;
-2. level 3: the ground surface (:mod:`sp.ground`), one persistent ground entity;
-3. level 4: object hypotheses grouped from the rest (:mod:`sp.segments`), their attributes
-   (:mod:`sp.computation`), association with the predicted tracks and Kalman updates,
-   confirm / deny (:mod:`sp.tracking`), classification (:mod:`sp.classify`);
-4. level 2: range-edge pixels, as one boundary list per confirmed object (and the ground);
-5. level 5: groups of objects (:mod:`sp.groups`);
-6. entity images per level, entity frames, pointers and events (:mod:`sp.events`) in the KD.
+2. level 3: the ground surface (:mod:`sp.ground`), one persistent ground entity; segments that
+   are bumps sitting low on it or broad gentle planes near it join it (:func:`terrain_patch`);
+3. level 4: object hypotheses grouped from the rest (:mod:`sp.segments`: contiguity, then line
+   continuity), their attributes (:mod:`sp.computation`), association with the predicted
+   tracks (confirmed ones first) and Kalman updates, confirm / deny (:mod:`sp.tracking`),
+   classification (:mod:`sp.classify`). A hypothesis gets a KD frame and an "appeared" event
+   only once seen ``birth_hits`` times (M-of-N birth); until then it draws attention only;
+4. level 3 beyond the ground: the vertical planar face of a confirmed object is a surface
+   entity (part of the object), its contact with the ground a level-2 list;
+5. level 2: range-edge pixels, as one boundary list per confirmed object (and the ground);
+6. level 5: groups of objects (:mod:`sp.groups`);
+7. entity images per level, entity frames, pointers and events (:mod:`sp.events`) in the KD;
+8. with a camera frame: the confirmed objects' appearance (:mod:`sp.appearance`).
 
 Deskewing: ``T_world_ladar`` is the sensor pose at ``pose_t_ns`` (the sweep's stamp unless the
 caller says otherwise). Each column of the image fired at its own time; its points go to the
