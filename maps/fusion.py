@@ -18,8 +18,9 @@ the cell's max height but not the ground estimate. A cell with ground points and
 point this sweep lowers its log-odds (no ray casting: cells the beams pass over are not
 updated).
 
-Everything is vectorised: ``np.add.at`` / ``np.minimum.at`` scatter into per-level scratch
-rows over flat cell indices (only the touched cells are read back and reset); the
+Everything is vectorised: each point's cell gets a row among the sweep's touched cells (a
+per-level dense lookup, never cleared: only touched entries are read), and ``np.bincount`` /
+``np.minimum.at`` scatter into compact (M,) arrays that stay in cache; the
 per-sweep sufficient statistics of a level (:class:`CellBatch`) are additive, so a finer level
 hands them to the next coarser one (see :mod:`maps.stack`) and no point is counted twice.
 """
@@ -27,7 +28,7 @@ hands them to the next coarser one (see :mod:`maps.stack`) and no point is count
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -153,7 +154,9 @@ def clean_points(
     var = np.full(n, float(var)) if var.ndim == 0 else np.ascontiguousarray(var)
     cols = PointColumns(xyz[0], xyz[1], xyz[2], var)
     stats.points_in += n
-    ok = np.isfinite(cols.x + cols.y + cols.z + cols.var) & (cols.var > 0)  # nan/inf propagate
+    if n and np.isfinite(xyz.sum() + var.sum()) and var.min() > 0:
+        return cols  # one reduction settles the common case: NaN/inf would have propagated
+    ok = np.isfinite(cols.x + cols.y + cols.z + cols.var) & (cols.var > 0)
     if not ok.all():
         stats.dropped_nonfinite += n - int(np.count_nonzero(ok))
         cols = cols.subset(ok)
@@ -198,22 +201,33 @@ def summarise(
         ix, iy = cells
     flat = storage_flat(level, ix, iy)
     z = z - z_ref
-
-    # ground reference: the current estimate (+3 sigma), else the lowest point of this sweep
-    # in the cell or, lower still, in a neighbouring cell (+ a slope allowance)
-    sc = _scratch(level)
-    np.minimum.at(sc.z_lo, flat, z)
-    gate, stale = _ground_gate(level, sc.z_lo, z_ref, config)
-    ground = z <= gate[flat]
-    w = np.where(ground, 1.0 / var, 0.0)
-    wz = w * z
-    parts = [w, wz, wz * z, ground.astype(np.float64), (~ground).astype(np.float64)]
-    idx, z_all = flat, z
+    idx = flat
     if child is not None and len(child):
         cflat = _child_flat(level, child)
         ok = cflat >= 0
         cflat = cflat[ok]
         idx = np.concatenate([flat, cflat])
+    # The touched cells (in storage order) and each entry's row among them: the per-cell
+    # sums go to small arrays that stay in cache and need no clearing afterwards.
+    sc = _scratch(level)
+    touched, row = sc.rows(idx)
+    m, n_raw = len(touched), len(flat)
+    raw = row[:n_raw]
+
+    # ground reference: the current estimate (+3 sigma), else the lowest point of this sweep
+    # in the cell or, lower still, in a neighbouring cell (+ a slope allowance)
+    z_lo = np.full(m, np.inf)
+    np.minimum.at(z_lo, raw, z)
+    seen = z_lo < np.inf  # cells with raw points (the others only have the child's sums)
+    gate_seen, stale = _ground_gate(level, sc, touched[seen], z_lo[seen], z_ref, config)
+    gate = np.empty(m)
+    gate[seen] = gate_seen
+    ground = z <= gate[raw]
+    w = np.where(ground, 1.0 / var, 0.0)
+    wz = w * z
+    parts = [w, wz, wz * z, ground.astype(np.float64), (~ground).astype(np.float64)]
+    z_all = z
+    if child is not None and len(child):
         cz = child.z_ref - z_ref  # re-centre the child's sums on this sweep's z_ref
         cw, cwz = child.w[ok], child.wz[ok]
         extra = [
@@ -224,21 +238,17 @@ def summarise(
             child.n_obstacle[ok].astype(np.float64),
         ]
         parts = [np.concatenate([a, b]) for a, b in zip(parts, extra, strict=True)]
-        np.minimum.at(sc.z_lo, cflat, child.z_min[ok] - z_ref)
+        np.minimum.at(z_lo, row[n_raw:], child.z_min[ok] - z_ref)
         z_all = np.concatenate([z, child.z_max[ok] - z_ref])
-    # scatter-sums into zeroed scratch rows (np.add.at: no fresh (size*size,) arrays)
-    for k, p in enumerate(parts):
-        np.add.at(sc.sums[k], idx, p)
-    np.maximum.at(sc.z_hi, idx, z_all)
+    # scatter-sums in entry order (np.bincount adds in the same order as a loop would)
+    vals = [np.bincount(row, weights=p, minlength=m) for p in parts]
+    z_hi = np.full(m, -np.inf)
+    np.maximum.at(z_hi, row, z_all)
 
-    cells = np.flatnonzero(sc.z_hi > -np.inf)
-    vals = sc.sums[:, cells]
-    z_lo, z_hi = sc.z_lo[cells] + z_ref, sc.z_hi[cells] + z_ref
-    sc.reset(cells)
-    s_row, s_col = np.divmod(cells, size)
+    s_row, s_col = np.divmod(touched, size)
     ox, oy = level.origin_cell
-    reset = np.zeros(len(cells), dtype=bool)
-    reset[np.searchsorted(cells, stale)] = True  # stale cells are among the touched ones
+    reset = np.zeros(m, dtype=bool)
+    reset[np.searchsorted(touched, stale)] = True  # stale cells are among the touched ones
     return CellBatch(
         resolution_m=level.resolution_m,
         z_ref=z_ref,
@@ -249,33 +259,37 @@ def summarise(
         wzz=vals[2],
         n=np.rint(vals[3]).astype(np.int64),
         n_obstacle=np.rint(vals[4]).astype(np.int64),
-        z_min=z_lo,
-        z_max=z_hi,
+        z_min=z_lo + z_ref,
+        z_max=z_hi + z_ref,
         reset=reset,
     )
 
 
 class _Scratch:
-    """Per-level accumulators, kept filled with their neutral values between sweeps so a
-    sweep touches only its own cells: running min / max height, and 5 sum rows."""
+    """Per-level dense scratch, kept at its neutral value between sweeps so a sweep touches
+    only its own cells: a touched-cell mark, each touched cell's row in the sweep's compact
+    arrays, and the lowest point per cell (for the neighbours' ground reference)."""
 
     def __init__(self, ncell: int) -> None:
+        self.mark = np.zeros(ncell, dtype=np.uint8)
+        self.row = np.zeros(ncell, dtype=np.intp)
         self.z_lo = np.full(ncell, np.inf)
-        self.z_hi = np.full(ncell, -np.inf)
-        self.sums = np.zeros((5, ncell))
 
-    def reset(self, cells: np.ndarray) -> None:
-        self.z_lo[cells] = np.inf
-        self.z_hi[cells] = -np.inf
-        self.sums[:, cells] = 0.0
+    def rows(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The distinct cells of ``flat`` (M,) sorted, and each entry's index among them."""
+        self.mark[flat] = 1
+        cells = np.flatnonzero(self.mark)
+        self.mark[cells] = 0
+        self.row[cells] = np.arange(len(cells))
+        return cells, self.row[flat]
 
 
 _SCRATCH: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _scratch(level: MapLevel) -> _Scratch:
-    """The level's accumulators (one set per level; fusing one level from two threads at
-    once is not supported, as for every other write to a level)."""
+    """The level's scratch (one set per level; fusing one level from two threads at once is
+    not supported, as for every other write to a level)."""
     sc = _SCRATCH.get(level)
     if sc is None:
         sc = _SCRATCH[level] = _Scratch(level.size * level.size)
@@ -291,11 +305,16 @@ def storage_flat(level: MapLevel, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
 
 
 def _ground_gate(
-    level: MapLevel, z_lo: np.ndarray, z_ref: float, config: FusionConfig
+    level: MapLevel,
+    sc: _Scratch,
+    cells: np.ndarray,
+    z_lo: np.ndarray,
+    z_ref: float,
+    config: FusionConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Dense (size*size,) height (relative to ``z_ref``) above which a point is an obstacle,
-    valid at the cells with points this sweep (``z_lo`` finite), computed once per cell; and
-    the flat indices of cells whose estimate this sweep refutes.
+    """Height (relative to ``z_ref``) above which a point is an obstacle, one per cell with
+    points this sweep (``cells`` (K,) flat indices, ``z_lo`` (K,) their lowest point); and the
+    flat indices of cells whose estimate this sweep refutes.
 
     Reference: the estimate + 3 sigma where the cell has one; else ``min(own lowest point,
     lowest neighbour + slope allowance)`` over the 8 neighbours (their estimate if known, else
@@ -307,16 +326,16 @@ def _ground_gate(
     """
     size = level.size
     elev = level.storage("elevation").reshape(-1)
-    cells = np.flatnonzero(z_lo < np.inf)
     e = elev[cells].astype(np.float64) - z_ref
     sigma = np.sqrt(level.storage("elevation_var").reshape(-1)[cells].astype(np.float64))
     spread = 3.0 * np.nan_to_num(sigma)
     known = np.isfinite(e)
-    stale = known & (z_lo[cells] < e - spread - config.obstacle_height_m)
+    stale = known & (z_lo < e - spread - config.obstacle_height_m)
     fresh = ~known | stale
-    ref = np.where(fresh, z_lo[cells], e + spread)
+    ref = np.where(fresh, z_lo, e + spread)
     new = cells[fresh]
     if new.size:
+        sc.z_lo[cells] = z_lo  # dense, for the neighbours (put back to inf below)
         srow, scol = np.divmod(new, size)
         wrow = (srow - level.origin_cell[1]) % size  # window row/col: nothing across the seam
         wcol = (scol - level.origin_cell[0]) % size
@@ -328,13 +347,12 @@ def _ground_gate(
                 ok = (wrow + dr >= 0) & (wrow + dr < size) & (wcol + dc >= 0) & (wcol + dc < size)
                 nflat = ((srow + dr) % size) * size + (scol + dc) % size
                 en = elev[nflat]
-                base = np.where(np.isnan(en), z_lo[nflat], en.astype(np.float64) - z_ref)
+                base = np.where(np.isnan(en), sc.z_lo[nflat], en.astype(np.float64) - z_ref)
                 nb = np.where(ok, np.minimum(nb, base), nb)
         allowance = config.max_ground_slope * np.sqrt(2.0) * level.resolution_m
-        ref[fresh] = np.minimum(z_lo[new], nb + allowance)
-    gate = np.empty(z_lo.shape)  # only the touched cells are ever read
-    gate[cells] = ref + config.obstacle_height_m
-    return gate, cells[stale]
+        ref[fresh] = np.minimum(z_lo[fresh], nb + allowance)
+        sc.z_lo[cells] = np.inf
+    return ref + config.obstacle_height_m, cells[stale]
 
 
 def _child_flat(level: MapLevel, child: CellBatch) -> np.ndarray:
@@ -361,12 +379,16 @@ def apply(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns: int) ->
     lay = {name: level.storage(name).reshape(-1) for name in FUSION_LAYERS}  # flat views
 
     g = batch.n > 0
+    if batch.reset is not None and not batch.reset.any():
+        batch = replace(batch, reset=None)  # nothing refuted: skip the refuted-cell passes
     if batch.reset is not None:  # refuted and no ground seen now: the cell's height is unknown
         gone = cell[batch.reset & ~g]
         for name in ("elevation", "elevation_var", "z_mean", "roughness"):
             lay[name][gone] = np.nan
         for name in ("z_weight", "z_m2", "count"):
             lay[name][gone] = 0
+    if g.all():
+        g = slice(None)  # every cell saw ground: views instead of masked copies
     gcell = cell[g]
     _kalman(lay, gcell, batch, g, config)
     _moments(lay, gcell, batch, g)
@@ -381,7 +403,9 @@ def apply(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns: int) ->
     return len(batch)
 
 
-def _kalman(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray, config: FusionConfig):
+def _kalman(
+    lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray | slice, config: FusionConfig
+):
     """Scalar Kalman update of elevation / elevation_var in the cells with ground points."""
     R = 1.0 / batch.w[g]
     z_bar = batch.z_ref + batch.wz[g] * R
@@ -399,7 +423,7 @@ def _kalman(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray, confi
     lay["confidence"][gcell] = config.confidence_var_m2 / (config.confidence_var_m2 + P)
 
 
-def _moments(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray) -> None:
+def _moments(lay: dict, gcell: np.ndarray, batch: CellBatch, g: np.ndarray | slice) -> None:
     """Merge the sweep's weighted height moments into z_weight / z_mean / z_m2 (the weighted
     form of Chan et al.'s parallel update) -> roughness = sqrt(M2 / W); count += n."""
     w_b = batch.w[g]

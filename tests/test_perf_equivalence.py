@@ -1,6 +1,7 @@
-"""The fast paths of maps.pyramid and maps.fusion give what the plain definitions give.
+"""The fast paths of maps.pyramid give what the plain definitions give (maps.fusion's are held
+to its slow point-by-point reference in test_maps_fusion.py, unchanged).
 
-Pyramid: window sums (summed-area tables for small regions, row/column reductions for large
+Window sums (summed-area tables for small regions, row/column reductions for large
 ones) against direct float64 sums; the correlation surface against normalised correlation
 computed directly in float64; attributes far from zero (ranges of 50 m varying by
 millimetres) register as well as the same attribute near zero.
