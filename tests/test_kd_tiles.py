@@ -71,6 +71,11 @@ def test_tiles_survive_a_flush_and_a_reopen(tmp_path: Path) -> None:
     with kd_store.open(path, read_only=True) as kd:
         got = kd.get_tile("subsystem", 3, -7)
         assert list(got) == ["only"] and np.array_equal(got["only"], np.ones((2, 2)))
+        kd.export_parquet(tmp_path / "pq")
+    copy = kd_store.open()  # and through Parquet
+    copy.import_parquet(tmp_path / "pq")
+    assert copy.tile_keys() == [("subsystem", 3, -7), ("vehicle", -1, 2)]
+    assert _same(_layers(1, (4, 5)), copy.get_tile("vehicle", -1, 2))
 
 
 def test_tiles_are_written_in_batches_before_a_flush(tmp_path: Path) -> None:
