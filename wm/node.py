@@ -254,7 +254,7 @@ class WorldModelNode:
         t2 = time.perf_counter()
         stage["maps"] += t2 - t1
 
-        sp_result = self._sensory_processing(scan, T_world_ladar, camera)
+        sp_result = self._sensory_processing(scan, T_world_ladar, t_mid, camera)
         t3 = time.perf_counter()
         stage["sp"] += t3 - t2
 
@@ -296,9 +296,10 @@ class WorldModelNode:
             pass
 
     def _sensory_processing(
-        self, scan: LadarScan, T_world_ladar: np.ndarray, camera: CameraFrame | None
+        self, scan: LadarScan, T_world_ladar: np.ndarray, t_pose_ns: int, camera: CameraFrame | None
     ) -> Any | None:
-        """Step 4: SP levels 2..5 and their labels into the maps."""
+        """Step 4: SP levels 2..5 and their labels into the maps. ``T_world_ladar`` is the
+        sensor pose at ``t_pose_ns`` (the sweep's middle); SP deskews each column from it."""
         if self.sp is None:
             return None
         cam, T_world_camera = None, None
@@ -314,6 +315,7 @@ class WorldModelNode:
             camera=cam,
             T_world_camera=T_world_camera,
             attention_world_xyz=self.attention_world_xyz,
+            pose_t_ns=t_pose_ns,
         )
         if len(result.points_world):
             self.stack.fuse_labels(
