@@ -96,13 +96,17 @@ def bench_fusion(pts: np.ndarray, var: np.ndarray) -> None:
         baseline_value=mpts["sums"],
         target="ratio >= 0.5",
     )
+    unreachable = (
+        f"ratio >= 5 (not reachable with numpy {np.__version__}: "
+        "np.add.at is as fast as np.bincount)"
+    )
     record(
         "maps_fusion_sums_bincount_vs_add_at",
         mpts["sums"],
         "Mpoints/s",
         baseline="the same per-cell sums with np.add.at",
         baseline_value=mpts["add_at"],
-        target="ratio >= 5",
+        target=unreachable,
     )
     record(
         "maps_fusion_throughput_vs_add_at_sums",
@@ -110,7 +114,7 @@ def bench_fusion(pts: np.ndarray, var: np.ndarray) -> None:
         "Mpoints/s",
         baseline="the per-cell sums alone done with np.add.at",
         baseline_value=mpts["add_at"],
-        target="ratio >= 5",
+        target=unreachable,
     )
 
 
