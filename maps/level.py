@@ -77,6 +77,8 @@ class MapLevel:
         self._data = {name: spec.empty(shape) for name, spec in self.specs.items()}
         self._fills = [(arr, self.specs[name].fill) for name, arr in self._data.items()]
         self._origin = (-(self.size // 2), -(self.size // 2))  # (ix0, iy0) as Python ints
+        if self.store is not None:  # a store may already hold this window (an earlier run)
+            self._load((self._origin[0], self.size), (self._origin[1], self.size))
 
     @property
     def origin_cell(self) -> np.ndarray:
@@ -304,9 +306,19 @@ class MapLevel:
                 ix_lo, ix_hi = max(rx[0], tx * t), min(rx[0] + rx[1], (tx + 1) * t)
                 yield tx, ty, ix_lo, ix_hi, iy_lo, iy_hi
 
-    def _save(self, rx: Range, ry: Range) -> None:
-        """Copy the cells of global box ``rx x ry`` (inside the window) into the tile store."""
+    def keep_window(self) -> int:
+        """Put the whole current window into the tile store (e.g. at the end of a run, so a
+        later level over the same store starts from it); returns the tiles put."""
+        if self.store is None:
+            return 0
+        (ox, oy), size = self._origin, self.size
+        return self._save((ox, size), (oy, size))
+
+    def _save(self, rx: Range, ry: Range) -> int:
+        """Copy the cells of global box ``rx x ry`` (inside the window) into the tile store,
+        merged into the tiles already there; returns the tiles put."""
         t = self.config.tile_cells
+        n_put = 0
         for tx, ty, ix_lo, ix_hi, iy_lo, iy_hi in self._tiles_over(rx, ry):
             srow = np.arange(iy_lo, iy_hi) % self.size
             scol = np.arange(ix_lo, ix_hi) % self.size
@@ -319,8 +331,12 @@ class MapLevel:
                 tile = {n: s.empty((t, t)) for n, s in self.specs.items()}
             r0, c0 = iy_lo - ty * t, ix_lo - tx * t
             for n, b in blocks.items():
+                if n not in tile:  # a layer the stored tile was written without
+                    tile[n] = self.specs[n].empty((t, t))
                 tile[n][r0 : r0 + b.shape[0], c0 : c0 + b.shape[1]] = b
             self.store.put(key, tile)
+            n_put += 1
+        return n_put
 
     def _load(self, rx: Range, ry: Range) -> None:
         """Fill the cells of global box ``rx x ry`` from tiles the store holds."""

@@ -77,6 +77,11 @@ class MapStack:
         self.raster: ElevationRaster | None = None
         self.T_world_body: np.ndarray | None = None
 
+    def keep_windows(self) -> int:
+        """Put every level's current window into the tile store (at the end of a run, so a
+        later stack over the same store starts from it); returns the tiles put."""
+        return sum(lvl.keep_window() for lvl in self.levels)
+
     def level(self, name: str) -> MapLevel:
         """The level called ``name``."""
         for lvl in self.levels:

@@ -3,9 +3,10 @@
 A tile is a square block of ``tile_cells x tile_cells`` cells of one level, all layers, keyed
 by ``(level name, tile x index, tile y index)`` in the level's fixed world grid (reference 001,
 4.4.11: long-term memory holds maps; local maps update the stored ones).
-:class:`InMemoryTileStore` keeps tiles in a dict; the knowledge database's long-term store
-can stand behind the same two-method :class:`TileStore` interface later without the map
-changing.
+:class:`InMemoryTileStore` keeps tiles in a dict; the knowledge database's long-term memory
+stands behind the same two-method :class:`TileStore` interface through the adapter
+``wm.tiles.KDTileStore`` (maps does not import the KD). A level fills its first window from
+its store, and ``MapLevel.keep_window`` puts the current window in.
 """
 
 from __future__ import annotations

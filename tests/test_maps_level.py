@@ -125,6 +125,23 @@ def test_loop_route_restores_old_map() -> None:
     np.testing.assert_array_equal(level.window("elevation"), before)
 
 
+def test_a_new_level_over_a_filled_store_starts_from_it_and_keeps_it() -> None:
+    """A second run over the same store: its first window comes from the stored tiles, and
+    its first move must not overwrite them with the empty cells it started with."""
+    store = InMemoryTileStore()
+    first = MapLevel(LevelConfig("t", 1.0, 32, tile_cells=8), store)
+    rr, cc = np.nonzero(np.ones((32, 32)))
+    xy = first.window_to_world(rr, cc)
+    first.write("elevation", xy, np.cos(xy[:, 0]) - xy[:, 1])
+    before = first.window("elevation")
+    assert first.keep_window() == 16  # 32 x 32 cells in 8 x 8 tiles
+    second = MapLevel(LevelConfig("t", 1.0, 32, tile_cells=8), store)
+    np.testing.assert_array_equal(second.window("elevation"), before)
+    second.move_to(np.array([20.0, 0.0]))  # half the window leaves, then comes back
+    second.move_to(np.array([0.0, 0.0]))
+    np.testing.assert_array_equal(second.window("elevation"), before)
+
+
 def test_selections_match_cell_centres() -> None:
     level = MapLevel(LevelConfig("t", 0.5, 40))
     level.move_to(np.array([10.0, 5.0]))
