@@ -261,7 +261,7 @@ class _Window:
             self.t = t - np.float32(np.einsum("ij->", t) / self.n)
             self.t_norm = float(np.sqrt(np.einsum("ij,ij->", self.t, self.t)))
             self.cover = self.n / mov.size
-            if self.t_norm < FLAT_STD * np.sqrt(self.n):
+            if self.t_norm < FLAT_STD * math.sqrt(self.n):
                 self.done[:] = True  # no texture: every offset correlates as NaN
                 self.complete = True
                 return
