@@ -20,13 +20,21 @@ from typing import Any
 import numpy as np
 
 import kd_store
-from maps.frames import NS_PER_S
+from maps.frames import NS_PER_S, se3_inverse
 from sp.logs import open_log
 from sp.logs.types import CameraFrame, LadarScan, ObjectBoxes, OdometryFrame
-from wm.config import NodeConfig
+from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
+from wm.poses import PoseError
 from wm.tiles import keep_windows, map_stack_over_kd
-from wm.truth import DetectionScore, OdometryScore, RasterTruth, TerrainTruth, elevation_error
+from wm.truth import (
+    DetectionScore,
+    OdometryScore,
+    RasterTruth,
+    TerrainTruth,
+    elevation_error,
+    truth_boxes_to_world,
+)
 
 
 @dataclass
@@ -182,7 +190,23 @@ def _score(node: WorldModelNode, cycle, odo: OdometryScore, det: DetectionScore)
     if node.truth.t_ns:
         odo.add(cycle.t_pose_ns, cycle.T_world_body, node.truth)
     if node.sp is not None and node.truth_boxes is not None:
-        det.add(node.kd, node.truth_boxes, cycle.T_world_body[:3, 3], node.self_id)
+        det.add(node.kd, _truth_in_estimated_world(node, cycle), cycle.T_world_body[:3, 3],
+                node.self_id)  # fmt: skip
+
+
+def _truth_in_estimated_world(node: WorldModelNode, cycle) -> ObjectBoxes:
+    """The true boxes in the world frame the node estimates. With odometry poses that frame
+    drifts from the true one; entities are placed relative to the estimated vehicle, so the
+    truth is moved by this sweep's pose error before scoring: detection then scores
+    perception, and the odometry score alone scores the drift."""
+    boxes = node.truth_boxes
+    if node.config.pose_source == PoseSource.TRUTH or not node.truth.t_ns:
+        return boxes
+    try:
+        T_true = node.truth.at(cycle.t_pose_ns)
+    except PoseError:
+        return boxes
+    return truth_boxes_to_world(boxes, cycle.T_world_body @ se3_inverse(T_true))
 
 
 def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
@@ -218,7 +242,10 @@ def _metrics(node, odo: OdometryScore, det: DetectionScore, terrain) -> dict[str
     if terrain is not None and node.stats.sweeps:
         for name in ("primitive", "subsystem"):
             if any(lv.name == name for lv in node.stack.levels):
-                out[f"elevation_{name}"] = elevation_error(node.stack.level(name), terrain)
+                level = node.stack.level(name)
+                out[f"elevation_{name}"] = elevation_error(level, terrain)
+                if odo.T_true_est is not None:  # the same map, without the odometry's drift
+                    out[f"elevation_{name}_local"] = elevation_error(level, terrain, odo.T_true_est)
     if node.sp is not None and det.tp + det.fn + det.fp:
         out["detection"] = det.summary()
     if node.stats.range_image_error_m:

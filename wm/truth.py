@@ -18,6 +18,7 @@ import numpy as np
 import kd_store
 from kd_store import Level, Status
 from maps.apriori import ElevationRaster, load_av2_ground_height
+from maps.frames import se3_inverse
 from maps.level import MapLevel
 from sp.logs.types import ObjectBoxes
 from wm.poses import PoseError, PoseTrack
@@ -77,17 +78,28 @@ class RasterTruth:
         return self.raster.sample(xy)
 
 
-def elevation_error(level: MapLevel, truth: TerrainTruth | RasterTruth) -> dict[str, float]:
+def elevation_error(
+    level: MapLevel, truth: TerrainTruth | RasterTruth, T_true_est: np.ndarray | None = None
+) -> dict[str, float]:
     """The level's elevation over ground cells (points fused, none above the ground estimate)
     against the truth at cell centres: RMSE (m), median |error| (m; robust to the tops of
-    objects seen from one side only, which pass for ground) and the number of cells."""
+    objects seen from one side only, which pass for ground) and the number of cells.
+
+    ``T_true_est`` (4x4), when given, maps the map's (estimated) world frame into the true one,
+    e.g. the pose error at the last sweep ``T_world_body_true @ inv(T_world_body_est)``: the
+    cells are moved by it before comparing, so the figure scores the local map rather than
+    the odometry's accumulated drift."""
     count = level.window("count")
     obst = level.window("obstacle_count")
     rows, cols = np.nonzero((count > 0) & (obst == 0))
     if not len(rows):
         return {"rmse_m": float("nan"), "median_abs_m": float("nan"), "cells": 0}
     est = level.window("elevation")[rows, cols].astype(np.float64)
-    true = truth.height(level.window_to_world(rows, cols))
+    xy = level.window_to_world(rows, cols)
+    if T_true_est is not None:
+        p = np.column_stack([xy, est]) @ T_true_est[:3, :3].T + T_true_est[:3, 3]
+        xy, est = p[:, :2], p[:, 2]
+    true = truth.height(xy)
     ok = np.isfinite(est) & np.isfinite(true)
     if not ok.any():
         return {"rmse_m": float("nan"), "median_abs_m": float("nan"), "cells": 0}
@@ -105,6 +117,7 @@ class OdometryScore:
 
     errors_m: list[float] = field(default_factory=list)
     path_m: float = 0.0
+    T_true_est: np.ndarray | None = None
     _last_xy: np.ndarray | None = None
 
     def add(self, t_ns: int, T_world_body: np.ndarray, truth: PoseTrack) -> None:
@@ -113,6 +126,7 @@ class OdometryScore:
         except PoseError:
             return
         self.errors_m.append(float(np.linalg.norm(T_world_body[:3, 3] - T_true[:3, 3])))
+        self.T_true_est = T_true @ se3_inverse(T_world_body)  # the pose error at this sweep
         if self._last_xy is not None:
             self.path_m += float(np.linalg.norm(T_true[:2, 3] - self._last_xy))
         self._last_xy = T_true[:2, 3].copy()
