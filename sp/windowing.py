@@ -59,10 +59,18 @@ def window_mask(
     col = ((np.pi - az) / col_step).astype(np.int64)
     half_c = np.ceil(half_ang / col_step).astype(np.int64)
     row_el = np.where(rows_ok, row_elevation_rad, np.inf)
-    for k in range(c.shape[0]):
-        rows = np.flatnonzero(np.abs(row_el - el[k]) <= half_ang[k] + 0.01)
-        if rows.size == 0:
-            continue
-        cols = np.arange(col[k] - half_c[k], col[k] + half_c[k] + 1) % W
-        mask[np.ix_(rows, cols)] = True
-    return mask
+    # (window, row) pairs inside each window's elevation span, then every row's column
+    # intervals (wrapping in azimuth) summed into a difference image: one pass, no loop
+    k, rows = np.nonzero(np.abs(row_el[None, :] - el[:, None]) <= half_ang[:, None] + 0.01)
+    if k.size == 0:
+        return mask
+    length = np.minimum(2 * half_c[k] + 1, W)
+    start = (col[k] - half_c[k]) % W
+    end = start + length
+    diff = np.zeros((H, W + 1), dtype=np.int32)
+    np.add.at(diff, (rows, start), 1)
+    np.add.at(diff, (rows, np.minimum(end, W)), -1)
+    wrap = end > W
+    np.add.at(diff, (rows[wrap], 0), 1)
+    np.add.at(diff, (rows[wrap], end[wrap] - W), -1)
+    return np.cumsum(diff[:, :W], axis=1) > 0
