@@ -50,6 +50,14 @@ from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.truth import truth_boxes_to_world
 from wm.whatis import WhatIs
 
+try:  # imported with the node, not inside its first cycle (a one-off half second)
+    from sp.pipeline import SensoryProcessor  # type: ignore[import-not-found]
+
+    _NO_SP = ""
+except ImportError as _e:
+    SensoryProcessor = None  # type: ignore[assignment,misc]
+    _NO_SP = str(_e)
+
 
 class NodeError(ValueError):
     """The node cannot run on what it was given (names what is missing and where)."""
@@ -82,10 +90,8 @@ class NodeStats:
 
 def load_sensory_processor(kd: kd_store.KnowledgeDatabase) -> tuple[Any | None, str]:
     """SP levels 2..5 (sp.pipeline.SensoryProcessor) over ``kd``, or None and why not."""
-    try:
-        from sp.pipeline import SensoryProcessor  # type: ignore[import-not-found]
-    except ImportError as e:
-        return None, f"no entity perception this run: sp.pipeline is not available ({e})"
+    if SensoryProcessor is None:
+        return None, f"no entity perception this run: sp.pipeline is not available ({_NO_SP})"
     return SensoryProcessor(kd), ""
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d  # ray casting; imported with the module, not inside the first cycle
 
 import kd_store
 from kd_store import Level, State, Status
@@ -166,8 +167,6 @@ def predict_range_image(
 ) -> RangePrediction | None:
     """Ray-cast the expected range image of a sweep from ``T_world_ladar`` at ``t_ns``; the
     elevation span is the current sweep's. None when the map holds no terrain yet."""
-    import open3d as o3d
-
     p = np.asarray(scan.points_xyz, dtype=np.float64)
     if len(p) < 10:
         return None
