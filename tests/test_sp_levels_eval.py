@@ -200,7 +200,36 @@ def test_eval_simulated_default_tracking() -> None:
 
 PATCHWORK_GROUND = (40, 44, 48, 49, 60, 72)  # road, parking, sidewalk, other-ground, lane, terrain
 PATCHWORK_UNSCORED = (0, 1, 70)  # unlabelled, outlier, vegetation (not scored)
-PATCHWORK_PAPER_F1 = 0.965  # Patchwork++ (Lee et al., RA-L 2022) on SemanticKITTI: reference only
+
+
+def _ground_scores(pred: np.ndarray, label: np.ndarray) -> tuple[float, float, float]:
+    """(precision, recall, F1) of a per-point ground prediction under the Patchwork++ protocol."""
+    gt = np.isin(label, PATCHWORK_GROUND)
+    scored = ~np.isin(label, PATCHWORK_UNSCORED)
+    tp = np.count_nonzero(pred & gt & scored)
+    fp = np.count_nonzero(pred & ~gt & scored)
+    fn = np.count_nonzero(~pred & gt & scored)
+    p, r = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
+    return p, r, 2 * p * r / max(p + r, 1e-12)
+
+
+def patchworkpp_ground_scores(folder: Path) -> list[tuple[float, float, float]]:
+    """The same scores for Patchwork++ itself (pypatchworkpp, default parameters, the KITTI
+    sensor height 1.723 m) on the same scans."""
+    pypatchworkpp = pytest.importorskip("pypatchworkpp", reason="the Patchwork++ baseline")
+    params = pypatchworkpp.Parameters()
+    params.verbose = False
+    params.sensor_height = 1.723
+    out = []
+    for path in sorted(folder.glob("*.bin")):
+        a = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+        label = np.fromfile(path.with_suffix(".label"), dtype=np.uint32) & 0xFFFF
+        pw = pypatchworkpp.patchworkpp(params)
+        pw.estimateGround(a)
+        pred = np.zeros(len(a), dtype=bool)
+        pred[pw.getGroundIndices()] = True
+        out.append(_ground_scores(pred, label))
+    return out
 
 
 def kitti_ground_scores(folder: Path) -> list[tuple[float, float, float]]:
@@ -223,14 +252,7 @@ def kitti_ground_scores(folder: Path) -> list[tuple[float, float, float]]:
         scan = LadarScan(0, "ladar", a[:, :3].copy(), a[:, 3].copy(), np.zeros(len(a), np.int64))
         img = to_egosphere(scan, cfg)
         ground, _ = ground_mask(img.xyz[..., 0, :], img.valid_first, GroundConfig(1.73))
-        pred = ground_of_points(scan, cfg, ground)
-        gt = np.isin(label, PATCHWORK_GROUND)
-        scored = ~np.isin(label, PATCHWORK_UNSCORED)
-        tp = np.count_nonzero(pred & gt & scored)
-        fp = np.count_nonzero(pred & ~gt & scored)
-        fn = np.count_nonzero(~pred & gt & scored)
-        p, r = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
-        out.append((p, r, 2 * p * r / max(p + r, 1e-12)))
+        out.append(_ground_scores(ground_of_points(scan, cfg, ground), label))
     return out
 
 
@@ -254,22 +276,24 @@ def test_eval_kitti_ground_patchwork_protocol(real_data: Path) -> None:
     from bench.results import record
 
     folder = real_data / "kitti" / "sequences" / "00" / "velodyne"
-    scores = np.array(kitti_ground_scores(folder))
-    p, r, f1 = scores.mean(axis=0)
+    p, r, f1 = np.array(kitti_ground_scores(folder)).mean(axis=0)
+    pw_p, pw_r, pw_f1 = np.array(patchworkpp_ground_scores(folder)).mean(axis=0)
     cmd = "make eval"
-    record("sp_levels_kitti_ground_precision", float(p), "ratio", command=cmd)
-    record("sp_levels_kitti_ground_recall", float(r), "ratio", command=cmd)
+    record("sp_levels_kitti_ground_precision", float(p), "ratio", baseline="Patchwork++",
+           baseline_value=float(pw_p), command=cmd)  # fmt: skip
+    record("sp_levels_kitti_ground_recall", float(r), "ratio", baseline="Patchwork++",
+           baseline_value=float(pw_r), command=cmd)  # fmt: skip
     record(
         "sp_levels_kitti_ground_f1",
         float(f1),
         "ratio",
-        baseline="Patchwork++ paper figure "
-        "(SemanticKITTI, not run here: pypatchworkpp unavailable)",
-        baseline_value=PATCHWORK_PAPER_F1,
-        target=PATCHWORK_PAPER_F1 - 0.02,
+        baseline="Patchwork++ (pypatchworkpp) on the same scans",
+        baseline_value=float(pw_f1),
+        target="within 2 points of Patchwork++ (paper: 0.965 on SemanticKITTI)",
         command=cmd,
     )
-    assert f1 >= PATCHWORK_PAPER_F1 - 0.02
+    assert pw_f1 > 0.8  # the baseline ran as meant (paper: 0.965 on all of SemanticKITTI)
+    assert f1 >= pw_f1 - 0.02
 
 
 # ---------------------------------------------------------------- Argoverse 2
