@@ -83,11 +83,16 @@ def deskew_to_world(
         return transform_points(track.at(t_ns) @ T_body_sensor, points_xyz)
     which = np.minimum((off * bins) // (span + 1), bins - 1)
     out = np.empty((len(points_xyz), 3), dtype=np.float64)
-    for b in range(bins):
-        sel = which == b
-        if sel.any():
-            t_mid = t_ns + round((b + 0.5) * span / bins)
-            out[sel] = transform_points(track.at(t_mid) @ T_body_sensor, points_xyz[sel])
+    parts: list[tuple[int, slice | np.ndarray]]
+    if np.all(which[1:] >= which[:-1]):  # points in firing order (the usual): slices, no masks
+        lo = np.searchsorted(which, np.arange(bins + 1))
+        parts = [(b, slice(lo[b], lo[b + 1])) for b in range(bins) if lo[b] < lo[b + 1]]
+    else:
+        parts = [(b, which == b) for b in range(bins)]
+        parts = [(b, sel) for b, sel in parts if sel.any()]
+    for b, sel in parts:
+        t_mid = t_ns + round((b + 0.5) * span / bins)
+        out[sel] = transform_points(track.at(t_mid) @ T_body_sensor, points_xyz[sel])
     return out
 
 
