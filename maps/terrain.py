@@ -31,15 +31,19 @@ def step_heights(elevation: np.ndarray) -> np.ndarray:
     """Largest absolute height difference (m) of each cell to its 8 neighbours (H, W), in
     window order; NaN where the cell or all its neighbours are unknown."""
     e = np.asarray(elevation, dtype=np.float64)
-    pad = np.pad(e, 1, constant_values=np.nan)
     step = np.full(e.shape, np.nan)
+    # each neighbour pair's difference once (|a - b| == |b - a|), given to both cells
+    pairs = (
+        ((slice(None), slice(1, None)), (slice(None), slice(None, -1))),  # right
+        ((slice(1, None), slice(None)), (slice(None, -1), slice(None))),  # down
+        ((slice(1, None), slice(1, None)), (slice(None, -1), slice(None, -1))),  # down-right
+        ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None))),  # down-left
+    )
     with np.errstate(invalid="ignore"):
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if dr == 0 and dc == 0:
-                    continue
-                nb = pad[1 + dr : 1 + dr + e.shape[0], 1 + dc : 1 + dc + e.shape[1]]
-                step = np.fmax(step, np.abs(nb - e))
+        for a, b in pairs:
+            d = np.abs(e[a] - e[b])
+            np.fmax(step[a], d, out=step[a])
+            np.fmax(step[b], d, out=step[b])
     return step
 
 
