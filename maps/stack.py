@@ -167,9 +167,14 @@ class MapStack:
     ) -> dict[str, int]:
         """Write SP labels (see :func:`~maps.fusion.fuse_labels`) into every level whose window
         holds the points; returns points written per level."""
-        return {
-            lvl.name: fuse_labels(lvl, points_world, entity_id, class_id) for lvl in self.levels
-        }
+        pts, ent, cls = np.asarray(points_world), np.asarray(entity_id), class_id
+        same = cls is None or np.shape(cls) == ent.shape
+        if pts.ndim == 2 and ent.shape == pts.shape[:1] and same:
+            # only labelled points write anything: select them once, not once per level
+            sel = np.flatnonzero(ent >= 0)
+            pts, ent = pts[sel].astype(np.float64), ent[sel]
+            cls = None if cls is None else np.asarray(cls)[sel]
+        return {lvl.name: fuse_labels(lvl, pts, ent, cls) for lvl in self.levels}
 
     def update_terrain(self) -> None:
         """Recompute slope, step height and traversability on every level."""
