@@ -130,7 +130,7 @@ class NodeConfig:
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     vj: VJConfig = field(default_factory=VJConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
-    use_sp: bool = True  # run SP levels 2..5 when sp.pipeline is available
+    use_sp: bool = True  # run SP levels 2..5 (off: maps, odometry and predictions only)
     odometry_process: bool = True  # register sweeps in a child process, one sweep ahead
 
 

@@ -8,7 +8,7 @@ current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
    odometry runs in its own process (wm.odometry_worker), one sweep ahead of the rest;
 2. self state into the KD (entity ``self``, world frame);
 3. maps: every level scrolls to the new pose and fuses the points (maps.stack);
-4. SP levels 2..5 (sp.pipeline, when installed) write entity and event frames into the KD and
+4. SP levels 2..5 (sp.pipeline) write entity and event frames into the KD and
    their labels into the map layers; attention comes from last cycle's prediction surprises;
 5. each map level's slow work at its own period: terrain (slope, traversability), the
    value-judgment cost layer and the level's entities-of-attention list (4.3, 4.4.11);
@@ -43,20 +43,13 @@ from sp.logs.types import (
     OdometryFrame,
     TransformFrame,
 )
+from sp.pipeline import SensoryProcessor
 from wm import predict, vj
 from wm.config import NodeConfig, PoseSource
 from wm.odometry_worker import OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.truth import truth_boxes_to_world
 from wm.whatis import WhatIs
-
-try:  # imported with the node, not inside its first cycle (a one-off half second)
-    from sp.pipeline import SensoryProcessor  # type: ignore[import-not-found]
-
-    _NO_SP = ""
-except ImportError as _e:
-    SensoryProcessor = None  # type: ignore[assignment,misc]
-    _NO_SP = str(_e)
 
 
 class NodeError(ValueError):
@@ -88,13 +81,6 @@ class NodeStats:
     surprise_fraction: list[float] = field(default_factory=list)
 
 
-def load_sensory_processor(kd: kd_store.KnowledgeDatabase) -> tuple[Any | None, str]:
-    """SP levels 2..5 (sp.pipeline.SensoryProcessor) over ``kd``, or None and why not."""
-    if SensoryProcessor is None:
-        return None, f"no entity perception this run: sp.pipeline is not available ({_NO_SP})"
-    return SensoryProcessor(kd), ""
-
-
 class WorldModelNode:
     """Keeps the KD and the map stack current from a stream of log frames (module docstring)."""
 
@@ -108,9 +94,9 @@ class WorldModelNode:
         self.config = config or NodeConfig()
         self.stack = stack if stack is not None else MapStack()
         self.stats = NodeStats()
-        self.sp, why = load_sensory_processor(kd) if self.config.use_sp else (None, "SP off")
+        self.sp = SensoryProcessor(kd) if self.config.use_sp else None
         if self.sp is None:
-            self.stats.notes.append(why)
+            self.stats.notes.append("SP levels 2..5 off (NodeConfig.use_sp)")
         self.T_body_ladar: np.ndarray | None = None
         self.T_body_camera: np.ndarray | None = None
         self.truth = PoseTrack()
