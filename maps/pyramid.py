@@ -249,6 +249,7 @@ class _Window:
         self.done = np.zeros((k, k), dtype=bool)
         self.complete = False  # every entry of the table is known
         self.multiply_adds = 0
+        self.flat: np.ndarray | None = None  # ref's memory as one row, for the large plain path
         t = mov[r0:r1, c0:c1]
         self.n = t.size
         # ref window for offset (dr, dc) starts at (r0 - dr, c0 - dc); the region spans them all.
@@ -283,12 +284,31 @@ class _Window:
                 self.table = cross / self.denominator
                 self.done[:] = True
                 self.complete = True
+            else:
+                self._prepare_flat(ref, rows.start, cols.start)
         else:
             self.t = t
             self.wt = np.ones_like(t) if w_mov is None else w_mov[r0:r1, c0:c1]
             self.twt = self.t * self.wt
             total = mov.size if w_mov is None else max(float(w_mov.sum()), 1e-9)
             self.cover = min(1.0, float(self.wt.sum()) / total)
+
+    def _prepare_flat(self, ref: np.ndarray, row0: int, col0: int) -> None:
+        """Set up cross sums as 1-D dot products over ``ref``'s memory (BLAS, about twice as
+        fast as a 2-D window sum): the template is padded with zeros to ``ref``'s row length,
+        so one contiguous run of ``ref`` starting at a window's top-left pixel lines up with
+        it row for row, and the pixels between window rows meet the zero padding."""
+        if ref.dtype != np.float32 or not ref.flags.c_contiguous:
+            return
+        h, w = self.t.shape
+        width = ref.shape[1]
+        padded = np.empty((h, width), np.float32)
+        padded[:, :w] = self.t
+        padded[:, w:] = 0.0
+        self.flat_len = (h - 1) * width + w  # the trailing padding of the last row is not needed
+        self.flat_t = padded.ravel()[: self.flat_len]
+        self.flat = ref.reshape(-1)
+        self.flat_origin = (row0, col0, width)
 
     def covers(self, center_rc: tuple[int, int]) -> bool:
         """Whether the 3x3 neighbourhood of ``center_rc`` lies inside this window's reach."""
@@ -318,6 +338,14 @@ class _Window:
     def _value(self, i: int, j: int) -> float:
         win = self._ref_window(i, j, self.region)
         if self.wt is None:
+            if self.flat is not None:
+                # Window (i, j) starts at region[2 reach - i, 2 reach - j] (see _ref_window).
+                row0, col0, width = self.flat_origin
+                k = 2 * self.reach
+                start = (row0 + k - i) * width + col0 + k - j
+                run = self.flat[start : start + self.flat_len]
+                self.multiply_adds += self.flat_len  # padding products count as work too
+                return float(np.dot(run, self.flat_t)) / self.denominator[i, j]
             self.multiply_adds += self.n
             return float(np.einsum("ij,ij->", win, self.t)) / self.denominator[i, j]
         if self.w_region is None:
