@@ -165,30 +165,29 @@ def build_pyramid(
     ]
 
 
-def _sliding_sums(
-    lines: np.ndarray, totals: np.ndarray, along: int, across: int, square: bool
-) -> np.ndarray:
-    """Sums (float64) of every ``across`` x ``along`` window of ``lines`` (A, B) whose corner
-    lies in the first k x k entries, k = B - along + 1, from ``totals`` (A,): the sum of each
-    whole line (of its squares when ``square``). Returns (k, k) indexed [across, along].
-
-    Along a line, a window from b leaves out ``line[:b]`` and ``line[b + along:]``, both inside
-    the k - 1 entries at either end; across the lines, a running sum over k window rows."""
-    k = lines.shape[1] - along + 1
-    lo, hi = lines[:, : k - 1], lines[:, along:]
-    lo, hi = (
-        (np.square(lo, dtype=np.float64), np.square(hi, dtype=np.float64))
-        if square
-        else (lo, hi.astype(np.float64))
-    )
-    rows = np.empty((lines.shape[0], k))
-    rows[:, 0] = totals - hi.sum(axis=1)
-    np.cumsum(hi - lo, axis=1, out=rows[:, 1:])
-    rows[:, 1:] += rows[:, :1]
-    run = np.cumsum(rows, axis=0)
-    out = run[across - 1 : across - 1 + k].copy()
-    out[1:] -= run[: k - 1]
-    return out
+def _collapsed(region: np.ndarray, h: int, w: int, square: bool) -> np.ndarray:
+    """``region`` (h + b, w + b) with the rows and columns every (h, w) window shares summed
+    into one: a (2b + 1, 2b + 1) float64 array (of squares when ``square``) whose k x k boxes,
+    k = b + 1, sum the same pixels as the windows (top and bottom b rows, left and right b
+    columns kept one by one, the shared middle collapsed to one row and one column)."""
+    b = region.shape[0] - h
+    block = region[b:h, b:w]
+    rows = np.vstack((region[:b], region[h:])).astype(np.float64)  # (2b, W) band rows
+    cols = np.hstack((region[b:h, :b], region[b:h, w:])).astype(np.float64)  # (h - b, 2b)
+    if square:
+        rows, cols = rows * rows, cols * cols
+        total = cv2.norm(block, cv2.NORM_L2SQR)  # double accumulators
+    else:
+        total = cv2.sumElems(block)[0]
+    c = np.empty((2 * b + 1, 2 * b + 1))
+    c[:b, :b], c[:b, b + 1 :] = rows[:b, :b], rows[:b, w:]
+    c[b + 1 :, :b], c[b + 1 :, b + 1 :] = rows[b:, :b], rows[b:, w:]
+    mid_of_rows = rows[:, b:w].sum(axis=1)
+    c[:b, b], c[b + 1 :, b] = mid_of_rows[:b], mid_of_rows[b:]
+    mid_of_cols = cols.sum(axis=0)
+    c[b, :b], c[b, b + 1 :] = mid_of_cols[:b], mid_of_cols[b:]
+    c[b, b] = total
+    return c
 
 
 def _window_sums(region: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -197,22 +196,21 @@ def _window_sums(region: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray
     region: (h + k - 1, w + k - 1) float32. Returns two (k, k) float64 arrays indexed by the
     window's top-left corner; squares are taken in double. A small region gets summed-area
     tables (one OpenCV call); a large one would spill two float64 tables out of the cache, so
-    it is summed once along its rows (and its squares once along its columns) and the strips
-    each window leaves out come off (:func:`_sliding_sums`).
+    the rows and columns all its windows share are summed once into one row and one column
+    (:func:`_collapsed`) and the tables are taken over that small (2k - 1, 2k - 1) array.
     """
     h, w = shape
     k = region.shape[0] - h + 1
     if region.size <= TABLE_MAX_PX:
-        ii, ii2 = cv2.integral2(region, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-        return tuple(
-            t[h : h + k, w : w + k] - t[:k, w : w + k] - t[h : h + k, :k] + t[:k, :k]
-            for t in (ii, ii2)
-        )
-    row_totals = cv2.reduce(region, 1, cv2.REDUCE_SUM, dtype=cv2.CV_64F)[:, 0]
-    col_squares = cv2.reduce(region, 0, cv2.REDUCE_SUM2, dtype=cv2.CV_64F)[0]
-    s = _sliding_sums(region, row_totals, w, h, square=False)
-    ss = _sliding_sums(region.T, col_squares, h, w, square=True).T
-    return s, ss
+        tables = cv2.integral2(region, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+        h0, w0 = h, w
+    else:
+        tables = [cv2.integral(_collapsed(region, h, w, square)) for square in (False, True)]
+        h0 = w0 = k
+    return tuple(
+        t[h0 : h0 + k, w0 : w0 + k] - t[:k, w0 : w0 + k] - t[h0 : h0 + k, :k] + t[:k, :k]
+        for t in tables
+    )
 
 
 class _Window:
