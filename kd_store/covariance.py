@@ -73,20 +73,34 @@ def psd_mask(cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = No
     return ok
 
 
-def pack_checked(flat: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(N, 36) covariances -> packed (N, 21), scale (N,) = max(1, largest diagonal entry), and
-    whether every one is symmetric within ``tol * scale``. Works in cache-sized blocks."""
-    n = len(flat)
-    cov21 = np.empty((n, 21))
-    scale = np.empty(n)
-    symmetric = True
-    for i in range(0, n, _BLOCK):
+def _symmetric_within(flat: np.ndarray, tol: float, scale: np.ndarray) -> bool:
+    """Whether every (36,) row of ``flat`` mirrors within ``tol * scale``; ``<=``, so a NaN or
+    inf off the diagonal reads as not symmetric. In cache-sized blocks."""
+    for i in range(0, len(flat), _BLOCK):
         block = flat[i : i + _BLOCK]
-        up = cov21[i : i + _BLOCK] = np.take(block, FLAT_UP, axis=1)
-        sc = scale[i : i + _BLOCK] = np.maximum(1.0, np.maximum.reduce([up[:, k] for k in DIAG]))
-        if symmetric:
-            d = np.take(block, _OFF_UP, axis=1)
-            np.subtract(d, np.take(block, _OFF_LO, axis=1), out=d)
-            np.abs(d, out=d)
-            symmetric = not (d > (tol * sc)[:, None]).any()
+        d = np.take(block, _OFF_UP, axis=1)
+        np.subtract(d, np.take(block, _OFF_LO, axis=1), out=d)
+        np.abs(d, out=d)
+        if not (d <= (tol * scale[i : i + _BLOCK])[:, None]).all():
+            return False
+    return True
+
+
+def pack_checked(flat: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(N, 36) covariances -> packed (N, 21) (a copy), scale (N,) = max(1, largest diagonal
+    entry), and whether every one is symmetric within ``tol * scale``.
+
+    Matrices from ``A @ A.T`` or a filter's Joseph update are usually exactly symmetric: one
+    ``array_equal`` of the (N, 6, 6) array with its transpose (about the cost of a copy)
+    settles those; only otherwise are the 15 mirrored pairs compared within the tolerance.
+    The tolerance comparison is NaN-safe (a NaN or inf off the diagonal in either triangle is
+    not symmetric), so with the packed entries finite ``symmetric`` also means all 36 are.
+    """
+    n = len(flat)
+    cov21 = np.take(flat, FLAT_UP, axis=1)
+    scale = np.maximum(1.0, np.maximum.reduce([cov21[:, k] for k in DIAG]))
+    cov = flat.reshape(n, 6, 6)
+    symmetric = bool(np.array_equal(cov, cov.transpose(0, 2, 1))) or _symmetric_within(
+        flat, tol, scale
+    )
     return cov21, scale, symmetric
