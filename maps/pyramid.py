@@ -248,6 +248,7 @@ class _Window:
         self.complete = False  # every entry of the table is known
         self.multiply_adds = 0
         self.flat: np.ndarray | None = None  # ref's memory as one row, for the large plain path
+        self.flat_t: np.ndarray | None = None  # the padded template as one row, its partner
         t = mov[r0:r1, c0:c1]
         self.n = t.size
         # ref window for offset (dr, dc) starts at (r0 - dr, c0 - dc); the region spans them all.
@@ -257,8 +258,8 @@ class _Window:
         self.w_region = None if w_ref is None else w_ref[rows, cols]
         if w_mov is None and w_ref is None:
             self.wt = None
-            self.t = t - np.float32(np.einsum("ij->", t) / self.n)
-            self.t_norm = float(np.sqrt(np.einsum("ij,ij->", self.t, self.t)))
+            self.t = self._template(t, ref)
+            self.t_norm = cv2.norm(self.t, cv2.NORM_L2)  # double accumulators
             self.cover = self.n / mov.size
             if self.t_norm < FLAT_STD * math.sqrt(self.n):
                 self.done[:] = True  # no texture: every offset correlates as NaN
@@ -282,8 +283,9 @@ class _Window:
                 self.table = cross / self.denominator
                 self.done[:] = True
                 self.complete = True
-            else:
-                self._prepare_flat(ref, rows.start, cols.start)
+            elif self.flat_t is not None:
+                self.flat = ref.reshape(-1)
+                self.flat_origin = (rows.start, cols.start, ref.shape[1])
         else:
             self.t = t
             self.wt = np.ones_like(t) if w_mov is None else w_mov[r0:r1, c0:c1]
@@ -291,22 +293,24 @@ class _Window:
             total = mov.size if w_mov is None else max(float(w_mov.sum()), 1e-9)
             self.cover = min(1.0, float(self.wt.sum()) / total)
 
-    def _prepare_flat(self, ref: np.ndarray, row0: int, col0: int) -> None:
-        """Set up cross sums as 1-D dot products over ``ref``'s memory (BLAS, about twice as
-        fast as a 2-D window sum): the template is padded with zeros to ``ref``'s row length,
-        so one contiguous run of ``ref`` starting at a window's top-left pixel lines up with
-        it row for row, and the pixels between window rows meet the zero padding."""
-        if ref.dtype != np.float32 or not ref.flags.c_contiguous:
-            return
-        h, w = self.t.shape
+    def _template(self, t: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """``t`` minus its mean (float32). A large window whose ``ref`` is one float32 block
+        gets its cross sums as 1-D dot products over ``ref``'s memory (BLAS, about twice as
+        fast as a 2-D window sum): the template is then written into a buffer padded with
+        zeros to ``ref``'s row length, so one contiguous run of ``ref`` starting at a window's
+        top-left pixel lines up with it row for row and the pixels between window rows meet
+        the zero padding; ``flat_t`` is that buffer as one row (None for the 2-D path)."""
+        mean = np.float32(cv2.sumElems(t)[0] / self.n)
+        if self.n <= EAGER_WINDOW_PX or ref.dtype != np.float32 or not ref.flags.c_contiguous:
+            return t - mean
+        h, w = t.shape
         width = ref.shape[1]
         padded = np.empty((h, width), np.float32)
-        padded[:, :w] = self.t
+        np.subtract(t, mean, out=padded[:, :w])
         padded[:, w:] = 0.0
         self.flat_len = (h - 1) * width + w  # the trailing padding of the last row is not needed
-        self.flat_t = padded.ravel()[: self.flat_len]
-        self.flat = ref.reshape(-1)
-        self.flat_origin = (row0, col0, width)
+        self.flat_t = padded.reshape(-1)[: self.flat_len]
+        return padded[:, :w]
 
     def covers(self, center_rc: tuple[int, int]) -> bool:
         """Whether the 3x3 neighbourhood of ``center_rc`` lies inside this window's reach."""
