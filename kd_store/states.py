@@ -197,6 +197,13 @@ def _array(a: object, shape_tail: tuple[int, ...], n: int, name: str, where: str
     return arr
 
 
+def _all_finite(a: np.ndarray) -> bool:
+    """Whether every entry is finite. Any NaN or inf makes the sum NaN or inf, so a finite sum
+    settles it in one reduction without a boolean temporary; only a sum that is not finite
+    (a bad entry, or finite values overflowing) takes the entry-wise test."""
+    return bool(np.isfinite(a.sum())) or bool(np.isfinite(a).all())
+
+
 def _column_copy(a: object | None, k: int, n: int, name: str, where: str) -> np.ndarray:
     """(n, k) float64 copy of ``a`` in column-major order (zeros for None); never a view."""
     out = np.zeros((n, k), order="F")
@@ -251,14 +258,14 @@ def check_batch(
         ("orientation_var_rpy", var),
     ):
         refuse(
-            bool(np.isfinite(a).all()),
+            _all_finite(a),
             lambda a=a: ~np.isfinite(a).all(axis=1),
             f"{name} is not finite",
             a,
         )
     refuse(not (var < 0).any(), lambda: (var < 0).any(axis=1), "negative orientation_var_rpy", var)
     # symmetric (NaN-safe) with finite packed entries means all 36 are finite
-    cov_finite = bool(np.isfinite(cov21).all()) and (symmetric or bool(np.isfinite(flat).all()))
+    cov_finite = _all_finite(cov21) and (symmetric or bool(np.isfinite(flat).all()))
     refuse(
         cov_finite,
         lambda: ~np.isfinite(flat).all(axis=1),

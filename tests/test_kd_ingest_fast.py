@@ -88,3 +88,12 @@ def test_rows_to_arrow_is_the_rows_of_every_chunk_in_order() -> None:
     assert [c.frame for c in back] == ["world", "odom"]
     np.testing.assert_array_equal(back[0].cov21, np.concatenate([chunks[0].cov21, chunks[2].cov21]))
     np.testing.assert_array_equal(back[1].orientation_var_rpy, chunks[1].orientation_var_rpy)
+
+
+def test_finite_values_whose_sum_overflows_are_kept() -> None:
+    pos = np.array([[1e308, 1e308, -1e308], [0.0, 1.0, 2.0]])
+    c = check_batch(StateBatch(np.arange(2), np.arange(2), "world", pos), "test")
+    np.testing.assert_array_equal(c.position_xyz, pos)
+    pos[1, 2] = np.inf
+    with pytest.raises(KDError, match=r"entity 1 at t_ns=1: position_xyz is not finite"):
+        check_batch(StateBatch(np.arange(2), np.arange(2), "world", pos), "test")
