@@ -201,7 +201,9 @@ def _all_finite(a: np.ndarray) -> bool:
     """Whether every entry is finite. Any NaN or inf makes the sum NaN or inf, so a finite sum
     settles it in one reduction without a boolean temporary; only a sum that is not finite
     (a bad entry, or finite values overflowing) takes the entry-wise test."""
-    return bool(np.isfinite(a.sum())) or bool(np.isfinite(a).all())
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = a.sum()
+    return bool(np.isfinite(total)) or bool(np.isfinite(a).all())
 
 
 def _column_copy(a: object | None, k: int, n: int, name: str, where: str) -> np.ndarray:
