@@ -112,6 +112,29 @@ def yaw_of(T_or_R: np.ndarray) -> float:
     return float(np.arctan2(R[1, 0], R[0, 0]))
 
 
+def rotvec_of(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) of a 3x3 rotation: axis times angle in [0, pi] (the SO(3) log).
+
+    Taken through the quaternion (Shepperd's method), which stays accurate near a half turn,
+    where the trace formula's ``1 / sin(angle)`` loses precision."""
+    q = matrix_to_quat(R)  # w >= 0, so the angle is in [0, pi]
+    s = float(np.linalg.norm(q[:3]))
+    if s < 1e-12:
+        return 2.0 * q[:3]
+    return q[:3] * (2.0 * np.arctan2(s, q[3]) / s)
+
+
+def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
+    """3x3 rotation of a rotation vector (Rodrigues; the SO(3) exp)."""
+    rv = np.asarray(rv, dtype=np.float64).reshape(3)
+    angle = float(np.linalg.norm(rv))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rv / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
 def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
     """Unit quaternion ``(x, y, z, w)`` to a 3x3 rotation. Refuses a zero or non-finite one."""
     q = np.asarray(q_xyzw, dtype=np.float64).reshape(4)

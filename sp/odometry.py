@@ -33,7 +33,14 @@ from enum import StrEnum
 
 import numpy as np
 
-from maps.frames import check_pose, interpolate_pose, se3_inverse, transform_points
+from maps.frames import (
+    check_pose,
+    interpolate_pose,
+    rotvec_of,
+    rotvec_to_matrix,
+    se3_inverse,
+    transform_points,
+)
 from sp.logs.types import LadarScan, OdometryFrame
 
 
@@ -109,39 +116,15 @@ class OdometryEstimate:
     delta_icp: np.ndarray | None = field(default=None, repr=False)  # sensor motion, 4x4
 
 
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) of a 3x3 rotation."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(c))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * w
-    if np.pi - angle < 1e-6:  # half turn: take the axis from R + I
-        axis = np.sqrt(np.maximum(np.diag(R) + 1.0, 0.0) / 2.0)
-        axis = axis * np.sign(np.where(w == 0, 1.0, w))
-        return angle * axis / np.linalg.norm(axis)
-    return angle * w / (2.0 * np.sin(angle))
-
-
-def _rotation(rv: np.ndarray) -> np.ndarray:
-    """3x3 rotation of a rotation vector (Rodrigues)."""
-    angle = float(np.linalg.norm(rv))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = rv / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
 def to_vector(T: np.ndarray) -> np.ndarray:
     """A small motion as (x, y, z, rx, ry, rz): translation and rotation vector."""
-    return np.concatenate([T[:3, 3], _rotvec(T[:3, :3])])
+    return np.concatenate([T[:3, 3], rotvec_of(T[:3, :3])])
 
 
 def from_vector(v: np.ndarray) -> np.ndarray:
     """Inverse of :func:`to_vector`."""
     T = np.eye(4)
-    T[:3, :3] = _rotation(np.asarray(v[3:], dtype=np.float64))
+    T[:3, :3] = rotvec_to_matrix(v[3:])
     T[:3, 3] = v[:3]
     return T
 

@@ -53,3 +53,18 @@ def test_bad_inputs_are_named():
 def test_time_conversions():
     assert F.seconds_to_ns(1.5) == 1_500_000_000
     assert F.ns_to_seconds(2_000_000_000) == 2.0
+
+
+@given(angles, st.floats(-1.5, 1.5), angles)
+def test_rotvec_round_trip(roll, pitch, yaw):
+    R = F.rpy_to_matrix(roll, pitch, yaw)
+    rv = F.rotvec_of(R)
+    assert np.linalg.norm(rv) <= np.pi + 1e-9
+    assert np.allclose(F.rotvec_to_matrix(rv), R, atol=1e-8)
+
+
+def test_rotvec_known_values_and_half_turn():
+    assert np.allclose(F.rotvec_of(F.rot_z(0.3)), [0.0, 0.0, 0.3])
+    assert np.allclose(F.rotvec_of(np.eye(3)), 0.0)
+    half = F.rotvec_of(F.rot_x(np.pi))
+    assert np.isclose(np.linalg.norm(half), np.pi) and np.allclose(np.abs(half), [np.pi, 0, 0])
