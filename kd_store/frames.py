@@ -412,9 +412,15 @@ def check_value(v: Value, where: str) -> None:
 
 
 def check_entity(
-    f: EntityFrame, cov_tol: float = 1e-9, quat_tol: float = 1e-6, where: str | None = None
+    f: EntityFrame,
+    cov_tol: float = 1e-9,
+    quat_tol: float = 1e-6,
+    where: str | None = None,
+    states: bool = True,
 ) -> None:
-    """Refuse an entity frame with a field out of its domain; the message names the frame."""
+    """Refuse an entity frame with a field out of its domain; the message names the frame.
+    ``states=False`` skips the state and expectations (for a change that keeps both, whose
+    states were checked when they came in: states are immutable)."""
     where = where or f"entity {f.id} ({f.name!r})"
     if not isinstance(f.id, int | np.integer) or not (0 <= int(f.id) < 2**63):
         raise KDError(f"{where}: id {f.id!r} is not a non-negative int64")
@@ -429,9 +435,10 @@ def check_entity(
         if not isinstance(a, Attribute):
             raise KDError(f"{where}: attribute {name!r} is {a!r}, not an Attribute")
         check_attribute(a, name, where)
-    if f.state is not None:
+    if states and f.state is not None:
         check_state(f.state, where, cov_tol, quat_tol)
-    check_expectations(f.expectations, f.state, where, cov_tol, quat_tol)
+    if states:
+        check_expectations(f.expectations, f.state, where, cov_tol, quat_tol)
     check_value(f.value, where)
     for cell in f.map_cells:
         if len(cell) != 3:
