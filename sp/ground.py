@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 
@@ -89,8 +90,70 @@ def column_walk(
     """Ground mask (H, W) bool by walking every column up from its lowest beam.
 
     r_m: (H, W) horizontal range from the sensor, z_m: (H, W) height relative to the sensor
-    (gravity-aligned), valid: (H, W) bool; row 0 is the highest elevation.
+    (gravity-aligned), valid: (H, W) bool; row 0 is the highest elevation. One compiled pass
+    (:func:`_column_walk_kernel`); :func:`column_walk_reference` is the same rule in numpy.
     """
+    return _column_walk_kernel(
+        np.ascontiguousarray(r_m, dtype=np.float64),
+        np.ascontiguousarray(z_m, dtype=np.float64),
+        np.ascontiguousarray(valid, dtype=np.bool_),
+        float(height_m),
+        float(np.tan(np.deg2rad(config.max_slope_deg))),
+        float(np.tan(np.deg2rad(config.resume_slope_deg))),
+        float(config.start_tol_m),
+        float(config.step_m),
+        float(config.resume_gap_m),
+        float(config.resume_gap_per_m),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_walk_kernel(r_m, z_m, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m):
+    """:func:`column_walk_reference` row by row, every column's walk state in scalars of
+    arrays (W,): the same comparisons on the same float64 values, so the same mask."""
+    H, W = r_m.shape
+    ground = np.zeros((H, W), dtype=np.bool_)
+    last_r = np.zeros(W)
+    last_z = np.full(W, -height_m)
+    have = np.zeros(W, dtype=np.bool_)
+    prev_r = np.zeros(W)
+    prev_ground = np.ones(W, dtype=np.bool_)
+    for i in range(H - 1, -1, -1):
+        for j in range(W):
+            if not valid[i, j]:
+                continue
+            r, z = r_m[i, j], z_m[i, j]
+            if not have[j]:
+                g = abs(z + height_m) <= start_tol + tan_s * r
+            else:
+                dr = r - last_r[j]
+                run = tan_s * max(dr, 0.0)
+                g = (
+                    dr > 0.0
+                    and (z - last_z[j]) <= run + step
+                    and (last_z[j] - z) <= run + step + 0.1 * dr
+                    and (
+                        prev_ground[j]
+                        or (
+                            r - prev_r[j] >= gap + gap_per_m * r
+                            and (z - last_z[j]) <= tan_r * max(dr, 0.0) + step
+                        )
+                    )
+                )
+            ground[i, j] = g
+            if g:
+                last_r[j], last_z[j] = r, z
+                have[j] = True
+            prev_r[j] = r
+            prev_ground[j] = g
+    return ground
+
+
+def column_walk_reference(
+    r_m: np.ndarray, z_m: np.ndarray, valid: np.ndarray, height_m: float, config: GroundConfig
+) -> np.ndarray:
+    """:func:`column_walk` in plain numpy, one row of all columns at a time (the reference
+    the compiled kernel is tested against)."""
     H, W = r_m.shape
     tan_s = np.tan(np.deg2rad(config.max_slope_deg))
     tan_r = np.tan(np.deg2rad(config.resume_slope_deg))
@@ -132,10 +195,92 @@ def refine(
     valid: np.ndarray,
     ground: np.ndarray,
     config: GroundConfig,
+    r_m: np.ndarray | None = None,
 ) -> np.ndarray:
     """Second pass on a polar grid: the lowest ground return of each cell and its 8
     neighbours is the local ground height; returns far above it are not ground, returns close
-    to it are. Inputs (H, W) in the gravity-aligned sensor-centred frame; returns (H, W) bool."""
+    to it are. Inputs (H, W) float64 in the gravity-aligned sensor-centred frame (``r_m`` the
+    horizontal range, if the caller has it); returns (H, W) bool. Ranges and azimuths by
+    numpy, the rest in one compiled kernel (:func:`_refine_kernel`); the same mask as
+    :func:`refine_reference`."""
+    r = np.hypot(x_m, y_m) if r_m is None else r_m
+    azimuth = np.arctan2(y_m, x_m)
+    return _refine_kernel(
+        np.ascontiguousarray(r, dtype=np.float64),
+        np.ascontiguousarray(azimuth, dtype=np.float64),
+        np.ascontiguousarray(z_m, dtype=np.float64),
+        np.ascontiguousarray(valid, dtype=np.bool_),
+        np.ascontiguousarray(ground, dtype=np.bool_),
+        float(config.cell_m),
+        int(config.n_sectors),
+        float(config.refine_above_m + config.cell_m * np.tan(0.25)),
+        float(config.refine_above_m),
+        float(config.refine_within_m),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _nan_min(a, b):
+    """``np.minimum`` of two floats: NaN if either is."""
+    if a != a or b != b:
+        return np.nan
+    return a if a <= b else b
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine_kernel(r_m, azimuth, z_m, valid, ground, cell_m, n_sectors, above_local_m,
+                   above_own_m, within_m):  # fmt: skip
+    """:func:`refine_reference` with its cell indices, lowest-ground scatter, 3x3 minimum
+    (azimuth wraps) and tests in loops over the pixels and cells."""
+    H, W = r_m.shape
+    cell = np.zeros((H, W), dtype=np.int64)
+    n_ring = 1
+    for i in range(H):
+        for j in range(W):
+            ring = min(np.int64(r_m[i, j] / cell_m), 4095)
+            sector = np.int64((azimuth[i, j] + np.pi) * (n_sectors / (2 * np.pi)))
+            sector = min(max(sector, 0), n_sectors - 1)
+            cell[i, j] = ring * n_sectors + sector
+            if valid[i, j] and ring + 1 > n_ring:
+                n_ring = ring + 1
+    low = np.full(n_ring * n_sectors, np.inf)
+    for i in range(H):
+        for j in range(W):
+            if valid[i, j] and ground[i, j]:
+                c = cell[i, j]
+                low[c] = _nan_min(low[c], z_m[i, j])
+    local = np.full(n_ring * n_sectors, np.inf)
+    for a in range(n_ring):
+        for b in range(n_sectors):
+            m = np.inf
+            for da in range(a - 1, a + 2):
+                if 0 <= da < n_ring:
+                    for db in (b - 1, b, b + 1):
+                        m = _nan_min(m, low[da * n_sectors + db % n_sectors])
+            local[a * n_sectors + b] = m
+    out = np.zeros((H, W), dtype=np.bool_)
+    for i in range(H):
+        for j in range(W):
+            if not valid[i, j]:
+                continue
+            c = cell[i, j]
+            own = low[c] if np.isfinite(low[c]) else local[c]
+            z = z_m[i, j]
+            keep = ground[i, j] and not (z - local[c] > above_local_m)
+            keep = keep and not (z - own > above_own_m)
+            out[i, j] = keep or (abs(z - own) <= within_m and np.isfinite(own))
+    return out
+
+
+def refine_reference(
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    z_m: np.ndarray,
+    valid: np.ndarray,
+    ground: np.ndarray,
+    config: GroundConfig,
+) -> np.ndarray:
+    """:func:`refine` in plain numpy (the reference the compiled kernel is tested against)."""
     r = np.hypot(x_m, y_m)
     ring = np.minimum((r / config.cell_m).astype(np.int64), 4095)
     n_ring = int(ring[valid].max(initial=0)) + 1
@@ -183,5 +328,5 @@ def ground_mask(
     h = estimate_sensor_height(z, valid, cfg)
     ground = column_walk(r, z, valid, h, cfg)
     if cfg.refine and valid.any():
-        ground = refine(x, y, z, valid, ground, cfg)
+        ground = refine(x, y, z, valid, ground, cfg, r_m=r)
     return ground, h

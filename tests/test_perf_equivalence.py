@@ -89,3 +89,58 @@ def test_registration_does_not_depend_on_the_attribute_offset(offset):
     assert np.abs(m.shift_rc - shift).max() < 0.05
     assert 0.99 < m.peak <= 1.0 + 1e-6
     assert m.confidence > 0.7
+
+
+# --- sp.ground: the compiled kernels against their numpy references (the same masks) ------
+
+
+def _ground_scene(seed: int, h: int = 64, w: int = 256, p_invalid: float = 0.1):
+    """A LADAR-like egosphere (sensor 1.8 m up, beams from +0.3 to -0.4 rad) with noise,
+    raised returns (objects) and holes; x, y, z zero where invalid, as ground_mask gives."""
+    rng = np.random.default_rng(seed)
+    el = np.linspace(0.3, -0.4, h)[:, None]
+    az = np.linspace(-np.pi, np.pi, w, endpoint=False)[None]
+    rng_m = np.minimum(1.8 / np.maximum(np.tan(-el), 0.02), 80.0)
+    rng_m = rng_m * (1 + 0.05 * rng.standard_normal((h, w)))
+    z = rng_m * np.tan(el) + 0.05 * rng.standard_normal((h, w))
+    z[rng.random((h, w)) < 0.05] += rng.uniform(0.1, 2.0)
+    valid = rng.random((h, w)) >= p_invalid
+    x, y = rng_m * np.cos(az), rng_m * np.sin(az)
+    return (*(np.where(valid, a, 0.0) for a in (x, y, z)), valid)
+
+
+@pytest.mark.parametrize("seed, p_invalid", [(0, 0.1), (1, 0.0), (2, 0.6), (3, 1.0)])
+def test_ground_kernels_give_the_reference_masks(seed, p_invalid):
+    from sp.ground import GroundConfig, column_walk, column_walk_reference, refine, refine_reference
+
+    cfg = GroundConfig()
+    x, y, z, valid = _ground_scene(seed, p_invalid=p_invalid)
+    r = np.hypot(x, y)
+    for h in (1.2, 1.8, 2.5):
+        walk = column_walk(r, z, valid, h, cfg)
+        np.testing.assert_array_equal(walk, column_walk_reference(r, z, valid, h, cfg))
+    assert p_invalid == 1.0 or walk.any()
+    rng = np.random.default_rng(seed)
+    for ground in (walk, rng.random(valid.shape) < 0.5, np.zeros_like(valid), valid):
+        got = refine(x, y, z, valid, ground, cfg)
+        np.testing.assert_array_equal(got, refine_reference(x, y, z, valid, ground, cfg))
+        np.testing.assert_array_equal(got, refine(x, y, z, valid, ground, cfg, r_m=r))
+
+
+@pytest.mark.filterwarnings("ignore:invalid value encountered")
+def test_ground_kernels_on_degenerate_images():
+    from sp.ground import GroundConfig, column_walk, column_walk_reference, refine, refine_reference
+
+    cfg = GroundConfig(n_sectors=1, cell_m=0.5)
+    for shape in ((1, 1), (1, 7), (9, 1)):
+        x, y, z, valid = (a[: shape[0], : shape[1]] for a in _ground_scene(5, 9, 7, 0.2))
+        z = z.copy()
+        z[0, 0] = np.nan  # a NaN return that claims to be valid
+        walk = column_walk(np.hypot(x, y), z, valid, 1.8, cfg)
+        np.testing.assert_array_equal(
+            walk, column_walk_reference(np.hypot(x, y), z, valid, 1.8, cfg)
+        )
+        for ground in (walk, valid, ~valid):
+            np.testing.assert_array_equal(
+                refine(x, y, z, valid, ground, cfg), refine_reference(x, y, z, valid, ground, cfg)
+            )
