@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 
@@ -83,8 +84,62 @@ def ground_below(
     slope of the column's last two ground returns (reference 001, 4.5.2: grouping by
     continuity), the slope clipped to +-``max_slope`` and the reach to ``max_reach_m``, so a
     patch of a hillside seen past a gap is not taken for an object standing on the lower
-    ground in front of it.
+    ground in front of it. One compiled pass (:func:`_ground_below_kernel`); the same
+    heights as :func:`ground_below_reference` (the numpy definition).
     """
+    if r_m is not None and r_m.shape != ground.shape:
+        raise ComputationError(f"r_m {r_m.shape} does not match ground {ground.shape}")
+    if z_world.shape != ground.shape:
+        raise ComputationError(f"z_world {z_world.shape} does not match ground {ground.shape}")
+    return _ground_below_kernel(
+        np.ascontiguousarray(ground, dtype=np.bool_),
+        np.ascontiguousarray(z_world, dtype=np.float64),
+        np.ascontiguousarray(np.zeros_like(z_world) if r_m is None else r_m, dtype=np.float64),
+        r_m is not None,
+        float(max_slope),
+        float(max_reach_m),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _clip(x, lo, hi):
+    """``np.clip`` of one float (NaN stays NaN)."""
+    if x != x:
+        return x
+    return lo if x < lo else (hi if x > hi else x)
+
+
+@numba.njit(cache=True, nogil=True)
+def _ground_below_kernel(ground, z_world, r_m, continued, max_slope, max_reach_m):
+    """:func:`ground_below_reference` column by column, row by row from the bottom."""
+    H, W = ground.shape
+    out = np.empty((H, W))
+    for j in range(W):
+        z1, r1, slope = np.nan, 0.0, 0.0
+        for i in range(H - 1, -1, -1):
+            if continued:
+                out[i, j] = z1 + slope * _clip(r_m[i, j] - r1, 0.0, max_reach_m)
+            else:
+                out[i, j] = z1
+            if ground[i, j]:
+                if continued:
+                    dr = r_m[i, j] - r1
+                    if np.isfinite(z1) and dr > 0.5:
+                        slope = _clip((z_world[i, j] - z1) / dr, -max_slope, max_slope)
+                    r1 = r_m[i, j]
+                z1 = z_world[i, j]
+    return out
+
+
+def ground_below_reference(
+    ground: np.ndarray,
+    z_world: np.ndarray,
+    r_m: np.ndarray | None = None,
+    max_slope: float = 0.3,
+    max_reach_m: float = 15.0,
+) -> np.ndarray:
+    """:func:`ground_below` in plain numpy, one row of all columns at a time (the
+    reference the compiled kernel is tested against)."""
     H, W = ground.shape
     out = np.full((H, W), np.nan)
     z1 = np.full(W, np.nan)

@@ -144,3 +144,35 @@ def test_ground_kernels_on_degenerate_images():
             np.testing.assert_array_equal(
                 refine(x, y, z, valid, ground, cfg), refine_reference(x, y, z, valid, ground, cfg)
             )
+
+
+@pytest.mark.parametrize("seed, p_ground", [(0, 0.5), (1, 0.05), (2, 1.0), (3, 0.0)])
+def test_ground_below_kernel_gives_the_reference_heights(seed, p_ground):
+    from sp.computation import ground_below, ground_below_reference
+
+    rng = np.random.default_rng(seed)
+    shape = (64, 300)
+    ground = rng.random(shape) < p_ground
+    z = rng.normal(0.0, 2.0, shape)
+    r = np.abs(rng.normal(20.0, 15.0, shape))
+    r[rng.random(shape) < 0.05] = np.nan  # empty pixels
+    z[rng.random(shape) < 0.02] = np.nan
+    for r_m in (None, r):
+        for slope, reach in ((0.3, 15.0), (0.0, 1.0), (2.0, 100.0)):
+            got = ground_below(ground, z, r_m, slope, reach)
+            want = ground_below_reference(ground, z, r_m, slope, reach)
+            np.testing.assert_array_equal(got, want)
+    assert p_ground == 0.0 or np.isfinite(got).any()
+
+
+def test_ground_below_on_degenerate_images():
+    from sp.computation import ComputationError, ground_below, ground_below_reference
+
+    for shape in ((1, 1), (1, 5), (6, 1)):
+        ground = np.ones(shape, dtype=bool)
+        z, r = np.arange(np.prod(shape), dtype=float).reshape(shape), np.ones(shape)
+        np.testing.assert_array_equal(
+            ground_below(ground, z, r), ground_below_reference(ground, z, r)
+        )
+    with pytest.raises(ComputationError, match=r"r_m \(2, 2\)"):
+        ground_below(np.ones((3, 3), bool), np.zeros((3, 3)), np.zeros((2, 2)))
