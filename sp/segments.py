@@ -61,6 +61,10 @@ class SegmentConfig:
     line_gap_m: float = 1.5
     line_per_m: float = 0.03
     line_max_turn_deg: float = 15.0
+    line_thick_m: float = 0.4
+    step_m: float = 0.2
+    step_frac: float = 0.01
+    row_gap: int = 2
 
     def __post_init__(self) -> None:
         if self.join_m <= 0 or self.join_per_rad < 0 or self.min_pixels < 1:
@@ -68,14 +72,6 @@ class SegmentConfig:
                 f"join_m {self.join_m}, join_per_rad {self.join_per_rad}, "
                 f"min_pixels {self.min_pixels}: need > 0, >= 0, >= 1"
             )
-
-
-def _pairs(H: int, W: int, di: int, dj: int) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices of (pixel, neighbour at +di rows, +dj columns), azimuth wrapping."""
-    i, j = np.mgrid[0 : H - di, 0:W]
-    a = i * W + j
-    b = (i + di) * W + (j + dj) % W
-    return a.reshape(-1), b.reshape(-1)
 
 
 def label_objects(
@@ -88,35 +84,40 @@ def label_objects(
 ) -> np.ndarray:
     """Object hypotheses: (H, W) int64 segment labels 0..K-1, -1 where not grouped.
 
-    xyz: (H, W, 3) float points (any frame, metres); range_m: (H, W) range from the sensor;
-    mask: (H, W) bool pixels to group (valid, non-ground); row_step_rad, col_step_rad: the
-    angular spacing of rows and columns.
+    xyz: (H, W, 3) float points (any frame, metres); range_m: (H, W) range from the sensor
+    (non-finite or <= 0 where there is no return); mask: (H, W) bool pixels to group (valid,
+    non-ground); row_step_rad, col_step_rad: the angular spacing of rows and columns.
     """
     cfg = config or SegmentConfig()
     H, W = mask.shape
     if xyz.shape[:2] != (H, W) or range_m.shape != (H, W):
         raise SegmentError(f"xyz {xyz.shape} / range {range_m.shape} do not match mask {(H, W)}")
     flat = xyz.reshape(-1, 3)
-    m = mask.reshape(-1)
     rng = range_m.reshape(-1)
-    src, dst = [], []
-    steps = (
+    empty = ~(np.isfinite(range_m) & (range_m > 0)) if cfg.row_gap > 0 else None
+    steps = [
         (0, 1, col_step_rad * cfg.join_per_rad),
         (0, 2, 2 * col_step_rad * cfg.join_per_rad),
         (1, 0, row_step_rad * cfg.join_per_rad_row),
-    )
+    ]
+    steps += [(k, 0, k * row_step_rad * cfg.join_per_rad_row) for k in range(2, cfg.row_gap + 2)]
+    src, dst = [], []
     for di, dj, step in steps:
         if di >= H:
             continue
-        a, b = _pairs(H, W, di, dj)
-        ok = m[a] & m[b]
-        a, b = a[ok], b[ok]
+        a, b = _links(mask, di, dj, empty)
         d = np.linalg.norm(flat[a] - flat[b], axis=1)
         r = np.minimum(rng[a], rng[b])
-        near = d <= np.maximum(cfg.join_m, r * step)
+        near = d <= r * step
+        # the distance floor joins only where the range does not step (an occluder's edge)
+        floor = ~near & (d <= cfg.join_m)
+        if cfg.step_m > 0 and floor.any():
+            f = np.flatnonzero(floor)
+            floor[f] = ~_range_step(rng, a[f], b[f], di, dj, (H, W), cfg)
+        near |= floor
         src.append(a[near])
         dst.append(b[near])
-    idx = np.flatnonzero(m)
+    idx = np.flatnonzero(mask.reshape(-1))
     labels = np.full(H * W, -1, dtype=np.int64)
     if idx.size == 0:
         return labels.reshape(H, W)
@@ -133,6 +134,83 @@ def label_objects(
     new_id[keep] = np.arange(int(keep.sum()))
     labels[idx] = new_id[comp]
     return labels.reshape(H, W)
+
+
+def _links(
+    mask: np.ndarray, di: int, dj: int, empty: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (a, b) of the pixel pairs (i, j) - (i + di, (j + dj) mod W) both in
+    ``mask`` (azimuth wraps); for di > 1 only across rows that hold no return at column j
+    (``empty`` (H, W) bool), so a sparse beam pattern does not split a surface."""
+    H, W = mask.shape
+    lower = mask[di:] if dj == 0 else np.roll(mask, -dj, axis=1)[di:]
+    ok = mask[: H - di] & lower
+    for k in range(1, di):
+        ok &= empty[k : H - di + k]
+    a = np.flatnonzero(ok)
+    b = a + di * W + dj
+    if dj:
+        b -= np.where(a % W + dj >= W, W, 0)
+    return a, b
+
+
+def _neighbour(
+    p: np.ndarray, di: int, dj: int, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flat index of pixel p moved by (di, dj) (azimuth wraps) and whether it is inside."""
+    H, W = shape
+    i, j = np.divmod(p, W)
+    i2 = i + di
+    inside = (i2 >= 0) & (i2 < H)
+    return np.clip(i2, 0, H - 1) * W + (j + dj) % W, inside
+
+
+def _range_step(
+    rng: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    di: int,
+    dj: int,
+    shape: tuple[int, int],
+    cfg: SegmentConfig,
+) -> np.ndarray:
+    """(n,) bool: the links a -> b (flat pixel indices, b = a moved by (di, dj)) cross a step
+    in range. rng: (H * W,) range, non-finite or <= 0 where there is no return.
+
+    Continuity and discontinuity of range (reference 001, 4.5.1 grouping by continuity; 4.5.6
+    level 4: "boundaries that separate surfaces with different range ... distinguish between
+    different objects"): along one surface, even one seen at a grazing angle, the range
+    changes smoothly, so the range difference ``s = r_b - r_a`` of a link continues that of
+    the link before it (``r_a - r_before``) or after it (``r_after - r_b``); a surface curving
+    away (a limb) lets the differences grow, so the slack grows with them. An occluding
+    boundary (a person before a wall) is a step that continues neither side:
+    ``|s| > thr`` and ``|s - s_side| - |s_side| > thr`` on both sides, with
+    ``thr = step_m + step_frac * range``; a side without a return leaves the test to the other,
+    and with neither the link stays. Down the image (di > 0) only a step whose upper pixel is
+    the farther one cuts: the top edge of an occluder; a nearer upper pixel is an overhang (a
+    tree's crown over its trunk, eaves) and stays joined.
+    """
+    p, p_in = _neighbour(a, -di, -dj, shape)
+    q, q_in = _neighbour(b, di, dj, shape)
+    r_a, r_b = _ranges(rng, a), _ranges(rng, b)
+    r_p = np.where(p_in, _ranges(rng, p), np.nan)
+    r_q = np.where(q_in, _ranges(rng, q), np.nan)
+    s = r_b - r_a
+    before, after = r_a - r_p, r_q - r_b
+    thr = cfg.step_m + cfg.step_frac * np.minimum(r_a, r_b)
+    disc = np.fmin(np.abs(s - before) - np.abs(before), np.abs(s - after) - np.abs(after))
+    with np.errstate(invalid="ignore"):
+        cut = (np.abs(s) > thr) & (disc > thr)
+    if di > 0:
+        cut &= s < 0
+    return cut
+
+
+def _ranges(rng: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """rng[p] as float64, NaN where there is no return."""
+    r = rng[p].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(r) & (r > 0), r, np.nan)
 
 
 def merge_collinear(
@@ -165,8 +243,11 @@ def merge_collinear(
     turn = np.abs((yaw_rad[None, :] - yaw_rad[li, None] + np.pi / 2) % np.pi - np.pi / 2)
     slack = cfg.line_per_m * np.minimum(range_m[li, None], range_m[None, :])
     gap = along - 0.5 * (length_m[li, None] + length_m[None, :])
+    # a piece of the line is thin across it (a person or a car beside a wall is not)
+    thick = np.abs(np.sin(turn)) * length_m[None, :] + np.abs(np.cos(turn)) * width_m[None, :]
     ok = (
         (across <= cfg.line_offset_m + slack)
+        & (thick <= cfg.line_thick_m + slack)
         & (gap <= cfg.line_gap_m + slack)
         & ((length_m[None, :] < 2.0) | (turn <= np.radians(cfg.line_max_turn_deg)))
     )
