@@ -111,23 +111,26 @@ def _clip(x, lo, hi):
 
 @numba.njit(cache=True, nogil=True)
 def _ground_below_kernel(ground, z_world, r_m, continued, max_slope, max_reach_m):
-    """:func:`ground_below_reference` column by column, row by row from the bottom."""
+    """:func:`ground_below_reference` row by row from the bottom, each column's last ground
+    height, range and slope in arrays (W,)."""
     H, W = ground.shape
     out = np.empty((H, W))
-    for j in range(W):
-        z1, r1, slope = np.nan, 0.0, 0.0
-        for i in range(H - 1, -1, -1):
+    z1 = np.full(W, np.nan)
+    r1 = np.zeros(W)
+    slope = np.zeros(W)
+    for i in range(H - 1, -1, -1):
+        for j in range(W):
             if continued:
-                out[i, j] = z1 + slope * _clip(r_m[i, j] - r1, 0.0, max_reach_m)
+                out[i, j] = z1[j] + slope[j] * _clip(r_m[i, j] - r1[j], 0.0, max_reach_m)
             else:
-                out[i, j] = z1
+                out[i, j] = z1[j]
             if ground[i, j]:
                 if continued:
-                    dr = r_m[i, j] - r1
-                    if np.isfinite(z1) and dr > 0.5:
-                        slope = _clip((z_world[i, j] - z1) / dr, -max_slope, max_slope)
-                    r1 = r_m[i, j]
-                z1 = z_world[i, j]
+                    dr = r_m[i, j] - r1[j]
+                    if np.isfinite(z1[j]) and dr > 0.5:
+                        slope[j] = _clip((z_world[i, j] - z1[j]) / dr, -max_slope, max_slope)
+                    r1[j] = r_m[i, j]
+                z1[j] = z_world[i, j]
     return out
 
 
