@@ -176,3 +176,46 @@ def test_ground_below_on_degenerate_images():
         )
     with pytest.raises(ComputationError, match=r"r_m \(2, 2\)"):
         ground_below(np.ones((3, 3), bool), np.zeros((3, 3)), np.zeros((2, 2)))
+
+
+# --- kd_store.covariance: the compiled PSD test against the unrolled numpy factorisation -----
+
+
+def _covariances(n: int, seed: int) -> np.ndarray:
+    """(n, 6, 6): PSD, rank-deficient (PSD by the tolerance or not), indefinite, zero, NaN,
+    inf and huge matrices mixed."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, 6, 6))
+    A[1::4, :, 3:] = 0.0  # rank 3
+    C = A @ A.transpose(0, 2, 1)
+    C[2::5] -= np.eye(6) * rng.uniform(1e-12, 1.0, (len(C[2::5]), 1, 1))  # some indefinite
+    C[3::11] = 0.0
+    C[4::13, 1, 1] = np.nan
+    C[5::17, 0, 5] = C[5::17, 5, 0] = np.inf
+    C[6::19] *= 1e150
+    return C
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the reference on inf and 1e150
+@pytest.mark.parametrize("n, seed", [(0, 0), (1, 1), (3, 2), (500, 3), (20_000, 4)])
+def test_psd_kernel_gives_the_reference_answers(n, seed):
+    from kd_store.covariance import pack_covariance, psd_mask, psd_mask_reference
+
+    cov21 = pack_covariance(_covariances(n, seed))
+    for tol in (1e-9, 0.0, 1e-3):
+        got = psd_mask(cov21, tol)
+        np.testing.assert_array_equal(got, psd_mask_reference(cov21, tol))
+        scale = np.full(n, 7.0)
+        np.testing.assert_array_equal(
+            psd_mask(cov21, tol, scale), psd_mask_reference(cov21, tol, scale)
+        )
+    if n >= 500:
+        assert 0 < got.sum() < n  # both answers occur
+
+
+def test_psd_kernel_refuses_a_wrong_shape():
+    from kd_store import KDError
+    from kd_store.covariance import psd_mask
+
+    with pytest.raises(KDError, match=r"\(4, 6\)"):
+        psd_mask(np.zeros((4, 6)))
