@@ -148,9 +148,7 @@ def _links(
     for k in range(1, di):
         ok &= empty[k : H - di + k]
     a = np.flatnonzero(ok)
-    b = a + di * W + dj
-    if dj:
-        b -= np.where(a % W + dj >= W, W, 0)
+    b = a + di * W if dj == 0 else (a // W + di) * W + (a % W + dj) % W
     return a, b
 
 
@@ -247,7 +245,7 @@ def merge_collinear(
     thick = np.abs(np.sin(turn)) * length_m[None, :] + np.abs(np.cos(turn)) * width_m[None, :]
     ok = (
         (across <= cfg.line_offset_m + slack)
-        & (thick <= cfg.line_thick_m + slack)
+        & (thick <= cfg.line_thick_m)
         & (gap <= cfg.line_gap_m + slack)
         & ((length_m[None, :] < 2.0) | (turn <= np.radians(cfg.line_max_turn_deg)))
     )

@@ -1,0 +1,223 @@
+"""Level-4 grouping (sp.segments) on hand-built scenes ray-cast on a 64 x 1024 egosphere.
+
+Truth is the box each ray hits first (analytic slab test); the ground plane is left out of
+the mask, as the pipeline does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sp.segments import (
+    SegmentConfig,
+    _links,
+    _range_step,
+    label_objects,
+    merge_collinear,
+)
+
+H, W = 64, 1024
+EL = np.deg2rad(np.linspace(3.0, -25.0, H))  # row 0 highest
+AZ = np.pi - (np.arange(W) + 0.5) * 2 * np.pi / W
+ROW_STEP, COL_STEP = float(EL[0] - EL[1]), 2 * np.pi / W
+SENSOR_H = 1.8
+
+
+def cast(boxes: list[tuple[tuple[float, ...], tuple[float, ...]]], rows: np.ndarray | None = None):
+    """Ray-cast axis-aligned boxes (lo xyz, hi xyz; sensor frame, ground at z = -SENSOR_H).
+
+    Returns xyz (H, W, 3), range (H, W) (inf where nothing is hit), hit (H, W) int64 index of
+    the box hit first, -1 ground or nothing. ``rows``: (H,) bool rows that fire (others empty).
+    """
+    E, A = np.meshgrid(EL, AZ, indexing="ij")
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d[..., 2] < -1e-6, -SENSOR_H / d[..., 2], np.inf)
+        hit = np.full((H, W), -1, dtype=np.int64)
+        for k, (lo, hi) in enumerate(boxes):
+            t0, t1 = np.array(lo) / d, np.array(hi) / d
+            tmin = np.nanmax(np.minimum(t0, t1), axis=-1)
+            tmax = np.nanmin(np.maximum(t0, t1), axis=-1)
+            h = (tmax >= tmin) & (tmin > 0) & (tmin < t)
+            t = np.where(h, tmin, t)
+            hit[h] = k
+    t = np.where(t < 80.0, t, np.inf)
+    if rows is not None:
+        t[~rows] = np.inf
+        hit[~rows] = -1
+    xyz = np.where(np.isfinite(t)[..., None], d * np.where(np.isfinite(t), t, 0)[..., None], 0.0)
+    return xyz, t, hit
+
+
+def segments_of(boxes, config: SegmentConfig | None = None, rows=None):
+    xyz, rng, hit = cast(boxes, rows)
+    labels = label_objects(xyz, rng, hit >= 0, ROW_STEP, COL_STEP, config)
+    return labels, hit
+
+
+def one_label(labels: np.ndarray, where: np.ndarray) -> int:
+    """The single label covering ``where`` (fails when it is split or ungrouped)."""
+    u = np.unique(labels[where])
+    assert u.size == 1 and u[0] >= 0, f"labels {u} on one object"
+    return int(u[0])
+
+
+def apart(labels: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    """No segment holds pixels of both ``a`` and ``b``, and each is mostly one segment (a face
+    seen at a grazing angle may come apart in pieces)."""
+    la, lb = labels[a], labels[b]
+    for lab in (la, lb):
+        u, n = np.unique(lab, return_counts=True)
+        assert u[np.argmax(n)] >= 0 and n.max() >= 0.9 * lab.size, f"{dict(zip(u, n, strict=True))}"
+    return not set(la[la >= 0].tolist()) & set(lb[lb >= 0].tolist())
+
+
+# a building front 7 m ahead: nearer than join_m / (join_per_rad * COL_STEP) = 16 m, where
+# the 0.6 m distance floor (not the grazing-angle rule) is what joins a 0.3 m step
+WALL = ((7.0, -6.0, -SENSOR_H), (7.4, 6.0, 2.0))
+
+
+def person(gap_m: float):
+    """A person-sized box (0.25 m deep, 0.5 m wide, 1.8 m tall) ``gap_m`` before WALL: the
+    range steps by gap_m + 0.25 m from its front to the wall."""
+    x = WALL[0][0] - gap_m
+    return ((x - 0.25, -0.25, -SENSOR_H), (x, 0.25, 0.0))
+
+
+@pytest.mark.parametrize("gap_m", [0.3, 0.33])
+def test_person_in_front_of_a_wall_is_its_own_segment(gap_m: float) -> None:
+    labels, hit = segments_of([WALL, person(gap_m)])
+    assert np.count_nonzero(hit == 1) > 50
+    wall, body = one_label(labels, hit == 0), one_label(labels, hit == 1)
+    assert wall != body
+
+
+def test_the_old_distance_floor_joined_them() -> None:
+    # the same scene with the range-step test off: the 0.6 m floor groups person and wall
+    labels, hit = segments_of([WALL, person(0.3)], SegmentConfig(step_m=0.0))
+    assert one_label(labels, hit == 0) == one_label(labels, hit == 1)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0, 60.0])
+def test_a_flat_wall_stays_one_segment(yaw_deg: float) -> None:
+    # a thin wall through (12, 0), turned so the sensor sees it at a grazing angle too
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    pts = [(12.0 + c * 0.0 - s * u, s * 0.0 + c * u) for u in np.linspace(-5.0, 5.0, 41)]
+    boxes = [((x - 0.15, y - 0.15, -SENSOR_H), (x + 0.15, y + 0.15, 1.0)) for x, y in pts]
+    labels, hit = segments_of(boxes)
+    assert np.count_nonzero(hit >= 0) > 300
+    one_label(labels, hit >= 0)
+
+
+def test_a_car_beside_a_car_stays_two() -> None:
+    car_a = ((10.0, 0.3, -SENSOR_H + 0.2), (14.5, 2.1, -SENSOR_H + 1.5))
+    car_b = ((10.0, -2.1, -SENSOR_H + 0.2), (14.5, -0.3, -SENSOR_H + 1.5))
+    labels, hit = segments_of([car_a, car_b])
+    assert apart(labels, hit == 0, hit == 1)
+
+
+def test_a_car_parked_before_a_wall_is_its_own_segment() -> None:
+    car = ((2.5, -3.0, -SENSOR_H + 0.2), (6.5, -1.2, -SENSOR_H + 1.5))  # 0.5 m before it
+    labels, hit = segments_of([WALL, car])
+    assert np.count_nonzero(hit == 1) > 200
+    assert apart(labels, hit == 0, hit == 1)
+
+
+def test_an_overhang_stays_joined_to_what_carries_it() -> None:
+    # a tree: a trunk under a broad crown, whose lower face is nearer than the trunk
+    trunk = ((10.0, -0.2, -SENSOR_H), (10.4, 0.2, 0.2))
+    crown = ((9.7, -1.5, 0.2), (11.4, 1.5, 1.5))
+    labels, hit = segments_of([trunk, crown])
+    assert one_label(labels, hit == 0) == one_label(labels, hit == 1)
+
+
+def test_empty_rows_between_beams_do_not_split_a_surface() -> None:
+    fire = np.zeros(H, dtype=bool)
+    fire[::3] = True  # two empty rows between beams, as an elevation-binned image has
+    labels, hit = segments_of([WALL], rows=fire)
+    one_label(labels, hit == 0)
+    labels, _ = segments_of([WALL], SegmentConfig(row_gap=0), rows=fire)
+    assert np.unique(labels[hit == 0]).size > 1
+
+
+def test_no_grouping_on_empty_or_degenerate_images() -> None:
+    xyz = np.zeros((3, 5, 3))
+    rng = np.full((3, 5), np.inf)
+    assert (label_objects(xyz, rng, np.zeros((3, 5), bool), 0.01, 0.01) == -1).all()
+    one_row = label_objects(np.ones((1, 5, 3)), np.ones((1, 5)), np.ones((1, 5), bool), 0.01, 0.1)
+    assert (one_row == 0).all()
+
+
+# ---------------------------------------------------------------- against plain loops
+
+
+def _links_loop(mask: np.ndarray, di: int, dj: int, empty: np.ndarray) -> set[tuple[int, int]]:
+    Hm, Wm = mask.shape
+    out = set()
+    for i in range(Hm - di):
+        for j in range(Wm):
+            j2 = (j + dj) % Wm
+            if mask[i, j] and mask[i + di, j2] and all(empty[i + k, j] for k in range(1, di)):
+                out.add((i * Wm + j, (i + di) * Wm + j2))
+    return out
+
+
+@pytest.mark.parametrize("di,dj", [(0, 1), (0, 2), (1, 0), (2, 0), (3, 0)])
+def test_links_match_a_loop(di: int, dj: int) -> None:
+    rng = np.random.default_rng(di * 10 + dj)
+    for _ in range(20):
+        shape = (int(rng.integers(1, 7)), int(rng.integers(1, 9)))
+        if di >= shape[0]:
+            continue
+        empty = rng.random(shape) < 0.4
+        mask = ~empty & (rng.random(shape) < 0.8)
+        a, b = _links(mask, di, dj, empty)
+        assert set(zip(a.tolist(), b.tolist(), strict=True)) == _links_loop(mask, di, dj, empty)
+
+
+def _step_loop(r: np.ndarray, a: int, b: int, di: int, dj: int, cfg: SegmentConfig) -> bool:
+    Hm, Wm = r.shape
+
+    def at(i: int, j: int) -> float:
+        if not 0 <= i < Hm:
+            return np.nan
+        v = r[i, j % Wm]
+        return v if np.isfinite(v) and v > 0 else np.nan
+
+    (ia, ja), (ib, jb) = divmod(a, Wm), divmod(b, Wm)
+    ra, rb = at(ia, ja), at(ib, jb)
+    s = rb - ra
+    sides = [ra - at(ia - di, ja - dj), at(ib + di, jb + dj) - rb]
+    disc = [abs(s - x) - abs(x) for x in sides if np.isfinite(x)]
+    thr = cfg.step_m + cfg.step_frac * min(ra, rb)
+    cut = bool(disc) and abs(s) > thr and min(disc) > thr
+    return cut and (di == 0 or s < 0)
+
+
+@pytest.mark.parametrize("di,dj", [(0, 1), (0, 2), (1, 0), (2, 0)])
+def test_range_step_matches_a_loop(di: int, dj: int) -> None:
+    cfg = SegmentConfig()
+    rng = np.random.default_rng(7 + di + dj)
+    for _ in range(20):
+        shape = (int(rng.integers(di + 1, 8)), int(rng.integers(2, 10)))
+        r = 10.0 + rng.choice([0.0, 0.5, 1.0], size=shape) + 0.05 * rng.standard_normal(shape)
+        r[rng.random(shape) < 0.2] = np.inf  # no return
+        r[rng.random(shape) < 0.05] = 0.0
+        a, b = _links(np.ones(shape, bool), di, dj, np.zeros(shape, bool))
+        got = _range_step(r.reshape(-1), a, b, di, dj, shape, cfg)
+        want = [_step_loop(r, int(x), int(y), di, dj, cfg) for x, y in zip(a, b, strict=True)]
+        assert got.tolist() == want
+
+
+# ---------------------------------------------------------------- line continuity
+
+
+def test_line_continuity_does_not_take_a_person_beside_the_wall() -> None:
+    # a wall along x in two pieces, a thin third piece on its line, a person 0.4 m before it
+    centers = np.array([[0.0, 0.0], [6.0, 0.0], [9.5, 0.05], [9.5, -0.45]])
+    length = np.array([5.0, 5.0, 1.0, 0.6])
+    width = np.array([0.2, 0.2, 0.15, 0.5])
+    lab = merge_collinear(centers, np.zeros(4), length, width, np.full(4, 12.0))
+    assert lab[0] == lab[1] == lab[2]
+    assert lab[3] != lab[0]
