@@ -185,6 +185,12 @@ def test_wm_run_report_and_pictures(log, tmp_path) -> None:
     assert data["metrics"]["odometry"]["ate_rmse_m"] < 1.0
     assert data["metrics"]["elevation_primitive"]["rmse_m"] < 0.15
     assert data["real_time_factor"] > 0
+    # CPU per sweep: the odometry process's own, and the node thread's stages plus decoding
+    # within what the whole main process spent
+    cpu = data["cpu_ms_per_sweep"]
+    assert cpu["odometry"] > 0 and cpu["read"] > 0 and cpu["sp"] > 0
+    node_thread = sum(cpu[k] for k in ("pose", "maps", "sp", "levels", "predict", "read"))
+    assert node_thread <= cpu["main_process"] * 1.001
     assert len(report.pictures) == 8 and all((tmp_path / "pics").glob("*.png"))
     import kd_store
 

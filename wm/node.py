@@ -70,15 +70,32 @@ class CycleResult:
 
 @dataclass
 class NodeStats:
-    """Counters and per-stage wall times (s) over a run."""
+    """Counters, per-stage wall times (s) and per-stage CPU times (s, the node's thread; the
+    ``odometry`` entry is the odometry process's CPU when it runs in one) over a run."""
 
     frames: Counter = field(default_factory=Counter)
     sweeps: int = 0
     stage_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    stage_cpu_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     odometry_status: Counter = field(default_factory=Counter)
     notes: list[str] = field(default_factory=list)
     range_image_error_m: list[float] = field(default_factory=list)
     surprise_fraction: list[float] = field(default_factory=list)
+
+
+class _StageClock:
+    """Adds each stage's wall time (perf_counter) and this thread's CPU time (thread_time)
+    to the node's stats."""
+
+    def __init__(self, stats: NodeStats) -> None:
+        self.stats = stats
+        self.wall, self.cpu = time.perf_counter(), time.thread_time()
+
+    def lap(self, name: str) -> None:
+        wall, cpu = time.perf_counter(), time.thread_time()
+        self.stats.stage_s[name] += wall - self.wall
+        self.stats.stage_cpu_s[name] += cpu - self.cpu
+        self.wall, self.cpu = wall, cpu
 
 
 class WorldModelNode:
@@ -216,8 +233,7 @@ class WorldModelNode:
     def cycle(self, scan: LadarScan, camera: CameraFrame | None = None) -> CycleResult:
         """One node cycle on one sweep (module docstring, steps 1-6); ``camera`` is the latest
         image when the sweep's poses came in."""
-        stage = self.stats.stage_s
-        t0 = time.perf_counter()
+        clock = _StageClock(self.stats)
         self.kd.begin_cycle(scan.t_ns)
         if self.T_body_ladar is None:
             self.T_body_ladar = np.eye(4)
@@ -235,29 +251,25 @@ class WorldModelNode:
             self.config.deskew_bins,
         )  # fmt: skip
         self._self_state(t_mid, T_world_body)
-        t1 = time.perf_counter()
-        stage["pose"] += t1 - t0
+        clock.lap("pose")
 
         if self.prediction is not None:  # last cycle's expectation of this sweep
             self._compare_prediction(pts, T_world_ladar)
         self.stack.move_to_pose(T_world_body)
         if len(pts):
             self.stack.fuse(pts, t_ns=scan.t_ns, sensor_xyz=T_world_ladar[:3, 3])
-        t2 = time.perf_counter()
-        stage["maps"] += t2 - t1
+        clock.lap("maps")
 
         sp_result = self._sensory_processing(scan, T_world_ladar, t_mid, camera)
-        t3 = time.perf_counter()
-        stage["sp"] += t3 - t2
+        clock.lap("sp")
 
         self._levels(scan.t_ns)
-        t4 = time.perf_counter()
-        stage["levels"] += t4 - t3
+        clock.lap("levels")
 
         self._predict(scan, T_world_body, span)
         if self.stats.sweeps % self.config.kd_advance_every == 0:
             self.kd.advance(scan.t_ns)
-        stage["predict"] += time.perf_counter() - t4
+        clock.lap("predict")
         self.stats.sweeps += 1
         self.stats.odometry_status[status] += 1
         return CycleResult(scan.t_ns, T_world_body, len(pts), t_mid, sp_result, status)
@@ -273,7 +285,11 @@ class WorldModelNode:
             self.track = self.truth
             return "truth"
         odo = self._odometry()
-        est = odo.result() if isinstance(odo, OdometryWorker) else odo.update(scan)
+        if isinstance(odo, OdometryWorker):
+            est, cpu_s = odo.result()
+            self.stats.stage_cpu_s["odometry"] += cpu_s
+        else:
+            est = odo.update(scan)
         self.track.add(est.t_ns, est.T_world_body)
         return str(est.status)
 

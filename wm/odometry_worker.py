@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue
+import time
 from typing import Any
 
 import numpy as np
@@ -37,7 +38,9 @@ def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0) -> None:
             odo.add_wheel_odometry(item)
             continue
         try:
-            results.put(odo.update(item))
+            cpu = time.process_time()  # KISS-ICP's threads included
+            est = odo.update(item)
+            results.put((est, time.process_time() - cpu))
         except Exception as e:  # sent back: the node raises it with the sweep's time
             results.put(e)
 
@@ -68,8 +71,9 @@ class OdometryWorker:
         self._requests.put(("scan", scan))
         self._waiting.append(int(scan.t_ns))
 
-    def result(self) -> Any:
-        """The estimate of the oldest submitted sweep (waits for it)."""
+    def result(self) -> tuple[Any, float]:
+        """The estimate of the oldest submitted sweep (waits for it) and the CPU seconds the
+        odometry process spent on it."""
         if not self._waiting:
             raise OdometryWorkerError("asked for an odometry result with no sweep submitted")
         t_ns = self._waiting.pop(0)

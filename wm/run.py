@@ -13,6 +13,7 @@ import json
 import sys
 import time
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ import numpy as np
 import kd_store
 from maps.frames import NS_PER_S, se3_inverse
 from sp.logs import open_log
-from sp.logs.types import CameraFrame, LadarScan, ObjectBoxes, OdometryFrame
+from sp.logs.types import CameraFrame, Frame, LadarScan, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
 from wm.poses import PoseError
@@ -54,6 +55,10 @@ class RunReport:
     events: dict[str, int]
     stage_ms_per_sweep: dict[str, float]
     odometry_status: dict[str, int]
+    #: CPU ms per sweep: the node's stages (its thread), ``read`` (decoding the log),
+    #: ``odometry`` (the odometry process, when it runs in one) and ``main_process`` (every
+    #: thread of this process over the whole run, start-up included)
+    cpu_ms_per_sweep: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
     pictures: list[str] = field(default_factory=list)
 
@@ -76,6 +81,8 @@ class RunReport:
             f"wall {self.wall_s:.1f} s: {self.real_time_factor:.2f}x real time",
             "ms per sweep: "
             + _fmt_counts({k: f"{v:.1f}" for k, v in self.stage_ms_per_sweep.items()}),
+            "CPU ms per sweep: "
+            + _fmt_counts({k: f"{v:.1f}" for k, v in self.cpu_ms_per_sweep.items()}),
         ]
         for m in self.missing:
             lines.append(f"missing: {m}")
@@ -140,13 +147,15 @@ def run_log(
     terrain = terrain or RasterTruth.from_folder(Path(log_path))
     if str(kd_path) != ":memory:":
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    read_cpu_s = [0.0]
     with kd_store.open(kd_path) as kd:
         stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
         node = WorldModelNode(kd, config, stack)
         odo, det = OdometryScore(), DetectionScore()
         first_t, last_t = None, None
-        for frame in _progress(source.frames(), total, progress, Path(log_path).name):
+        frames = _cpu_timed(source.frames(), read_cpu_s)
+        for frame in _progress(frames, total, progress, Path(log_path).name):
             first_t = frame.t_ns if first_t is None else first_t
             if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
                 break
@@ -159,6 +168,12 @@ def run_log(
             keep_windows(stack)  # the last windows too, for the next run over this KD
         wall = time.perf_counter() - t_start
         report = _report(node, kd, log_path, kd_path, first_t, last_t, wall)
+        n = max(node.stats.sweeps, 1)
+        report.cpu_ms_per_sweep = {
+            **{k: 1e3 * v / n for k, v in node.stats.stage_cpu_s.items()},
+            "read": 1e3 * read_cpu_s[0] / n,
+            "main_process": 1e3 * (time.process_time() - cpu_start) / n,
+        }
         report.metrics.update(_metrics(node, odo, det, terrain))
         if render_dir is not None:
             from wm.render import render_run
@@ -168,6 +183,20 @@ def run_log(
         Path(report_path).parent.mkdir(parents=True, exist_ok=True)
         Path(report_path).write_text(json.dumps(report.to_json(), indent=2))
     return report
+
+
+def _cpu_timed(frames: Iterator[Frame], total_s: list[float]) -> Iterator[Frame]:
+    """The frames, adding the CPU time (this thread) spent producing them to ``total_s[0]``."""
+    it = iter(frames)
+    while True:
+        t = time.thread_time()
+        try:
+            frame = next(it)
+        except StopIteration:
+            total_s[0] += time.thread_time() - t
+            return
+        total_s[0] += time.thread_time() - t
+        yield frame
 
 
 def _safe(get) -> dict:
