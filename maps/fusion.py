@@ -69,6 +69,10 @@ class FusionConfig:
     l_min: float = -4.0
     l_max: float = 4.0
     confidence_var_m2: float = 0.01  # elevation variance at which confidence is 0.5
+    compiled: bool = True  # numba kernels (maps.kernels); False: the numpy reference path
+    ray_max_range_m: float = 40.0  # free space is traced this far along a beam (horizontal)
+    ray_free_height_m: float = 1.5  # a beam this far or less above a cell's ground frees it
+    ray_stride: int = 1  # trace every k-th beam of a sweep
 
 
 def range_variance(ranges_m: np.ndarray, config: FusionConfig) -> np.ndarray:
@@ -100,6 +104,7 @@ class CellBatch:
     z_min: np.ndarray
     z_max: np.ndarray
     reset: np.ndarray | None = None  # (M,) bool: the level's estimate there was refuted
+    flat: np.ndarray | None = None  # (M,) int64 storage indices in the level that made it
 
     def __len__(self) -> int:
         return int(self.ix.shape[0])
@@ -118,6 +123,7 @@ class FusionStats:
     ground: dict[str, int] = field(default_factory=dict)
     obstacle: dict[str, int] = field(default_factory=dict)
     cells_updated: dict[str, int] = field(default_factory=dict)
+    cells_freed: dict[str, int] = field(default_factory=dict)  # lowered by ray casting
 
 
 @dataclass(frozen=True)
@@ -274,6 +280,25 @@ class _Scratch:
         self.mark = np.zeros(ncell, dtype=np.uint8)
         self.row = np.zeros(ncell, dtype=np.intp)
         self.z_lo = np.full(ncell, np.inf)
+        # compiled path: a cell is touched this sweep when its stamp equals ``sweep``
+        self.stamp = np.zeros(ncell, dtype=np.int64)
+        self.ray_stamp = np.zeros(ncell, dtype=np.int64)
+        self.start_stamp = np.zeros(ncell, dtype=np.int64)
+        self.start_beam = np.zeros(ncell, dtype=np.int64)
+        self.sweep = 0
+        self._point_bufs: dict[str, np.ndarray] = {}
+
+    def next_sweep(self) -> int:
+        self.sweep += 1
+        return self.sweep
+
+    def point_buf(self, name: str, n: int) -> np.ndarray:
+        """A reusable int64 buffer of at least ``n`` entries (per-point rows and indices, which
+        never leave one fusion call)."""
+        buf = self._point_bufs.get(name)
+        if buf is None or len(buf) < n:
+            buf = self._point_bufs[name] = np.empty(max(n, 1024), dtype=np.int64)
+        return buf[:n]
 
     def rows(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The distinct cells of ``flat`` (M,) sorted, and each entry's index among them."""
@@ -461,18 +486,226 @@ def fuse_points(
     variance_m2: np.ndarray | float,
     t_ns: int,
     config: FusionConfig | None = None,
+    ray_origin_xyz: np.ndarray | None = None,
 ) -> FusionStats:
-    """Fuse world points ``(N, 3)`` with variances (m^2, scalar or (N,)) into one level."""
+    """Fuse world points ``(N, 3)`` with variances (m^2, scalar or (N,)) into one level.
+
+    With ``ray_origin_xyz`` (the sensor's position in the world, metres (3,)), the cells the
+    beams cross before their returns are lowered as free space too (:func:`cast_rays`).
+    """
     config = config or FusionConfig()
     stats = FusionStats()
-    pts = clean_points(points_xyz, variance_m2, stats)
-    z_ref = float(pts.z.mean()) if len(pts) else 0.0
-    batch = summarise(level, pts, config, z_ref)
-    stats.outside = int(len(pts) - batch.n.sum() - batch.n_obstacle.sum())
+    if config.compiled:
+        kp = kernel_points(points_xyz, variance_m2, config)
+        stats.points_in = len(kp.xyz)
+        batch, rest, n_drop, _ = summarise_compiled(level, kp, config)
+        stats.dropped_nonfinite = n_drop
+        stats.outside = len(rest)
+        stats.cells_updated[level.name] = apply_compiled(level, batch, config, t_ns)
+    else:
+        pts = clean_points(points_xyz, variance_m2, stats)
+        z_ref = float(pts.z.mean()) if len(pts) else 0.0
+        batch = summarise(level, pts, config, z_ref)
+        stats.outside = int(len(pts) - batch.n.sum() - batch.n_obstacle.sum())
+        stats.cells_updated[level.name] = apply(level, batch, config, t_ns)
+        mark_touched(level, batch)
     stats.ground[level.name] = int(batch.n.sum())
     stats.obstacle[level.name] = int(batch.n_obstacle.sum())
-    stats.cells_updated[level.name] = apply(level, batch, config, t_ns)
+    if ray_origin_xyz is not None:
+        xyz = np.ascontiguousarray(points_xyz, dtype=np.float64)
+        stats.cells_freed[level.name] = cast_rays(level, xyz, ray_origin_xyz, config)
     return stats
+
+
+# --- the compiled path (maps.kernels): the same results as summarise / apply above ----------
+
+
+@dataclass(frozen=True)
+class KernelPoints:
+    """A sweep as the kernels read it: ``xyz`` (N, 3) float64 C-order world metres; ``var``
+    float64 per point (N,) (``mode`` 0) or one scalar (1,) (mode 1), or, mode 2, none: each
+    point's variance is ``(s0 + k r)^2`` from its range r (m) to ``origin`` (3,) world metres."""
+
+    xyz: np.ndarray
+    var: np.ndarray
+    mode: int
+    origin: np.ndarray
+    s0: float
+    k: float
+
+
+_NO_ORIGIN = np.zeros(3)
+_NO_INDEX = np.zeros(0, dtype=np.int64)
+
+
+def kernel_points(
+    points_xyz: np.ndarray,
+    variance_m2: np.ndarray | float | None,
+    config: FusionConfig,
+    sensor_xyz: np.ndarray | None = None,
+) -> KernelPoints:
+    """Check shapes and wrap points for the kernels (no copy when already float64 C-order).
+    ``variance_m2`` None takes range variance from ``sensor_xyz`` (:func:`range_variance`)."""
+    pts = np.asarray(points_xyz)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise FusionError(f"points_xyz must be (N, 3) world metres, got shape {pts.shape}")
+    xyz = np.ascontiguousarray(pts, dtype=np.float64)
+    n = len(xyz)
+    s0, k = config.sigma0_m, config.sigma_per_m
+    if variance_m2 is None:
+        if sensor_xyz is None:
+            raise FusionError("fuse needs variance_m2 or sensor_xyz (for range variance)")
+        origin = np.asarray(sensor_xyz, dtype=np.float64).reshape(3)
+        return KernelPoints(xyz, _NO_ORIGIN[:1], 2, origin, s0, k)
+    var = np.asarray(variance_m2, dtype=np.float64)
+    if var.ndim == 0:
+        return KernelPoints(xyz, var.reshape(1), 1, _NO_ORIGIN, s0, k)
+    if var.shape != (n,):
+        raise FusionError(f"variance_m2 must be a scalar or ({n},), got shape {var.shape}")
+    return KernelPoints(xyz, np.ascontiguousarray(var), 0, _NO_ORIGIN, s0, k)
+
+
+def summarise_compiled(
+    level: MapLevel,
+    kp: KernelPoints,
+    config: FusionConfig,
+    idx: np.ndarray | None = None,
+    z_ref: float | None = None,
+    child: CellBatch | None = None,
+) -> tuple[CellBatch, np.ndarray, int, float]:
+    """:func:`summarise` by the kernels, in two passes over the points.
+
+    ``idx`` None: every point of ``kp``, cleaned (non-finite or non-positive variance dropped),
+    ``z_ref`` (if None) their mean height; else only the (clean) points ``idx`` (int64).
+    Returns the batch, the indices (int64) of the kept points outside the window (a view of
+    scratch memory, valid until this level's next call), the number dropped, and ``z_ref``.
+    """
+    from maps import kernels
+
+    sc = _scratch(level)
+    sweep = sc.next_sweep()
+    size, res = level.size, level.resolution_m
+    ox, oy = (int(v) for v in level.origin_cell)
+    use_idx = idx is not None
+    n_iter = len(idx) if use_idx else len(kp.xyz)
+    n_child = len(child) if child is not None else 0
+    cap = max(min(n_iter, size * size) + n_child, 1)
+    cells, cix, ciy = (np.empty(cap, dtype=np.int64) for _ in range(3))
+    z_lo, z_hi, w, wz, wzz, gate = (np.empty(cap) for _ in range(6))
+    n, n_obs = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+    stale = np.zeros(cap, dtype=np.bool_)
+    point_row, rest = sc.point_buf("row", n_iter), sc.point_buf("rest", n_iter)
+    index = idx if use_idx else _NO_INDEX
+    args = (kp.xyz, kp.var, kp.mode, kp.origin, kp.s0, kp.k, index, use_idx)
+    m, n_rest, n_drop, z_sum = kernels.bin_points(
+        *args, not use_idx, res, ox, oy, size, sc.stamp, sweep, sc.row,
+        cells, cix, ciy, z_lo, point_row, rest,
+    )  # fmt: skip
+    if z_ref is None:
+        n_kept = n_iter - n_drop
+        z_ref = z_sum / n_kept if n_kept else 0.0
+    elev = level.storage("elevation").reshape(-1)
+    elev_var = level.storage("elevation_var").reshape(-1)
+    allowance = config.max_ground_slope * np.sqrt(2.0) * res
+    kernels.ground_gate(
+        m, cells, z_lo, z_ref, elev, elev_var, sc.z_lo, size, ox, oy,
+        config.obstacle_height_m, allowance, gate, stale,
+    )  # fmt: skip
+    kernels.sum_points(*args, point_row, z_ref, gate, m, w, wz, wzz, n, n_obs, z_hi)
+    if n_child:
+        c = child
+        m = kernels.merge_child(
+            m, c.ix, c.iy, c.w, c.wz, c.wzz, c.n, c.n_obstacle, c.z_min, c.z_max, c.z_ref,
+            c.resolution_m / res, z_ref, ox, oy, size, sc.stamp, sweep, sc.row,
+            cells, cix, ciy, w, wz, wzz, n, n_obs, z_lo, z_hi,
+        )  # fmt: skip
+    batch = CellBatch(
+        resolution_m=res,
+        z_ref=z_ref,
+        ix=cix[:m],
+        iy=ciy[:m],
+        w=w[:m],
+        wz=wz[:m],
+        wzz=wzz[:m],
+        n=n[:m],
+        n_obstacle=n_obs[:m],
+        z_min=z_lo[:m] + z_ref,
+        z_max=z_hi[:m] + z_ref,
+        reset=stale[:m],
+        flat=cells[:m],
+    )
+    return batch, rest[:n_rest], n_drop, z_ref
+
+
+def apply_compiled(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns: int) -> int:
+    """:func:`apply` by one kernel pass over the batch's cells; returns cells updated."""
+    from maps import kernels
+
+    level.require(*FUSION_LAYERS)
+    if batch.flat is None:  # a batch from elsewhere: keep the cells in the window
+        col = batch.ix - level.origin_cell[0]
+        row = batch.iy - level.origin_cell[1]
+        ok = (col >= 0) & (col < level.size) & (row >= 0) & (row < level.size)
+        batch = replace(_subset(batch, ok), flat=None)
+        flat = storage_flat(level, batch.ix, batch.iy)
+    else:
+        flat = batch.flat
+    reset = batch.reset if batch.reset is not None else np.zeros(len(batch), dtype=np.bool_)
+    lay = [level.storage(name).reshape(-1) for name in FUSION_LAYERS]
+    kernels.apply_cells(
+        flat, batch.w, batch.wz, batch.wzz, batch.n, batch.n_obstacle, batch.z_min,
+        batch.z_max, reset, batch.z_ref, int(t_ns), config.process_var_m2, config.l_hit,
+        config.l_miss, config.l_min, config.l_max, config.confidence_var_m2, *lay,
+    )  # fmt: skip
+    return len(batch)
+
+
+def mark_touched(level: MapLevel, batch: CellBatch) -> None:
+    """Start a sweep in the level's scratch with the batch's cells touched (what the compiled
+    path does as it bins), so :func:`cast_rays` leaves them to their own hit / miss."""
+    sc = _scratch(level)
+    sc.stamp[storage_flat(level, batch.ix, batch.iy)] = sc.next_sweep()
+
+
+def cast_rays(
+    level: MapLevel,
+    points_xyz: np.ndarray,
+    origin_xyz: np.ndarray,
+    config: FusionConfig,
+) -> int:
+    """Free-space update of one sweep already fused into ``level`` (call right after it).
+
+    Each beam from ``origin_xyz`` (sensor position, world metres (3,)) to its point of
+    ``points_xyz`` (N, 3) float64 world metres (every ``config.ray_stride``-th beam) lowers the
+    occupancy log-odds of the cells it crosses before its end cell by ``l_miss``, once per
+    sweep, up to ``ray_max_range_m`` (horizontal) and only where it passes at most
+    ``ray_free_height_m`` above the cell's ground (its elevation, else the beam end's height).
+    Cells holding points this sweep keep their own update (an obstacle point's hit wins), so
+    a cell changes once per sweep: the inverse sensor model of an occupancy grid
+    (001, 4.4.7: "which regions are visible from a particular viewpoint"). Returns the cells
+    lowered. NaN/inf points are skipped.
+    """
+    from maps import kernels
+
+    origin = np.asarray(origin_xyz, dtype=np.float64).reshape(-1)
+    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+        raise FusionError(f"ray_origin_xyz must be a finite world (x, y, z), got {origin_xyz!r}")
+    level.require("elevation", "occupancy")
+    xyz = np.ascontiguousarray(points_xyz, dtype=np.float64)
+    stride = int(config.ray_stride)
+    if stride < 1:
+        raise FusionError(f"ray_stride must be >= 1, got {config.ray_stride!r}")
+    idx = np.arange(0, len(xyz), stride, dtype=np.int64) if stride > 1 else _NO_INDEX
+    sc = _scratch(level)
+    ox, oy = (int(v) for v in level.origin_cell)
+    return int(
+        kernels.cast_rays(
+            xyz, idx, stride > 1, origin, level.resolution_m, ox, oy, level.size,
+            float(config.ray_max_range_m), float(config.ray_free_height_m), sc.stamp, sc.sweep,
+            sc.ray_stamp, sc.start_stamp, sc.start_beam, level.storage("elevation").reshape(-1),
+            level.storage("occupancy").reshape(-1), float(config.l_miss), float(config.l_min),
+        )
+    )  # fmt: skip
 
 
 def fuse_labels(

@@ -24,10 +24,15 @@ from maps.fusion import (
     FusionError,
     FusionStats,
     apply,
+    apply_compiled,
+    cast_rays,
     clean_points,
     fuse_labels,
+    kernel_points,
+    mark_touched,
     range_variance,
     summarise,
+    summarise_compiled,
     window_cells,
 )
 from maps.level import LevelConfig, MapLevel
@@ -56,6 +61,7 @@ class StackConfig:
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     apriori_min_resolution_m: float = 4.0  # levels at least this coarse take a priori terrain
     apriori_var_m2: float = 0.25  # variance given to a priori heights
+    raycast_levels: tuple[str, ...] = ("subsystem",)  # levels that trace free space (rays)
 
 
 class MapStack:
@@ -131,13 +137,51 @@ class MapStack:
         t_ns: int,
         variance_m2: np.ndarray | float | None = None,
         sensor_xyz: np.ndarray | None = None,
+        ray_origin_xyz: np.ndarray | None = None,
     ) -> FusionStats:
         """Fuse world points ``(N, 3)`` metres into every level (see the module docstring).
 
         Give either per-point ``variance_m2`` (m^2) or the sensor position ``sensor_xyz`` in
         the world (range-dependent variance, :func:`~maps.fusion.range_variance`). Non-finite
-        points are dropped and counted in the returned stats.
+        points are dropped and counted in the returned stats. With ``ray_origin_xyz`` (the
+        sensor position in the world, metres), the ``raycast_levels`` also lower the cells
+        the beams cross (:func:`~maps.fusion.cast_rays`).
         """
+        fcfg = self.config.fusion
+        if fcfg.compiled:
+            stats = self._fuse_compiled(points_world, t_ns, variance_m2, sensor_xyz)
+        else:
+            stats = self._fuse_numpy(points_world, t_ns, variance_m2, sensor_xyz)
+        if ray_origin_xyz is not None:
+            names = [lvl.name for lvl in self.levels]
+            unknown = sorted(set(self.config.raycast_levels) - set(names))
+            if unknown:
+                raise StackError(f"raycast_levels {unknown} are not among the levels {names}")
+            xyz = np.ascontiguousarray(points_world, dtype=np.float64)
+            for lvl in self.levels:
+                if lvl.name in self.config.raycast_levels:
+                    stats.cells_freed[lvl.name] = cast_rays(lvl, xyz, ray_origin_xyz, fcfg)
+        return stats
+
+    def _fuse_compiled(self, points_world, t_ns, variance_m2, sensor_xyz) -> FusionStats:
+        """The kernel path: two passes over each level's points, one over its cells."""
+        fcfg = self.config.fusion
+        kp = kernel_points(points_world, variance_m2, fcfg, sensor_xyz)
+        stats = FusionStats(points_in=len(kp.xyz))
+        idx, z_ref, child = None, None, None
+        for lvl in self.levels:  # finest first: each point goes raw to the finest level holding it
+            batch, idx, n_drop, z_ref = summarise_compiled(lvl, kp, fcfg, idx, z_ref, child)
+            if lvl is self.levels[0]:
+                stats.dropped_nonfinite = n_drop
+            stats.cells_updated[lvl.name] = apply_compiled(lvl, batch, fcfg, t_ns)
+            stats.ground[lvl.name] = int(batch.n.sum())
+            stats.obstacle[lvl.name] = int(batch.n_obstacle.sum())
+            child = batch
+        stats.outside = len(idx)
+        return stats
+
+    def _fuse_numpy(self, points_world, t_ns, variance_m2, sensor_xyz) -> FusionStats:
+        """The numpy reference path (``FusionConfig(compiled=False)``)."""
         pts = np.asarray(points_world)
         if variance_m2 is None:
             if sensor_xyz is None:
@@ -158,6 +202,7 @@ class MapStack:
             stats.cells_updated[lvl.name] = apply(lvl, batch, self.config.fusion, t_ns)
             stats.ground[lvl.name] = int(batch.n.sum())
             stats.obstacle[lvl.name] = int(batch.n_obstacle.sum())
+            mark_touched(lvl, batch)
             child = batch
         stats.outside = len(pts)
         return stats
