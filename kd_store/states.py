@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from kd_store.covariance import FLAT_LO, pack_checked, psd_mask
 from kd_store.errors import KDError
@@ -114,9 +115,9 @@ class StateColumns:
     def from_arrow(table: pa.Table) -> list[StateColumns]:
         """Inverse of :meth:`to_arrow`; one chunk per frame."""
         out = []
-        frames = table.column("frame").to_numpy(zero_copy_only=False)
-        for frame in dict.fromkeys(frames.tolist()):
-            t = table.filter(pa.array(frames == frame))
+        frames = table.column("frame")  # compared in Arrow: strings to numpy would load pandas
+        for frame in frames.unique().to_pylist():  # in order of first appearance
+            t = table.filter(pc.equal(frames, frame))
 
             def col(name: str, t: pa.Table = t) -> np.ndarray:
                 return t.column(name).to_numpy()
