@@ -73,6 +73,7 @@ class FusionConfig:
     ray_max_range_m: float = 40.0  # free space is traced this far along a beam (horizontal)
     ray_free_height_m: float = 1.5  # a beam this far or less above a cell's ground frees it
     ray_stride: int = 1  # trace every k-th beam of a sweep
+    ray_stop_after_cells: int = 8  # a walk ends after this many settled cells in a row (0: never)
 
 
 def range_variance(ranges_m: np.ndarray, config: FusionConfig) -> np.ndarray:
@@ -701,7 +702,8 @@ def cast_rays(
     return int(
         kernels.cast_rays(
             xyz, idx, stride > 1, origin, level.resolution_m, ox, oy, level.size,
-            float(config.ray_max_range_m), float(config.ray_free_height_m), sc.stamp, sc.sweep,
+            float(config.ray_max_range_m), float(config.ray_free_height_m),
+            int(config.ray_stop_after_cells), sc.stamp, sc.sweep,
             sc.ray_stamp, sc.start_stamp, sc.start_beam, level.storage("elevation").reshape(-1),
             level.storage("occupancy").reshape(-1), float(config.l_miss), float(config.l_min),
         )

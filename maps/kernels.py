@@ -327,12 +327,13 @@ def apply_cells(
 
 @numba.njit(cache=True, nogil=True)
 def _walk(
-    sx, sy, first, px, py, pz, qz, t_lim, res_ox, res_oy, size, free_h,
+    sx, sy, first, px, py, pz, qz, t_lim, res_ox, res_oy, size, free_h, stop_after,
     stamp, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
 ):  # fmt: skip
     """Walk one beam over the grid from ``(sx, sy)`` (cell units; the beam at parameter
     ``t_lim`` of the way from the origin ``(px, py)`` to its point) back to the origin cell;
     the start cell counts only if ``first``. See :func:`cast_rays`; returns cells lowered."""
+    run = 0  # cells in a row this sweep already settled (points or an earlier beam)
     mask = size - 1
     pow2 = (size & mask) == 0
     cx = np.int64(math.floor(sx))
@@ -369,7 +370,12 @@ def _walk(
                 c = (cy & mask) * size + (cx & mask)
             else:
                 c = (cy % size) * size + cx % size
-            if stamp[c] != sweep and ray_stamp[c] != sweep:
+            if stamp[c] == sweep or ray_stamp[c] == sweep:
+                run += 1
+                if run == stop_after:
+                    break
+            else:
+                run = 0
                 z_beam = pz + (qz - pz) * t_lim * (1.0 - 0.5 * (u_in + u_out))
                 ground = np.float64(elevation[c])
                 if math.isnan(ground):
@@ -391,7 +397,7 @@ def _walk(
 
 @numba.njit(cache=True, nogil=True)
 def cast_rays(
-    xyz, idx, use_idx, origin, res, ox, oy, size, max_range, free_h,
+    xyz, idx, use_idx, origin, res, ox, oy, size, max_range, free_h, stop_after,
     stamp, sweep, ray_stamp, start_stamp, start_beam, elevation, occupancy, l_miss, l_min,
 ):  # fmt: skip
     """Free space: walk beams over the grid (2-D, Amanatides and Woo) from their points back
@@ -404,8 +410,12 @@ def cast_rays(
 
     Of the beams that start their walk in one cell (they end there, or reach ``max_range``
     there) only the one with the lowest end is walked: from one origin through one cell, the
-    others cross the same cells up to a cell's width (and no lower). ``start_stamp`` /
-    ``start_beam`` are dense (size*size) scratch. Returns the cells lowered.
+    others cross the same cells up to a cell's width (and no lower). A walk ends early after
+    ``stop_after`` cells in a row (0: never) that this sweep has already settled (cells with
+    points, cells an earlier beam lowered): it has entered ground the beams before it
+    covered (on a 65 k-point sweep, 8 cells in a row leave 0.3 % of the cells the full walks
+    lower unlowered, for half the time). ``start_stamp`` / ``start_beam`` are dense
+    (size*size) scratch. Returns the cells lowered.
     """
     n_iter = idx.shape[0] if use_idx else xyz.shape[0]
     mask = size - 1
@@ -435,7 +445,7 @@ def cast_rays(
         cy = np.int64(math.floor(sy))
         if cx - ox < 0 or cx - ox >= size or cy - oy < 0 or cy - oy >= size:
             lowered += _walk(
-                sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h,
+                sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h, stop_after,
                 stamp, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
             )  # fmt: skip
             continue
@@ -460,7 +470,7 @@ def cast_rays(
         sx = px + t_lim * (qx - px)
         sy = py + t_lim * (qy - py)
         lowered += _walk(
-            sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h,
+            sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h, stop_after,
             stamp, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
         )  # fmt: skip
     return lowered

@@ -191,7 +191,7 @@ def _reference_rays(level, pts, origin, touched, cfg: FusionConfig) -> set:
 
 def test_ray_kernel_equals_segment_reference() -> None:
     rng = np.random.default_rng(3)
-    cfg = FusionConfig(ray_max_range_m=6.0, ray_free_height_m=0.8)
+    cfg = FusionConfig(ray_max_range_m=6.0, ray_free_height_m=0.8, ray_stop_after_cells=0)
     level = MapLevel(LevelConfig("t", 0.5, 32))
     origin = np.array([0.3, -0.2, 1.2])
     ground = np.column_stack([rng.uniform(-7, 7, (300, 2)), rng.normal(0.0, 0.02, 300)])
