@@ -18,7 +18,7 @@ the right direction but far off in scale (a hill-sized "bush") matches nothing w
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,7 +30,17 @@ class ClassifyError(ValueError):
     """A level with no prototypes or an attribute vector of the wrong kind; names it."""
 
 
-EPS: dict[str, float] = {"speed_mps": 0.5, "roughness_m": 0.05, "count": 1.0}
+EPS: dict[str, float] = {
+    "speed_mps": 0.5,
+    "roughness_m": 0.05,
+    "count": 1.0,
+    "edge_share": 0.05,
+    "vertex_share": 0.05,
+    "range_jump_m": 0.05,
+    "contrast": 0.05,
+    "reflectance": 0.05,
+    "camera_intensity": 0.05,
+}
 DEFAULT_EPS = 0.1
 
 
@@ -108,6 +118,41 @@ class Classifier:
             cos = float(e @ c) / norm if norm > 1e-12 else 0.0
             dist2 = float(np.sum((e - c) ** 2))
             scores[p.name] = cos * math.exp(-dist2 / (2 * self.config.scale**2))
+        return self._match(scores)
+
+    def classify_many(self, rows: Sequence[Mapping[str, float]]) -> list[Match]:
+        """:meth:`classify` of every row at once (same scores to rounding): a features matrix
+        (rows x attributes, NaN missing) against each prototype, so many entities cost a few
+        array operations per prototype, not a Python loop per entity."""
+        if not rows:
+            return []
+        names = sorted(self.mu)
+        X = np.array([[float(r.get(a, math.nan)) for a in names] for r in rows], dtype=np.float64)
+        eps = np.array([EPS.get(a, DEFAULT_EPS) for a in names])
+        mu = np.array([self.mu[a] for a in names])
+        with np.errstate(invalid="ignore"):
+            F = np.log(np.maximum(X, 0.0) + eps) - mu  # NaN stays NaN: missing
+        S = np.full((len(rows), len(self.protos)), np.nan)
+        for j, (p, fp) in enumerate(zip(self.protos, self._feat, strict=True)):
+            w = np.array([p.weights.get(a, 0.0) for a in names])
+            c = np.array([fp.get(a, 0.0) for a in names])
+            has = np.array([a in fp for a in names])
+            use = np.isfinite(F) & has
+            e = np.where(use, F * w, 0.0)
+            cu = np.where(use, c, 0.0)
+            norm = np.linalg.norm(e, axis=1) * np.linalg.norm(cu, axis=1)
+            cos = np.where(norm > 1e-12, (e * cu).sum(axis=1) / np.maximum(norm, 1e-300), 0.0)
+            dist2 = ((e - cu) ** 2).sum(axis=1)
+            score = cos * np.exp(-dist2 / (2 * self.config.scale**2))
+            S[:, j] = np.where(use.any(axis=1), score, np.nan)
+        return [
+            self._match(
+                {p.name: float(S[i, j]) for j, p in enumerate(self.protos) if np.isfinite(S[i, j])}
+            )
+            for i in range(len(rows))
+        ]
+
+    def _match(self, scores: dict[str, float]) -> Match:
         if not scores:
             return Match(None, 0.0, (), scores)
         best = max(scores, key=lambda k: scores[k])

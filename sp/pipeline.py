@@ -14,10 +14,15 @@ to 5). One call of :meth:`SensoryProcessor.process` is one cycle:
    classification (:mod:`sp.classify`). A hypothesis gets a KD frame and an "appeared" event
    only once seen ``birth_hits`` times (M-of-N birth); until then it draws attention only;
 4. level 3 beyond the ground: the vertical planar face of a confirmed object is a surface
-   entity (part of the object), its contact with the ground a level-2 list;
-5. level 2: range-edge pixels, as one boundary list per confirmed object (and the ground);
+   entity (part of the object), its contact with the ground a level-2 list; the pixels in no
+   confirmed object and not ground are fitted with level-2 surface patches that group into
+   free-standing surfaces (walls, building fronts, slopes: :mod:`sp.surfaces`), tracked from
+   sweep to sweep, each with its ground-contact boundary;
+5. level 2: range edges, brightness edges, vertices and surface patches (:mod:`sp.lists`),
+   one list entity per (owner, kind) (:meth:`SensoryProcessor._lists` says why);
 6. level 5: groups of objects (:mod:`sp.groups`);
 7. entity images per level, entity frames, pointers and events (:mod:`sp.events`) in the KD;
+   class images per level and value images (:mod:`sp.images`);
 8. with a camera frame: the confirmed objects' appearance (:mod:`sp.appearance`).
 
 Deskewing: ``T_world_ladar`` is the sensor pose at ``pose_t_ns`` (the sweep's stamp unless the
@@ -35,6 +40,7 @@ import dataclasses
 import logging
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,8 +55,20 @@ from sp.egosphere import EgosphereConfig, EgosphereImage, to_egosphere
 from sp.events import EventClass, emit
 from sp.ground import GroundConfig, ground_mask
 from sp.groups import GroupConfig, group_labels, match_groups
+from sp.images import ClassTable, LazyImages, class_image, class_values, value_images
+from sp.lists import (
+    KIND_CLASS,
+    ListConfig,
+    ListKind,
+    brightness_edges,
+    list_attributes,
+    list_slots,
+    list_sums,
+    patch_grid,
+)
 from sp.logs.types import CameraFrame, LadarScan
 from sp.segments import SegmentConfig, label_objects, merge_collinear, range_edges
+from sp.surfaces import SurfaceConfig, SurfaceTracker, group_patches
 from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
 from sp.windowing import WindowConfig, window_mask
 
@@ -89,7 +107,11 @@ class SPConfig:
     speed_sigmas: float = 2.0  # classification uses the speed less this many std devs
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
-    lists: bool = True  # level-2 boundary lists of confirmed objects
+    lists: bool = True  # level-2 list entities (edges, vertices, patches)
+    list_config: ListConfig = field(default_factory=ListConfig)
+    free_surfaces: bool = True  # level-3 surfaces beyond the ground and the objects' faces
+    surfaces: SurfaceConfig = field(default_factory=SurfaceConfig)
+    kd_refresh_sweeps: int = 8  # list and surface frames rewritten every this many sweeps
     terrain_tilt_deg: float = 25.0  # a broad thin plane tilted less than this is ground ...
     terrain_breadth_m: float = 0.25  # ... when its points spread this far along its middle axis
     terrain_thick_m: float = 0.12  # ... and this little across its plane (std, m)
@@ -106,11 +128,18 @@ class SPResult:
     """What one cycle produced (arrays on the LADAR egosphere image grid, (H, W)).
 
     entity_images:     SP level -> (H, W) int64 frame ids, -1 none.
+    class_images:      SP level -> (H, W) int32 index into ``class_names`` of each pixel's
+                       entity's class at that level, -1 none (reference 001, 4.4.4); made
+                       on first access (a read-only mapping).
+    value_images:      value name (cost, risk, worth_preserve) -> (H, W) float32 value of the
+                       class of each pixel's level-4 entity, else its level-3 entity (the
+                       class library's ``value``), NaN where the pixel has neither.
+    surfaces:          ids of the free-standing level-3 surfaces observed this cycle.
     ground_mask:       (H, W) bool.
     points_world:      (N, 3) float32 world points of the image's valid pixels (row-major).
     point_entity_ids:  (N,) int64 level-4 object id per point, -1 none.
-    point_class_ids:   (N,) int32 index into ``class_names`` (-1 none); ground points get
-                       the ground class.
+    point_class_ids:   (N,) int32 index into ``class_names`` (-1 none): the class of the
+                       point's object, else of its level-3 surface (ground, face, wall ...).
     objects:           ids of the level-4 entities observed this cycle.
     events:            ids of the event frames emitted this cycle.
     timings_s:         seconds per stage.
@@ -134,6 +163,9 @@ class SPResult:
     point_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     attention_mask: np.ndarray | None = None
     class_names: list[str] = field(default_factory=list)
+    class_images: Mapping[int, np.ndarray] = field(default_factory=dict)
+    value_images: Mapping[str, np.ndarray] = field(default_factory=dict)
+    surfaces: list[int] = field(default_factory=list)
     ok: bool = True
 
 
@@ -180,7 +212,16 @@ class SensoryProcessor:
         self._class_index = {n: i for i, n in enumerate(self.class_names)}
         self.ground_id: int | None = None
         self.track_class: dict[int, tuple[str | None, float]] = {}
-        self.track_list: dict[int, int] = {}  # object id -> its boundary list id
+        self.class_table = ClassTable()  # entity id -> class index, for the class images
+        self._list_lut = np.full(1024, -1, dtype=np.int64)  # owner * 4 + kind -> list slot
+        self._list_ids = np.zeros(0, dtype=np.int64)  # list slot -> list frame id
+        self._lists_of: dict[int, list[int]] = {}  # owner id -> its list ids
+        self._list_classifier = Classifier(kd.classes, Level.LIST, self.config.classify)
+        self.surface_tracker = SurfaceTracker(self.config.surfaces)
+        self._surface_contact: dict[int, int] = {}  # free surface id -> its contact list id
+        self._free_px = np.zeros((0, 0), dtype=bool)
+        self._values: tuple[int, dict[str, np.ndarray]] = (-1, {})
+        self._sweep = 0
         self.track_surface: dict[int, tuple[int, int]] = {}  # object -> (face, contact) ids
         self._surface_classifier = Classifier(kd.classes, Level.SURFACE, self.config.classify)
         self.groups: dict[int, frozenset[int]] = {}
@@ -325,9 +366,22 @@ class SensoryProcessor:
         image3 = np.full((H, W), -1, dtype=np.int64)
         image3[ground] = self._ground_entity(t_ns, xyz_w[ground], T_world_ladar)
         image3, contact = self._surfaces(t_ns, image3, labels, attrs, obj_ids, ground)
-        image2 = self._lists(t_ns, image4, image3, rng, valid) if cfg.lists else image3 * 0 - 1
+        in_object = self._confirmed_pixels(image4)
+        surfaces: list[int] = []
+        self._free_px = np.zeros((H, W), dtype=bool)  # pixels of free surfaces (patches)
+        if cfg.free_surfaces:
+            free = valid & ~ground & ~in_object & (image3 < 0)
+            image3, surfaces = self._free_surfaces(
+                t_ns, image3, contact, xyz_g, free, ground, T_world_ladar, row_el
+            )
+        clock.lap("level3")
+        image2 = np.full((H, W), -1, dtype=np.int64)
+        if cfg.lists:
+            owner = np.where(in_object, image4, image3)
+            image2 = self._lists(t_ns, owner, rng, valid, img.intensity[..., 0])
         image2[contact >= 0] = contact[contact >= 0]
-        clock.lap("level3+2")
+        self._sweep += 1
+        clock.lap("level2")
         image5, events_g = self._groups(t_ns, image4)
         events += events_g
         clock.lap("groups")
@@ -337,14 +391,18 @@ class SensoryProcessor:
         self._attention = (has & np.isin(image4, self._born_ids)) | provisional
         flat = np.flatnonzero(valid.reshape(-1))
         pe = image4.reshape(-1)[flat]
-        class_img = self._class_image(image4, ground)
+        entity_images = {2: image2, 3: image3, 4: image4, 5: image5}
+        class_images, values, point_class = self._class_images(entity_images, flat)
         result = SPResult(
             t_ns=t_ns,
-            entity_images={2: image2, 3: image3, 4: image4, 5: image5},
+            entity_images=entity_images,
+            class_images=class_images,
+            value_images=values,
+            surfaces=surfaces,
             ground_mask=ground,
             points_world=xyz_w.reshape(-1, 3)[flat].astype(np.float32),
             point_entity_ids=pe,
-            point_class_ids=class_img.reshape(-1)[flat],
+            point_class_ids=point_class,
             objects=[int(i) for i in np.unique(pe[pe >= 0])],
             events=events,
             timings_s={},
@@ -512,6 +570,8 @@ class SensoryProcessor:
             self.track_class.pop(int(tid), None)
             for part in self.track_surface.pop(int(tid), ()):
                 kd.update_entity(part, status=Status.GONE)  # the object's face goes with it
+            for part in self._lists_of.pop(int(tid), ()):
+                kd.update_entity(part, status=Status.GONE)  # and its lists
         self._provisional_segments = np.flatnonzero(track_of == -2)
         # object id per segment
         ids_all = np.concatenate([tr.id])
@@ -544,6 +604,7 @@ class SensoryProcessor:
                 self.track_class[tid] = (old, m.score)
                 continue
             self.track_class[tid] = (m.name, m.score)
+            self._set_class(tid, m.name)
             proto = kd.classes.get(m.name)
             specific = m.name if proto.kind == kd_store.ClassKind.SPECIFIC else None
             kd.update_entity(tid, generic_classes=m.generic, specific_class=specific)
@@ -561,21 +622,44 @@ class SensoryProcessor:
                 self._class_index = {n: i for i, n in enumerate(self.class_names)}
         return events
 
-    def _class_image(self, image4: np.ndarray, ground: np.ndarray) -> np.ndarray:
-        out = np.full(image4.shape, -1, dtype=np.int32)
-        if "ground" in self._class_index:
-            out[ground] = self._class_index["ground"]
-        ids = np.unique(image4[image4 >= 0])
-        if ids.size:
-            codes = np.array(
-                [self._class_index.get(self.track_class.get(int(i), (None, 0))[0], -1) for i in ids]
-                if ids.size
-                else [],
-                dtype=np.int32,
-            )
-            has = image4 >= 0
-            out[has] = codes[np.searchsorted(ids, image4[has])]
-        return out
+    def _set_class(self, entity_id: int, name: str | None) -> None:
+        """Point ``entity_id``'s pixels in the class images at class ``name``."""
+        self.class_table.set([entity_id], [self._class_index.get(name, -1) if name else -1])
+
+    def _class_images(
+        self, entity_images: dict[int, np.ndarray], flat: np.ndarray
+    ) -> tuple[Mapping[int, np.ndarray], Mapping[str, np.ndarray], np.ndarray]:
+        """Class images per level and value images of the level-4/3 composite, made when
+        first asked for from this cycle's classes (a copy of the class table), and the class
+        of each valid pixel ``flat`` in the composite (its object's, else its surface's)."""
+        lut = self.class_table.lut.copy()
+        classes = LazyImages(entity_images, lambda k: class_image(lut, entity_images[k]))
+
+        def composite() -> np.ndarray:
+            c4 = classes[4]
+            return np.where(c4 >= 0, c4, classes[3])
+
+        tables = self._value_tables()
+        values = LazyImages(tables, lambda n: value_images(composite(), {n: tables[n]})[n])
+        c4 = class_image(lut, entity_images[4].reshape(-1)[flat])
+        c3 = class_image(lut, entity_images[3].reshape(-1)[flat])
+        return classes, values, np.where(c4 >= 0, c4, c3)
+
+    def _value_tables(self) -> dict[str, np.ndarray]:
+        """Value of every class of ``class_names`` (cached until a class is founded)."""
+        if self._values[0] != len(self.class_names):
+            self._values = (len(self.class_names), class_values(self.kd.classes, self.class_names))
+        return self._values[1]
+
+    def _confirmed_pixels(self, image4: np.ndarray) -> np.ndarray:
+        """(H, W) bool pixels of confirmed objects (one gather through a table by id)."""
+        tr = self.tracker.tracks
+        ids = tr.id[(tr.status == TrackStatus.CONFIRMED) & (tr.id >= 0)]
+        if ids.size == 0:
+            return np.zeros(image4.shape, dtype=bool)
+        lut = np.zeros(max(int(ids.max()), int(image4.max(initial=0))) + 1, dtype=bool)
+        lut[ids] = True
+        return lut[np.maximum(image4, 0)] & (image4 >= 0)
 
     # ------------------------------------------------------------------ level 3 and 2
 
@@ -590,6 +674,7 @@ class SensoryProcessor:
                 status=Status.CONFIRMED,
                 confidence=1.0,
             ).id
+            self._set_class(self.ground_id, "ground")
         gid = self.ground_id
         near = pts_w[np.linalg.norm(pts_w[:, :2] - T_world_ladar[:2, 3], axis=1) < 20.0]
         if near.shape[0] >= 10:
@@ -649,6 +734,7 @@ class SensoryProcessor:
                 attributes={k: Attribute(observed=v) for k, v in attrs.items()},
                 generic_classes=m.generic,
             )
+            self._set_class(int(face_of[s]), m.name)
         face = face_of[labels]  # labels -1 picks the last entry: no face
         image3 = np.where(face >= 0, face, image3)
         above_ground = np.zeros_like(ground)
@@ -681,45 +767,206 @@ class SensoryProcessor:
             self.track_surface[oid] = (sid, bid)
         return self.track_surface[oid]
 
+    def _free_surfaces(
+        self,
+        t_ns: int,
+        image3: np.ndarray,
+        contact: np.ndarray,
+        xyz_g: np.ndarray,
+        free: np.ndarray,
+        ground: np.ndarray,
+        T_world_ladar: np.ndarray,
+        row_el: np.ndarray,
+    ) -> tuple[np.ndarray, list[int]]:
+        """Level 3 beyond the ground and the objects: the ``free`` pixels (valid, not ground,
+        in no confirmed object) are fitted with surface patches on a coarse grid (level 2),
+        coplanar neighbouring patches grouped into surfaces (:func:`group_patches`), and each
+        surface continued from the last sweeps by its plane and centroid
+        (:class:`SurfaceTracker`) so its id persists; it is confirmed after
+        ``confirm_hits`` sweeps and classified among the level-3 prototypes (ground, road,
+        wall ...). Where a surface stands on the ground, its pixels just above a ground pixel
+        are its contact boundary, a level-2 list belonging to the surface and lying on the
+        ground (written into ``contact``). Returns (image3 with the surfaces, their ids)."""
+        cfg = self.config
+        kd = self.kd
+        H, W = free.shape
+        tracker = self.surface_tracker
+        for sid in tracker.forget(t_ns):
+            self._surface_gone(int(sid))
+        grid = patch_grid(xyz_g, free, cfg.list_config)
+        obs = group_patches(grid, 2 * math.pi / W, _row_step(row_el), cfg.surfaces)
+        if len(obs) == 0:
+            return image3, []
+        # the free pixels of the blocks grouped into surfaces, and their surface index
+        px = np.flatnonzero(free.reshape(-1))
+        row, col = np.divmod(px, W)
+        bh, bw = grid.block
+        lab = obs.label[(row // bh) * grid.shape[1] + col // bw]
+        px, row, lab = px[lab >= 0], row[lab >= 0], lab[lab >= 0]
+        self._free_px.reshape(-1)[px] = True
+        c_w = obs.centroid + T_world_ladar[:3, 3]
+        index = tracker.match(obs.normal, c_w, obs.area_m2)
+        n_new = int(np.count_nonzero(index < 0))
+        new_ids = np.array(
+            [
+                kd.add_entity(
+                    f"surface@{t_ns}",
+                    Level.SURFACE,
+                    images=(IMAGE_NAMES[3],),
+                    status=Status.HYPOTHESIZED,
+                    confidence=0.3,
+                ).id
+                for _ in range(n_new)
+            ],
+            dtype=np.int64,
+        )
+        ids = tracker.update(index, new_ids, obs.normal, c_w, obs.extent_m, t_ns)
+        hits = tracker.hits[np.searchsorted(tracker.ids, ids)]
+        rows = [
+            {
+                "slope_rad": float(obs.slope_rad[k]),
+                "roughness_m": float(obs.roughness_m[k]),
+                "height_m": float(obs.height_m[k]),
+                "area_m2": float(obs.area_m2[k]),
+                "range_m": float(np.linalg.norm(obs.centroid[k])),
+                "azimuth_rad": float(obs.azimuth_rad[k]),
+                "n_pixels": float(obs.n_pixels[k]),
+            }
+            for k in range(len(obs))
+        ]
+        matches = self._surface_classifier.classify_many(rows)
+        self.class_table.set(ids, [self._class_index.get(m.name or "", -1) for m in matches])
+        due = self._due(ids) | (index < 0) | (hits == cfg.surfaces.confirm_hits)
+        for k in np.flatnonzero(due):
+            sid = int(ids[k])
+            confirmed = hits[k] >= cfg.surfaces.confirm_hits
+            kd.update_entity(
+                sid,
+                attributes={n: Attribute(observed=v) for n, v in rows[k].items()},
+                generic_classes=matches[k].generic,
+                status=Status.CONFIRMED if confirmed else Status.HYPOTHESIZED,
+                confidence=_unit(hits[k] / (hits[k] + 2.0)),
+            )
+            last = kd.get(sid).state
+            if last is None or last.t_ns < t_ns:
+                kd.observe(sid, kd_store.State(t_ns, "world", c_w[k]))
+        # ground contact: a surface pixel just above a ground pixel
+        low = row < H - 1
+        touch = np.zeros(px.size, dtype=bool)
+        touch[low] = ground.reshape(-1)[px[low] + W]
+        if touch.any() and self.ground_id is not None:
+            boundary = np.full(len(obs), -1, dtype=np.int64)
+            for k in np.unique(lab[touch]):
+                boundary[k] = self._contact_of(int(ids[k]), t_ns)
+            contact.reshape(-1)[px[touch]] = boundary[lab[touch]]
+        image3.reshape(-1)[px] = ids[lab]
+        return image3, [int(i) for i in ids]
+
+    def _due(self, ids: np.ndarray) -> np.ndarray:
+        """(n,) bool: frames rewritten this sweep. List and surface frames are rewritten in
+        turn, each every ``kd_refresh_sweeps`` sweeps (the pipeline's tables and images hold
+        the latest), so the KD writes per sweep stay a fixed share of the entities."""
+        return (ids % self.config.kd_refresh_sweeps) == (
+            self._sweep % self.config.kd_refresh_sweeps
+        )
+
+    def _contact_of(self, sid: int, t_ns: int) -> int:
+        """The contact boundary list of free surface ``sid`` with the ground, made on first
+        sight: it belongs to the surface and lies on the ground."""
+        if sid not in self._surface_contact:
+            kd = self.kd
+            bid = kd.add_entity(
+                f"contact of {sid}",
+                Level.LIST,
+                images=(IMAGE_NAMES[2],),
+                status=Status.CONFIRMED,
+                confidence=1.0,
+            ).id
+            kd.relate(bid, "belongs_to", sid, t_ns=t_ns)
+            if self.ground_id is not None:
+                kd.relate(bid, "on_top_of", self.ground_id, t_ns=t_ns)
+            self._surface_contact[sid] = bid
+            self._set_class(bid, "range_edge")
+        return self._surface_contact[sid]
+
+    def _surface_gone(self, sid: int) -> None:
+        """A free surface unseen for ``forget_s``: it and its lists are gone."""
+        self.kd.update_entity(sid, status=Status.GONE)
+        parts = self._lists_of.pop(sid, [])
+        if sid in self._surface_contact:
+            parts.append(self._surface_contact.pop(sid))
+        for lid in parts:
+            self.kd.update_entity(lid, status=Status.GONE)
+
     def _lists(
         self,
         t_ns: int,
-        image4: np.ndarray,
-        image3: np.ndarray,
-        rng: np.ndarray,
+        owner: np.ndarray,
+        rng: np.ndarray,  # (H, W) range m, inf where empty
         valid: np.ndarray,
+        intensity: np.ndarray,
     ) -> np.ndarray:
-        """Level 2: range-edge pixels, each labelled by the boundary list of the confirmed
-        object (or the ground) it lies on; the list belongs to that object."""
+        """Level 2: list entities on the pixels of ``owner`` ((H, W) int64 id of the confirmed
+        object, else the level-3 surface, each pixel is on; -1 none). Range edges, brightness
+        edges (:func:`brightness_edges`, off the range edges), vertices (edge ends and
+        junctions, :func:`edge_branches`) and the surface patches of the free surfaces.
+
+        One list entity per (owner, kind), made on first sight and kept while its owner
+        lives: "the range edges of object 12" rather than one frame per edge piece per sweep.
+        Edge pieces split and join from sweep to sweep as the view changes, so frames of
+        single pieces would be born and die every cycle with nothing to track; per (owner,
+        kind) the frames are bounded by four per owner, persist as long as their owner, and
+        their attributes (integrated over all the pixels of that kind on the owner) are
+        stable enough to filter and classify. The individual pieces stay visible in the
+        level-2 image. Returns the (H, W) int64 level-2 entity image."""
+        cfg = self.config
         kd = self.kd
-        edge = range_edges(np.where(valid, rng, np.nan), valid, self.config.segments)
-        out = np.full(image4.shape, -1, dtype=np.int64)
-        tr = self.tracker.tracks
-        owners = [int(i) for i in tr.id[tr.status == TrackStatus.CONFIRMED]]
-        if self.ground_id is not None:
-            owners.append(self.ground_id)
-        for oid in owners:
-            if oid not in self.track_list:
+        r_edge = range_edges(rng, valid, cfg.segments)
+        b_edge = brightness_edges(intensity, valid, cfg.list_config) & ~r_edge
+        patch = self._free_px if self._free_px.shape == owner.shape else np.zeros_like(valid)
+        slots, branches, missing = list_slots(owner, r_edge, b_edge, patch, self._list_lut)
+        first_new = self._list_ids.size
+        if missing.size:
+            if int(missing.max()) >= self._list_lut.size:
+                grown = np.full(max(int(missing.max()) + 1, 2 * self._list_lut.size), -1, np.int64)
+                grown[: self._list_lut.size] = self._list_lut
+                self._list_lut = grown
+            new = []
+            for k in missing:
+                oid, kd_kind = divmod(int(k), len(ListKind))
                 lid = kd.add_entity(
-                    f"boundary of {oid}",
+                    f"{KIND_CLASS[ListKind(kd_kind)]} of {oid}",
                     Level.LIST,
                     images=(IMAGE_NAMES[2],),
                     status=Status.CONFIRMED,
                     confidence=1.0,
                 ).id
                 kd.relate(lid, "belongs_to", oid, t_ns=t_ns)
-                self.track_list[oid] = lid
-        if not owners:
-            return out
-        owner_img = np.where(image4 >= 0, image4, image3)
-        on = edge & (owner_img >= 0)
-        keys = np.array(sorted(self.track_list), dtype=np.int64)
-        vals = np.array([self.track_list[int(k)] for k in keys], dtype=np.int64)
-        o = owner_img[on]
-        pos = np.clip(np.searchsorted(keys, o), 0, keys.size - 1)
-        hit = keys[pos] == o
-        lab = np.where(hit, vals[pos], -1)
-        out[on] = lab
+                self._list_lut[k] = first_new + len(new)
+                self._lists_of.setdefault(oid, []).append(lid)
+                new.append(lid)
+            self._list_ids = np.r_[self._list_ids, np.array(new, dtype=np.int64)]
+            slots, branches, _ = list_slots(owner, r_edge, b_edge, patch, self._list_lut)
+        if self._list_ids.size == 0:
+            return np.full(owner.shape, -1, dtype=np.int64)
+        edge = r_edge | b_edge
+        # attributes of every list seen (one compiled pass); classes and frames of those due
+        # this sweep and the new ones
+        sums = list_sums(slots, rng, intensity, edge, branches, self._list_ids.size)
+        a = list_attributes(sums, 2 * math.pi / owner.shape[1], _mean_valid(intensity, valid))
+        ids = self._list_ids[a.ids]
+        due = self._due(ids) | (a.ids >= first_new)
+        out = np.where(slots >= 0, self._list_ids[np.maximum(slots, 0)], -1)
+        rows = [r for r, d in zip(a.as_dicts(), due, strict=True) if d]
+        matches = self._list_classifier.classify_many(rows)
+        ids = ids[due]
+        self.class_table.set(ids, [self._class_index.get(m.name or "", -1) for m in matches])
+        for i, r, m in zip(ids, rows, matches, strict=True):
+            kd.update_entity(
+                int(i),
+                attributes={n: Attribute(observed=v) for n, v in r.items()},
+                generic_classes=m.generic,
+            )
         return out
 
     # ------------------------------------------------------------------ level 5
@@ -793,6 +1040,7 @@ class SensoryProcessor:
             {n: a.observed for n, a in attrs.items()}
         )
         self.kd.update_entity(gid, attributes=attrs, generic_classes=m.generic)
+        self._set_class(gid, m.name)
         last = self.kd.get(gid).state
         t = max(t_ns, last.t_ns + 1) if last is not None else t_ns
         self.kd.observe(gid, kd_store.State(t, "world", p.mean(axis=0), velocity_xyz=v.mean(0)))
@@ -854,6 +1102,12 @@ def status_code(s: Status) -> int:
 
 def _unit(x: float) -> float:
     return float(min(max(x, 0.0), 1.0))
+
+
+def _mean_valid(x: np.ndarray, valid: np.ndarray) -> float:
+    """Mean of ``x`` over the ``valid`` pixels (1.0 when there are none)."""
+    n = int(np.count_nonzero(valid))
+    return float(np.where(valid, x, 0.0).sum(dtype=np.float64)) / n if n else 1.0
 
 
 def _with_min(cfg: SegmentConfig, min_pixels: int) -> SegmentConfig:

@@ -1,0 +1,563 @@
+"""Level 2 of SP: list entities (edges, vertices, surface patches) on the egosphere image.
+
+Reference 001, 4.5.6 "Level 2 Regions: List entities and events": a group of pixels with
+contiguous range or brightness gradients is an edge, "vertices of various kinds" (T, Y, V or
+line-end) are where edges meet or end, and a surface patch is a small group of pixels with
+similar range and orientation (attributes: area, texture, average range, average surface
+gradient, average colour). Level 3 groups the patches into surfaces ("a set of contiguous
+surface patch list entities with similar range and motion", same section, Level 3 Grouping).
+
+The pixel-level primitives live here, as numpy / OpenCV over the whole image at once:
+
+* :func:`brightness_edges`: Canny on the LADAR intensity image, masked to pixels whose 3x3
+  neighbourhood is all valid (an edge of the valid region is not a brightness edge);
+* :func:`edge_branches`: the crossing number of each edge pixel (how many edge branches leave
+  it: 1 a line end, 2 inside an edge, 3 a T or Y, 4 and more a cross), from which vertices;
+* :func:`patch_grid`: a plane fitted to the pixels of each block of a coarse grid (``rows x
+  cols`` pixels), with its normal, roughness, centroid and extent;
+* :func:`list_sums` then :func:`list_attributes`: attributes integrated over the pixels of
+  each list entity.
+
+:func:`block_moments` and :func:`list_sums` are compiled single passes over the image
+(numba; compiled on first call, cached on disk); ``*_numpy`` are their references.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import cv2
+import numba
+import numpy as np
+
+
+class ListError(ValueError):
+    """An image, mask or grid of the wrong shape or size; names it."""
+
+
+class ListKind(IntEnum):
+    """Kinds of list entity; the value is the slot in the per-owner table."""
+
+    RANGE_EDGE = 0
+    BRIGHTNESS_EDGE = 1
+    VERTEX = 2
+    SURFACE_PATCH = 3
+
+
+KIND_CLASS = {
+    ListKind.RANGE_EDGE: "range_edge",
+    ListKind.BRIGHTNESS_EDGE: "brightness_edge",
+    ListKind.VERTEX: "vertex",
+    ListKind.SURFACE_PATCH: "surface_patch",
+}
+
+
+@dataclass(frozen=True)
+class ListConfig:
+    """canny_low, canny_high: Canny thresholds on the intensity image scaled so that its mean
+    valid intensity is 100 (so a step of half the mean brightness is 50 grey levels);
+    patch_rows, patch_cols: block size of the patch grid (pixels); min_patch_pixels: fewer valid
+    pixels in a block make no patch; max_patch_roughness_m: a block whose points scatter more
+    than this off their plane is no patch (clutter, foliage)."""
+
+    canny_low: float = 40.0
+    canny_high: float = 80.0
+    patch_rows: int = 4
+    patch_cols: int = 16
+    min_patch_pixels: int = 8
+    max_patch_roughness_m: float = 0.15
+
+
+def brightness_edges(
+    intensity: np.ndarray, valid: np.ndarray, config: ListConfig | None = None
+) -> np.ndarray:
+    """(H, W) bool pixels on a brightness edge of ``intensity`` ((H, W) sensor units, any
+    value where not ``valid``). Intensity is scaled by its mean over the valid pixels, so the
+    thresholds are relative (a reflectance step, whatever the sensor's units)."""
+    cfg = config or ListConfig()
+    if intensity.shape != valid.shape or intensity.ndim != 2:
+        raise ListError(f"intensity {intensity.shape} and valid {valid.shape} must be one (H, W)")
+    n = int(np.count_nonzero(valid))
+    if n == 0:
+        return np.zeros(valid.shape, dtype=bool)
+    i = np.where(valid, intensity, 0.0).astype(np.float32)
+    mean = float(i.sum(dtype=np.float64)) / n
+    if not mean > 0.0:
+        return np.zeros(valid.shape, dtype=bool)
+    img8 = cv2.convertScaleAbs(i, alpha=100.0 / mean)
+    edge = cv2.Canny(img8, cfg.canny_low, cfg.canny_high, L2gradient=True) > 0
+    inner = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0
+    return edge & inner
+
+
+_RING = ((-1, -1), (-1, 0), (-1, 1), (0, 1), (1, 1), (1, 0), (1, -1), (0, -1))
+
+
+def edge_branches(edge: np.ndarray) -> np.ndarray:
+    """(H, W) int8 crossing number of every edge pixel (0 off the edges): the number of
+    off-to-on steps walking once round its 8 neighbours, i.e. the edge branches that leave
+    the pixel (1 a line end, 2 the inside of an edge, >= 3 a junction: T, Y or X vertex).
+    An isolated edge pixel has 0. Pixels beyond the image border count as off."""
+    if edge.ndim != 2:
+        raise ListError(f"edge image must be (H, W), got {edge.shape}")
+    p = np.pad(edge, 1)
+    H, W = edge.shape
+    ring = [p[1 + di : 1 + di + H, 1 + dj : 1 + dj + W] for di, dj in _RING]
+    n = np.zeros((H, W), dtype=np.int8)
+    for a, b in zip(ring, ring[1:] + ring[:1], strict=True):
+        n += ~a & b
+    return np.where(edge, n, 0).astype(np.int8)
+
+
+def vertices(branches: np.ndarray) -> np.ndarray:
+    """(H, W) bool vertex pixels: edge ends (1 branch) and junctions (>= 3 branches)."""
+    return (branches == 1) | (branches >= 3)
+
+
+@dataclass
+class PatchGrid:
+    """A plane fitted to each block of the patch grid (B = blocks, row-major over the grid
+    (n_block_rows, n_block_cols)); all in the frame of the points given (metres).
+
+    n:          (B,) int64 pixels fitted.
+    ok:         (B,) bool the block is a patch (enough pixels, planar, not rough).
+    centroid:   (B, 3) float64 mean point.
+    normal:     (B, 3) float64 unit normal (smallest scatter axis), pointing towards the
+                sensor origin; zero for blocks with too few pixels to fit.
+    roughness_m: (B,) float64 standard deviation of the points off the plane.
+    z_min, z_max: (B,) float64 lowest and highest point.
+    shape:      (n_block_rows, n_block_cols).
+    block:      (rows, cols) pixels per block.
+    """
+
+    n: np.ndarray
+    ok: np.ndarray
+    centroid: np.ndarray
+    normal: np.ndarray
+    roughness_m: np.ndarray
+    z_min: np.ndarray
+    z_max: np.ndarray
+    shape: tuple[int, int]
+    block: tuple[int, int]
+
+    def block_of_pixel(self, H: int, W: int) -> np.ndarray:
+        """(H, W) int64 block index of every pixel."""
+        bh, bw = self.block
+        rows = np.arange(H) // bh
+        cols = np.arange(W) // bw
+        return rows[:, None] * self.shape[1] + cols[None, :]
+
+
+MOMENTS = ("n", "sx", "sy", "sz", "sxx", "sxy", "sxz", "syy", "syz", "szz", "z_min", "z_max")
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_moments_kernel(
+    xyz: np.ndarray, mask: np.ndarray, bh: int, bw: int, nbc: int, out: np.ndarray
+) -> None:
+    H, W = mask.shape
+    for i in range(H):
+        row = (i // bh) * nbc
+        for j in range(W):
+            if not mask[i, j]:
+                continue
+            b = row + j // bw
+            x, y, z = float(xyz[i, j, 0]), float(xyz[i, j, 1]), float(xyz[i, j, 2])
+            out[b, 0] += 1.0
+            out[b, 1] += x
+            out[b, 2] += y
+            out[b, 3] += z
+            out[b, 4] += x * x
+            out[b, 5] += x * y
+            out[b, 6] += x * z
+            out[b, 7] += y * y
+            out[b, 8] += y * z
+            out[b, 9] += z * z
+            out[b, 10] = min(out[b, 10], z)
+            out[b, 11] = max(out[b, 11], z)
+
+
+def _moments_init(nbr: int, nbc: int) -> np.ndarray:
+    out = np.zeros((nbr * nbc, len(MOMENTS)))
+    out[:, 10] = np.inf
+    out[:, 11] = -np.inf
+    return out
+
+
+def block_moments(xyz: np.ndarray, mask: np.ndarray, bh: int, bw: int) -> np.ndarray:
+    """(B, 12) float64 sums over the ``mask`` pixels of each block of ``bh x bw`` pixels
+    (B row-major over the block grid, partial blocks at the right and bottom included):
+    the count, the sums of x, y, z and of their six products (:data:`MOMENTS` order), the
+    lowest and highest z (inf / -inf for an empty block). One compiled pass over the image;
+    :func:`block_moments_numpy` is its reference."""
+    H, W = mask.shape
+    nbr, nbc = -(-H // bh), -(-W // bw)
+    out = _moments_init(nbr, nbc)
+    _block_moments_kernel(
+        np.ascontiguousarray(xyz), np.ascontiguousarray(mask, dtype=np.bool_), bh, bw, nbc, out
+    )
+    return out
+
+
+def block_moments_numpy(xyz: np.ndarray, mask: np.ndarray, bh: int, bw: int) -> np.ndarray:
+    """Reference of :func:`block_moments` in plain numpy (one bincount per moment)."""
+    H, W = mask.shape
+    nbc = -(-W // bw)
+    nbr = -(-H // bh)
+    rows, cols = np.nonzero(mask)
+    b = (rows // bh) * nbc + cols // bw
+    p = xyz[rows, cols].astype(np.float64)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    B = nbr * nbc
+    out = _moments_init(nbr, nbc)
+    terms = [np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z]
+    for k, t in enumerate(terms):
+        out[:, k] = np.bincount(b, weights=t, minlength=B)
+    np.minimum.at(out[:, 10], b, z)
+    np.maximum.at(out[:, 11], b, z)
+    return out
+
+
+def patch_grid(xyz: np.ndarray, mask: np.ndarray, config: ListConfig | None = None) -> PatchGrid:
+    """Fit a plane to the ``mask`` pixels of every block: ``xyz`` (H, W, 3) points in a frame
+    whose origin is the sensor (the sensor or the gravity-aligned sensor frame, metres; the
+    sums are taken there, where coordinates stay small), ``mask`` (H, W) bool. A block is a
+    patch with at least ``min_patch_pixels`` pixels spread in two directions (middle scatter
+    axis over 5 cm) and a roughness under ``max_patch_roughness_m``."""
+    cfg = config or ListConfig()
+    if xyz.shape != (*mask.shape, 3):
+        raise ListError(f"xyz {xyz.shape} does not match mask {mask.shape}")
+    bh, bw = cfg.patch_rows, cfg.patch_cols
+    H, W = mask.shape
+    m = block_moments(xyz, mask, bh, bw)
+    n = m[:, 0]
+    k = np.maximum(n, 1.0)
+    mean = m[:, 1:4] / k[:, None]
+    cov = np.empty((n.size, 3, 3))
+    for (a, b), col in zip(
+        ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)), range(4, 10), strict=True
+    ):
+        cov[:, a, b] = cov[:, b, a] = m[:, col] / k - mean[:, a] * mean[:, b]
+    # the scatter's axes, only where there are enough pixels for a patch
+    fit = np.flatnonzero(n >= cfg.min_patch_pixels)
+    w = np.zeros((n.size, 3))
+    normal = np.zeros((n.size, 3))
+    if fit.size:
+        w[fit], v = np.linalg.eigh(cov[fit])
+        normal[fit] = v[:, :, 0]
+    flip = np.einsum("ij,ij->i", normal, mean) > 0.0  # point towards the sensor at the origin
+    normal[flip] *= -1.0
+    rough = np.sqrt(np.maximum(w[:, 0], 0.0))
+    spread = np.sqrt(np.maximum(w[:, 1], 0.0))
+    ok = (n >= cfg.min_patch_pixels) & (spread > 0.05) & (rough <= cfg.max_patch_roughness_m)
+    return PatchGrid(
+        n=n.astype(np.int64),
+        ok=ok,
+        centroid=mean,
+        normal=normal,
+        roughness_m=rough,
+        z_min=m[:, 10],
+        z_max=m[:, 11],
+        shape=(-(-H // bh), -(-W // bw)),
+        block=(bh, bw),
+    )
+
+
+@dataclass
+class ListAttributes:
+    """Attributes of L list entities integrated over their pixels (arrays (L,)).
+
+    ids:           int64 list entity ids (sorted).
+    n_pixels:      int64 pixels this sweep.
+    range_m:       mean range (m).
+    size_m:        pixels times their mean footprint (range x azimuth step, m): an edge's
+                   length, a patch list's extent along the image.
+    range_jump_m:  mean over pixels of the largest range step to a 4-neighbour (m).
+    contrast:      mean over pixels of the largest intensity step to a 4-neighbour over the
+                   image's mean intensity (dimensionless).
+    edge_share:    share of pixels on a range or brightness edge.
+    vertex_share:  share of pixels that are vertices (1 or >= 3 branches).
+    branches:      mean crossing number of the pixels (vertex type: 1 end, 3 T/Y, 4 X).
+    orientation_rad: direction of the pixels' principal axis in the image (0 along a row,
+                   pi/2 along a column), in [0, pi).
+    """
+
+    ids: np.ndarray
+    n_pixels: np.ndarray
+    range_m: np.ndarray
+    size_m: np.ndarray
+    range_jump_m: np.ndarray
+    contrast: np.ndarray
+    edge_share: np.ndarray
+    vertex_share: np.ndarray
+    branches: np.ndarray
+    orientation_rad: np.ndarray
+
+    def as_dicts(self) -> list[dict[str, float]]:
+        """One attribute dict (name -> value) per entity, for the classifier and the KD."""
+        names = [
+            "n_pixels", "range_m", "size_m", "range_jump_m", "contrast", "edge_share",
+            "vertex_share", "branches", "orientation_rad",
+        ]  # fmt: skip
+        cols = [getattr(self, k).astype(np.float64) for k in names]
+        return [
+            dict(zip(names, (float(c[i]) for c in cols), strict=True)) for i in range(len(self.ids))
+        ]
+
+
+_RING_DI = np.array([di for di, _ in _RING] + [_RING[0][0]], dtype=np.int64)
+_RING_DJ = np.array([dj for _, dj in _RING] + [_RING[0][1]], dtype=np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _list_slots_kernel(
+    owner: np.ndarray,
+    range_edge: np.ndarray,
+    brightness_edge: np.ndarray,
+    patch: np.ndarray,
+    lut: np.ndarray,
+    branches: np.ndarray,
+    slots: np.ndarray,
+    missing: np.ndarray,
+) -> int:
+    H, W = owner.shape
+    n_kinds = 4
+    n_missing = 0
+    for i in range(H):
+        for j in range(W):
+            br = 0
+            if range_edge[i, j] or brightness_edge[i, j]:
+                # crossing number round the 8 neighbours (off beyond the border); the walk
+                # ends where it started, so every off-to-on step is counted once
+                prev = False
+                for k in range(9):
+                    a, b = i + _RING_DI[k], j + _RING_DJ[k]
+                    on = False
+                    if 0 <= a < H and 0 <= b < W:
+                        on = range_edge[a, b] or brightness_edge[a, b]
+                    if k > 0 and on and not prev:
+                        br += 1
+                    prev = on
+            branches[i, j] = br
+            o = owner[i, j]
+            kind = -1
+            if br == 1 or br >= 3:
+                kind = 2  # vertex
+            elif range_edge[i, j]:
+                kind = 0
+            elif brightness_edge[i, j]:
+                kind = 1
+            elif patch[i, j]:
+                kind = 3
+            slot = -1
+            if kind >= 0 and o >= 0:
+                key = o * n_kinds + kind
+                if key < lut.size:
+                    slot = lut[key]
+                if slot < 0:
+                    if n_missing < missing.size:
+                        missing[n_missing] = key
+                    n_missing += 1
+            slots[i, j] = slot
+    return n_missing
+
+
+def list_slots(
+    owner: np.ndarray,
+    range_edge: np.ndarray,
+    brightness_edge: np.ndarray,
+    patch: np.ndarray,
+    lut: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The list each pixel belongs to, in one compiled pass: its kind (a vertex where the
+    edge crossing number is 1 or >= 3, else a range edge, a brightness edge, or a surface
+    patch where ``patch``), the key ``owner * 4 + kind`` of its (owner, kind) list, and
+    that list's slot ``lut[key]``. ``owner`` (H, W) int64 (-1 none); the three masks (H, W)
+    bool; ``lut`` (K,) int64 key -> slot (-1 none). Returns (slots (H, W) int64 (-1 none,
+    also where the key has no slot yet), branches (H, W) int8 from :func:`edge_branches`, the
+    sorted keys that have no slot). :func:`list_slots_numpy` is its reference."""
+    H, W = owner.shape
+    slots = np.empty((H, W), dtype=np.int64)
+    branches = np.empty((H, W), dtype=np.int8)
+    args = (
+        np.ascontiguousarray(owner, dtype=np.int64),
+        np.ascontiguousarray(range_edge, dtype=np.bool_),
+        np.ascontiguousarray(brightness_edge, dtype=np.bool_),
+        np.ascontiguousarray(patch, dtype=np.bool_),
+        np.ascontiguousarray(lut, dtype=np.int64),
+    )
+    missing = np.empty(256, dtype=np.int64)
+    n = _list_slots_kernel(*args, branches, slots, missing)
+    if n > missing.size:  # more pixels without a list than the buffer holds: once more
+        missing = np.empty(n, dtype=np.int64)
+        n = _list_slots_kernel(*args, branches, slots, missing)
+    return slots, branches, np.unique(missing[:n])
+
+
+def list_slots_numpy(
+    owner: np.ndarray,
+    range_edge: np.ndarray,
+    brightness_edge: np.ndarray,
+    patch: np.ndarray,
+    lut: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reference of :func:`list_slots` in plain numpy."""
+    branches = edge_branches(range_edge | brightness_edge)
+    kind = np.full(owner.shape, -1, dtype=np.int64)
+    kind[patch] = ListKind.SURFACE_PATCH
+    kind[brightness_edge] = ListKind.BRIGHTNESS_EDGE
+    kind[range_edge] = ListKind.RANGE_EDGE
+    kind[vertices(branches)] = ListKind.VERTEX
+    on = (kind >= 0) & (owner >= 0)
+    key = owner * len(ListKind) + kind
+    inside = on & (key < lut.size)
+    slots = np.full(owner.shape, -1, dtype=np.int64)
+    slots[inside] = lut[key[inside]]
+    return slots, branches, np.unique(key[on & (slots < 0)])
+
+
+SUMS = ("n", "range", "range_step", "inten_step", "edge", "vertex", "branches", "r", "c",
+        "rr", "cc", "rc")  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _list_sums_kernel(
+    slot: np.ndarray,
+    range_m: np.ndarray,
+    intensity: np.ndarray,
+    edge: np.ndarray,
+    branches: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    H, W = slot.shape
+    for i in range(H):
+        for j in range(W):
+            s = slot[i, j]
+            if s < 0:
+                continue
+            r0, i0 = range_m[i, j], intensity[i, j]
+            dr, di = 0.0, 0.0
+            right = j + 1 if j + 1 < W else 0
+            left = j - 1 if j > 0 else W - 1
+            for a, b in ((i, right), (i, left), (min(i + 1, H - 1), j), (max(i - 1, 0), j)):
+                d = abs(range_m[a, b] - r0)
+                if d > dr and d < np.inf:  # NaN and infinite (empty) neighbours are skipped
+                    dr = d
+                d = abs(intensity[a, b] - i0)
+                if d > di and d < np.inf:
+                    di = d
+            br = branches[i, j]
+            out[s, 0] += 1.0
+            out[s, 1] += r0 if abs(r0) < np.inf else 0.0
+            out[s, 2] += dr
+            out[s, 3] += di
+            out[s, 4] += 1.0 if edge[i, j] else 0.0
+            out[s, 5] += 1.0 if (br == 1 or br >= 3) else 0.0
+            out[s, 6] += br
+            out[s, 7] += i
+            out[s, 8] += j
+            out[s, 9] += i * i
+            out[s, 10] += j * j
+            out[s, 11] += i * j
+
+
+def list_sums(
+    slot: np.ndarray,
+    range_m: np.ndarray,
+    intensity: np.ndarray,
+    edge: np.ndarray,
+    branches: np.ndarray,
+    n_slots: int,
+) -> np.ndarray:
+    """(n_slots, 12) float64 sums over the pixels of each list (``slot`` (H, W) int64 list
+    index, -1 none) in :data:`SUMS` order: count, range, largest range and intensity step to
+    a 4-neighbour (columns wrap, rows stop at the border, NaN or infinite neighbours
+    skipped), edge and
+    vertex pixels, branches, row, column and their second moments. One compiled pass;
+    :func:`list_sums_numpy` is its reference."""
+    out = np.zeros((n_slots, len(SUMS)))
+    _list_sums_kernel(
+        np.ascontiguousarray(slot, dtype=np.int64),
+        np.ascontiguousarray(range_m, dtype=np.float64),
+        np.ascontiguousarray(intensity, dtype=np.float64),
+        np.ascontiguousarray(edge, dtype=np.bool_),
+        np.ascontiguousarray(branches, dtype=np.int8),
+        out,
+    )
+    return out
+
+
+def list_sums_numpy(
+    slot: np.ndarray,
+    range_m: np.ndarray,
+    intensity: np.ndarray,
+    edge: np.ndarray,
+    branches: np.ndarray,
+    n_slots: int,
+) -> np.ndarray:
+    """Reference of :func:`list_sums` in plain numpy (bincounts)."""
+    W = slot.shape[1]
+    pix = np.flatnonzero(slot.reshape(-1) >= 0)
+    s = slot.reshape(-1)[pix]
+    r, c = np.divmod(pix, W)
+    br = branches[r, c].astype(np.float64)
+    rf, cf = r.astype(np.float64), c.astype(np.float64)
+    terms = [
+        np.ones(pix.size),
+        _finite_or_zero(range_m[r, c].astype(np.float64)),
+        _neighbour_step(range_m.astype(np.float64), r, c),
+        _neighbour_step(intensity.astype(np.float64), r, c),
+        edge[r, c].astype(np.float64),
+        ((br == 1) | (br >= 3)).astype(np.float64),
+        br,
+        rf,
+        cf,
+        rf * rf,
+        cf * cf,
+        rf * cf,
+    ]
+    return np.stack([np.bincount(s, weights=t, minlength=n_slots) for t in terms], axis=1)
+
+
+def _finite_or_zero(x: np.ndarray) -> np.ndarray:
+    return np.where(np.isfinite(x), x, 0.0)
+
+
+def _neighbour_step(img: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(P,) largest |img[p] - img[neighbour]| over the 4-neighbours of pixels (r, c); columns
+    wrap round (the egosphere is closed in azimuth), rows stop at the border; NaN neighbours
+    are skipped (0 when none)."""
+    H, W = img.shape
+    v = img[r, c]
+    out = np.zeros(r.size)
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        rr = np.clip(r + dr, 0, H - 1)
+        with np.errstate(invalid="ignore"):  # inf - inf: an empty pixel, skipped
+            d = np.abs(img[rr, (c + dc) % W] - v)
+        out = np.fmax(out, np.where(np.isfinite(d), d, 0.0))
+    return out
+
+
+def list_attributes(sums: np.ndarray, az_step_rad: float, intensity_mean: float) -> ListAttributes:
+    """Attributes of the lists with pixels in ``sums`` (from :func:`list_sums`; ``ids`` are
+    their slots), given the azimuth step of the image (rad) and its mean valid intensity."""
+    ids = np.flatnonzero(sums[:, 0] > 0)
+    t = sums[ids]
+    n = t[:, 0]
+    mean = t / n[:, None]
+    srr = mean[:, 9] - mean[:, 7] ** 2
+    scc = mean[:, 10] - mean[:, 8] ** 2
+    src = mean[:, 11] - mean[:, 7] * mean[:, 8]
+    return ListAttributes(
+        ids=ids.astype(np.int64),
+        n_pixels=n.astype(np.int64),
+        range_m=mean[:, 1],
+        size_m=n * mean[:, 1] * az_step_rad,
+        range_jump_m=mean[:, 2],
+        contrast=mean[:, 3] / max(intensity_mean, 1e-12),
+        edge_share=mean[:, 4],
+        vertex_share=mean[:, 5],
+        branches=mean[:, 6],
+        orientation_rad=np.mod(0.5 * np.arctan2(2.0 * src, scc - srr), np.pi),
+    )
