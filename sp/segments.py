@@ -1,17 +1,25 @@
 """Grouping on the egosphere image: level-4 object hypotheses and level-2 range edges.
 
-Reference 001, 4.5.2 (grouping: "gestalt" hypotheses of contiguity, similarity, proximity),
-4.5.6 (level 2: edges, vertices; level 4: objects as contiguous non-ground surfaces).
+Reference 001, 4.5.1 (grouping: "gestalt" hypotheses of proximity, similarity, continuity),
+4.5.6 (level 2: edges, vertices; level 4: objects grouped by contiguity and similar range,
+"boundaries that separate surfaces with different range ... distinguish between different
+objects").
 
-Objects: non-ground returns are joined to their image neighbours (right, below, and the
-next-but-one both ways so a dropped return does not split a surface) when the two points are
-closer than a range-scaled distance (proximity and contiguity); the connected components of
-that graph are the object hypotheses. Components with fewer than ``min_pixels`` returns are
-left ungrouped (speckle). Azimuth wraps around.
+Objects: non-ground returns are joined to their image neighbours (right, below, the
+next-but-one along the row so a dropped return does not split a surface, and the next row
+with a return when up to ``row_gap`` rows between hold none, as an elevation-binned image of a
+sparse beam pattern has) when the two points are closer than a range-scaled distance (the
+grazing-angle rule: proximity and contiguity), or closer than the ``join_m`` floor and the
+range does not step between them (:func:`_range_step`: an occluder's edge, a person or a car
+before a building front, is a step; a surface, even at a grazing angle, continues). The
+connected components of that graph are the object hypotheses; small pieces within ``near_m``
+of each other in 3D are one (proximity: a bicycle seen through). Components with fewer than
+``min_pixels`` returns are left ungrouped (speckle). Azimuth wraps around.
 
 Continuity (:func:`merge_collinear`): a long straight segment (a wall, a fence, a building
 face) that an occluder or a grazing angle cut into pieces is joined again when the pieces lie
-on its axis with a short gap between them.
+on its axis with a short gap between them and are thin across it (a person or a car beside
+the wall is not a piece of it).
 
 Edges (level 2): pixels whose range jumps by more than ``edge_jump_m`` (plus a fraction of the
 range) to a neighbour, each labelled by the object or the ground it lies on.
@@ -44,8 +52,15 @@ class SegmentConfig:
                      ``line_min_aspect`` times longer than wide is a line; another segment whose
                      centre lies within ``line_offset_m`` of that line, whose extent along it
                      leaves a gap of at most ``line_gap_m`` (both plus ``line_per_m`` per metre
-                     of range), and which is short (under 2 m) or turned by at most
-                     ``line_max_turn_deg`` from it, continues it.
+                     of range), which is at most ``line_thick_m`` wide, and which is short
+                     (under 2 m) and at most ``line_thick_m`` across the line, or long and
+                     turned by at most ``line_max_turn_deg`` from it, continues it.
+    step_m, step_frac: the ``join_m`` floor does not join across a range step larger than
+                     ``step_m + step_frac * range`` (metres) that continues neither side.
+    row_gap:         a return is joined to the next one down its column across at most this
+                     many rows without any return.
+    near_pixels, near_m: pieces of fewer returns than this whose points come closer than
+                     ``near_m`` (metres, 3D) are one piece.
     edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
     """
 
@@ -65,12 +80,19 @@ class SegmentConfig:
     step_m: float = 0.2
     step_frac: float = 0.01
     row_gap: int = 2
+    near_pixels: int = 10
+    near_m: float = 0.4
 
     def __post_init__(self) -> None:
         if self.join_m <= 0 or self.join_per_rad < 0 or self.min_pixels < 1:
             raise SegmentError(
                 f"join_m {self.join_m}, join_per_rad {self.join_per_rad}, "
                 f"min_pixels {self.min_pixels}: need > 0, >= 0, >= 1"
+            )
+        if self.step_m < 0 or self.row_gap < 0 or self.near_m < 0:
+            raise SegmentError(
+                f"step_m {self.step_m}, row_gap {self.row_gap}, near_m {self.near_m}: "
+                "need >= 0 (0 turns the rule off)"
             )
 
 
@@ -128,12 +150,36 @@ def label_objects(
     t = pos[np.concatenate(dst)] if dst else np.zeros(0, np.int64)
     g = coo_matrix((np.ones(s.size, dtype=np.int8), (s, t)), shape=(idx.size, idx.size))
     _, comp = connected_components(g, directed=False)
+    if cfg.near_pixels > 0 and cfg.near_m > 0:
+        comp = _join_near_pieces(comp, flat[idx], cfg)
     counts = np.bincount(comp)
     keep = counts >= cfg.min_pixels
     new_id = np.full(counts.size, -1, dtype=np.int64)
     new_id[keep] = np.arange(int(keep.sum()))
     labels[idx] = new_id[comp]
     return labels.reshape(H, W)
+
+
+def _join_near_pieces(comp: np.ndarray, points: np.ndarray, cfg: SegmentConfig) -> np.ndarray:
+    """Proximity in 3D (reference 001, 4.5.1: "subentities are close together"): pieces of
+    fewer than ``near_pixels`` returns closer than ``near_m`` to each other are one piece (a
+    bicycle or a far car seen through, whose returns are not image neighbours).
+    comp: (n,) component of each grouped pixel; points: (n, 3) their points. Returns the new
+    (n,) components, numbered 0..K-1."""
+    from scipy.spatial import cKDTree
+
+    counts = np.bincount(comp)
+    small = np.flatnonzero(counts[comp] < cfg.near_pixels)
+    if small.size < 2:
+        return comp
+    pairs = cKDTree(points[small]).query_pairs(cfg.near_m, output_type="ndarray")
+    if pairs.size == 0:
+        return comp
+    a, b = comp[small[pairs[:, 0]]], comp[small[pairs[:, 1]]]
+    K = counts.size
+    g = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(K, K))
+    _, new = connected_components(g, directed=False)
+    return new[comp]
 
 
 def _links(
@@ -183,10 +229,11 @@ def _range_step(
     away (a limb) lets the differences grow, so the slack grows with them. An occluding
     boundary (a person before a wall) is a step that continues neither side:
     ``|s| > thr`` and ``|s - s_side| - |s_side| > thr`` on both sides, with
-    ``thr = step_m + step_frac * range``; a side without a return leaves the test to the other,
-    and with neither the link stays. Down the image (di > 0) only a step whose upper pixel is
-    the farther one cuts: the top edge of an occluder; a nearer upper pixel is an overhang (a
-    tree's crown over its trunk, eaves) and stays joined.
+    ``thr = step_m + step_frac * range``. Both sides must hold returns: at a silhouette (a box's
+    one row of roof against the sky) a step cannot be told from a crease, and the link stays.
+    Down the image (di > 0) only a step whose upper pixel is the farther one cuts: the top edge
+    of an occluder; a nearer upper pixel is an overhang (a tree's crown over its trunk, eaves)
+    and stays joined.
     """
     p, p_in = _neighbour(a, -di, -dj, shape)
     q, q_in = _neighbour(b, di, dj, shape)
@@ -196,7 +243,7 @@ def _range_step(
     s = r_b - r_a
     before, after = r_a - r_p, r_q - r_b
     thr = cfg.step_m + cfg.step_frac * np.minimum(r_a, r_b)
-    disc = np.fmin(np.abs(s - before) - np.abs(before), np.abs(s - after) - np.abs(after))
+    disc = np.minimum(np.abs(s - before) - np.abs(before), np.abs(s - after) - np.abs(after))
     with np.errstate(invalid="ignore"):
         cut = (np.abs(s) > thr) & (disc > thr)
     if di > 0:
@@ -241,14 +288,15 @@ def merge_collinear(
     turn = np.abs((yaw_rad[None, :] - yaw_rad[li, None] + np.pi / 2) % np.pi - np.pi / 2)
     slack = cfg.line_per_m * np.minimum(range_m[li, None], range_m[None, :])
     gap = along - 0.5 * (length_m[li, None] + length_m[None, :])
-    # a piece of the line is thin across it (a person or a car beside a wall is not)
+    # a piece of a line is thin: a long one runs along it, a short one (whose heading means
+    # little) is thin across it; a person or a car beside a wall is not a piece of the wall
     thick = np.abs(np.sin(turn)) * length_m[None, :] + np.abs(np.cos(turn)) * width_m[None, :]
-    ok = (
-        (across <= cfg.line_offset_m + slack)
-        & (thick <= cfg.line_thick_m)
-        & (gap <= cfg.line_gap_m + slack)
-        & ((length_m[None, :] < 2.0) | (turn <= np.radians(cfg.line_max_turn_deg)))
+    along_line = (width_m[None, :] <= cfg.line_thick_m) & np.where(
+        length_m[None, :] < 2.0,
+        thick <= cfg.line_thick_m,
+        turn <= np.radians(cfg.line_max_turn_deg),
     )
+    ok = (across <= cfg.line_offset_m + slack) & (gap <= cfg.line_gap_m + slack) & along_line
     ok[np.arange(li.size), li] = False
     for a, b in zip(*np.nonzero(ok), strict=True):
         ra, rb = _root(parent, int(li[a])), _root(parent, int(b))

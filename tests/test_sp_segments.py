@@ -11,6 +11,8 @@ import pytest
 
 from sp.segments import (
     SegmentConfig,
+    SegmentError,
+    _join_near_pieces,
     _links,
     _range_step,
     label_objects,
@@ -141,6 +143,22 @@ def test_empty_rows_between_beams_do_not_split_a_surface() -> None:
     assert np.unique(labels[hit == 0]).size > 1
 
 
+def test_a_see_through_object_is_one_segment() -> None:
+    # a bicycle-like frame 10 m out: two thin bars 0.35 m apart (6 columns), each one column
+    # wide, with the ground between them (not grouped) so no two bars are image neighbours
+    bars = [((10.0, y, -SENSOR_H + 0.3), (10.05, y + 0.05, -SENSOR_H + 1.0)) for y in (0.0, 0.35)]
+    labels, hit = segments_of(bars, SegmentConfig(min_pixels=1))
+    assert np.count_nonzero(hit == 0) >= 5 and np.count_nonzero(hit == 1) >= 5
+    one_label(labels, hit >= 0)
+    labels, _ = segments_of(bars, SegmentConfig(min_pixels=1, near_m=0.0))
+    assert np.unique(labels[hit >= 0]).size == 2
+
+
+def test_bad_thresholds_are_refused() -> None:
+    with pytest.raises(SegmentError, match="step_m -1"):
+        SegmentConfig(step_m=-1.0)
+
+
 def test_no_grouping_on_empty_or_degenerate_images() -> None:
     xyz = np.zeros((3, 5, 3))
     rng = np.full((3, 5), np.inf)
@@ -189,9 +207,10 @@ def _step_loop(r: np.ndarray, a: int, b: int, di: int, dj: int, cfg: SegmentConf
     ra, rb = at(ia, ja), at(ib, jb)
     s = rb - ra
     sides = [ra - at(ia - di, ja - dj), at(ib + di, jb + dj) - rb]
-    disc = [abs(s - x) - abs(x) for x in sides if np.isfinite(x)]
+    if not all(np.isfinite(x) for x in [*sides, s]):
+        return False
     thr = cfg.step_m + cfg.step_frac * min(ra, rb)
-    cut = bool(disc) and abs(s) > thr and min(disc) > thr
+    cut = abs(s) > thr and min(abs(s - x) - abs(x) for x in sides) > thr
     return cut and (di == 0 or s < 0)
 
 
@@ -210,6 +229,37 @@ def test_range_step_matches_a_loop(di: int, dj: int) -> None:
         assert got.tolist() == want
 
 
+def _components(labels: np.ndarray) -> set[frozenset[int]]:
+    return {frozenset(np.flatnonzero(labels == k).tolist()) for k in np.unique(labels)}
+
+
+def _root(parent: list[int], k: int) -> int:
+    while parent[k] != k:
+        k = parent[k]
+    return k
+
+
+def test_join_near_pieces_matches_pairwise_distances() -> None:
+    cfg = SegmentConfig(near_pixels=3, near_m=0.5)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        n = int(rng.integers(1, 30))
+        comp = rng.integers(0, max(n // 2, 1), size=n)
+        comp = np.unique(comp, return_inverse=True)[1]
+        pts = rng.uniform(0.0, 3.0, size=(n, 3))
+        got = _join_near_pieces(comp, pts, cfg)
+        # reference: union of small pieces whose points come within near_m, by a plain loop
+        small = np.bincount(comp)[comp] < cfg.near_pixels
+        parent = list(range(comp.max() + 1))
+        for i in range(n):
+            for j in range(i + 1, n):
+                close = np.linalg.norm(pts[i] - pts[j]) <= cfg.near_m
+                if small[i] and small[j] and close:
+                    parent[_root(parent, int(comp[i]))] = _root(parent, int(comp[j]))
+        want = np.array([_root(parent, int(c)) for c in comp])
+        assert _components(got) == _components(want)
+
+
 # ---------------------------------------------------------------- line continuity
 
 
@@ -221,3 +271,12 @@ def test_line_continuity_does_not_take_a_person_beside_the_wall() -> None:
     lab = merge_collinear(centers, np.zeros(4), length, width, np.full(4, 12.0))
     assert lab[0] == lab[1] == lab[2]
     assert lab[3] != lab[0]
+
+
+def test_line_continuity_does_not_take_a_car_parked_along_the_wall() -> None:
+    # a wall piece on the line, then a car (front and side: 4.5 m by 1.8 m) just past its end
+    centers = np.array([[0.0, 0.0], [5.5, 0.3], [10.0, 0.0]])
+    length = np.array([5.0, 4.5, 5.0])
+    width = np.array([0.2, 1.8, 0.2])
+    lab = merge_collinear(centers, np.zeros(3), length, width, np.full(3, 12.0))
+    assert lab[1] not in (lab[0], lab[2])
