@@ -287,6 +287,8 @@ class _Scratch:
         self.start_stamp = np.zeros(ncell, dtype=np.int64)
         self.start_beam = np.zeros(ncell, dtype=np.int64)
         self.sweep = 0
+        self.row_ids = np.empty((3, ncell), dtype=np.int64)  # cell, ix, iy of each row
+        self.row_z = np.empty(ncell)  # lowest point of each row
         self._point_bufs: dict[str, np.ndarray] = {}
 
     def next_sweep(self) -> int:
@@ -590,11 +592,8 @@ def summarise_compiled(
     use_idx = idx is not None
     n_iter = len(idx) if use_idx else len(kp.xyz)
     n_child = len(child) if child is not None else 0
-    cap = max(min(n_iter, size * size) + n_child, 1)
-    cells, cix, ciy = (np.empty(cap, dtype=np.int64) for _ in range(3))
-    z_lo, z_hi, w, wz, wzz, gate = (np.empty(cap) for _ in range(6))
-    n, n_obs = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
-    stale = np.zeros(cap, dtype=np.bool_)
+    cells, cix, ciy = sc.row_ids  # rows of this sweep, copied out below
+    z_lo = sc.row_z
     point_row, rest = sc.point_buf("row", n_iter), sc.point_buf("rest", n_iter)
     index = idx if use_idx else _NO_INDEX
     args = (kp.xyz, kp.var, kp.mode, kp.origin, kp.s0, kp.k, index, use_idx)
@@ -605,6 +604,10 @@ def summarise_compiled(
     if z_ref is None:
         n_kept = n_iter - n_drop
         z_ref = z_sum / n_kept if n_kept else 0.0
+    cap = max(min(m + n_child, size * size), 1)
+    w, wz, wzz, z_hi, gate = np.empty((5, cap))
+    n, n_obs = np.empty((2, cap), dtype=np.int64)
+    stale = np.zeros(cap, dtype=np.bool_)
     elev = level.storage("elevation").reshape(-1)
     elev_var = level.storage("elevation_var").reshape(-1)
     allowance = config.max_ground_slope * np.sqrt(2.0) * res
@@ -623,8 +626,8 @@ def summarise_compiled(
     batch = CellBatch(
         resolution_m=res,
         z_ref=z_ref,
-        ix=cix[:m],
-        iy=ciy[:m],
+        ix=cix[:m].copy(),
+        iy=ciy[:m].copy(),
         w=w[:m],
         wz=wz[:m],
         wzz=wzz[:m],
@@ -633,7 +636,7 @@ def summarise_compiled(
         z_min=z_lo[:m] + z_ref,
         z_max=z_hi[:m] + z_ref,
         reset=stale[:m],
-        flat=cells[:m],
+        flat=cells[:m].copy(),
     )
     return batch, rest[:n_rest], n_drop, z_ref
 
