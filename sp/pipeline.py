@@ -757,6 +757,7 @@ class SensoryProcessor:
             bid = kd.add_entity(
                 f"contact of {sid}",
                 Level.LIST,
+                generic_classes=("slope_edge",) if "slope_edge" in kd.classes else (),
                 images=(IMAGE_NAMES[2],),
                 status=Status.CONFIRMED,
                 confidence=1.0,
@@ -764,6 +765,7 @@ class SensoryProcessor:
             kd.relate(bid, "belongs_to", sid, t_ns=t_ns)
             if self.ground_id is not None:
                 kd.relate(bid, "on_top_of", self.ground_id, t_ns=t_ns)
+            self._set_class(bid, "slope_edge")
             self.track_surface[oid] = (sid, bid)
         return self.track_surface[oid]
 
@@ -878,6 +880,7 @@ class SensoryProcessor:
             bid = kd.add_entity(
                 f"contact of {sid}",
                 Level.LIST,
+                generic_classes=("slope_edge",) if "slope_edge" in kd.classes else (),
                 images=(IMAGE_NAMES[2],),
                 status=Status.CONFIRMED,
                 confidence=1.0,
@@ -886,7 +889,7 @@ class SensoryProcessor:
             if self.ground_id is not None:
                 kd.relate(bid, "on_top_of", self.ground_id, t_ns=t_ns)
             self._surface_contact[sid] = bid
-            self._set_class(bid, "range_edge")
+            self._set_class(bid, "slope_edge")
         return self._surface_contact[sid]
 
     def _surface_gone(self, sid: int) -> None:
