@@ -273,7 +273,7 @@ class ListAttributes:
     range_m:       mean range (m).
     size_m:        pixels times their mean footprint (range x azimuth step, m): an edge's
                    length, a patch list's extent along the image.
-    range_jump_m:  mean over pixels of the largest range step to a 4-neighbour (m).
+    range_jump_m:  mean over pixels of the largest range step to a neighbour in its row (m).
     contrast:      mean over pixels of the largest intensity step to a 4-neighbour over the
                    image's mean intensity (dimensionless).
     edge_share:    share of pixels on a range or brightness edge.
@@ -440,10 +440,11 @@ def _list_sums_kernel(
             dr, di = 0.0, 0.0
             right = j + 1 if j + 1 < W else 0
             left = j - 1 if j > 0 else W - 1
-            for a, b in ((i, right), (i, left), (min(i + 1, H - 1), j), (max(i - 1, 0), j)):
+            for a, b in ((i, right), (i, left)):  # range: along the row only
                 d = abs(range_m[a, b] - r0)
                 if d > dr and d < np.inf:  # NaN and infinite (empty) neighbours are skipped
                     dr = d
+            for a, b in ((i, right), (i, left), (min(i + 1, H - 1), j), (max(i - 1, 0), j)):
                 d = abs(intensity[a, b] - i0)
                 if d > di and d < np.inf:
                     di = d
@@ -471,8 +472,9 @@ def list_sums(
     n_slots: int,
 ) -> np.ndarray:
     """(n_slots, 12) float64 sums over the pixels of each list (``slot`` (H, W) int64 list
-    index, -1 none) in :data:`SUMS` order: count, range, largest range and intensity step to
-    a 4-neighbour (columns wrap, rows stop at the border, NaN or infinite neighbours
+    index, -1 none) in :data:`SUMS` order: count, range, the largest range step to a
+    neighbour along the row (between rows even flat ground steps by metres) and intensity step
+    to a 4-neighbour (columns wrap, rows stop at the border, NaN or infinite neighbours
     skipped), edge and
     vertex pixels, branches, row, column and their second moments. One compiled pass;
     :func:`list_sums_numpy` is its reference."""
@@ -506,7 +508,7 @@ def list_sums_numpy(
     terms = [
         np.ones(pix.size),
         _finite_or_zero(range_m[r, c].astype(np.float64)),
-        _neighbour_step(range_m.astype(np.float64), r, c),
+        _neighbour_step(range_m.astype(np.float64), r, c, _ALONG_ROW),
         _neighbour_step(intensity.astype(np.float64), r, c),
         edge[r, c].astype(np.float64),
         ((br == 1) | (br >= 3)).astype(np.float64),
@@ -524,14 +526,20 @@ def _finite_or_zero(x: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(x), x, 0.0)
 
 
-def _neighbour_step(img: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """(P,) largest |img[p] - img[neighbour]| over the 4-neighbours of pixels (r, c); columns
-    wrap round (the egosphere is closed in azimuth), rows stop at the border; NaN neighbours
-    are skipped (0 when none)."""
+_ALONG_ROW = ((0, 1), (0, -1))
+_FOUR = ((0, 1), (0, -1), (1, 0), (-1, 0))
+
+
+def _neighbour_step(
+    img: np.ndarray, r: np.ndarray, c: np.ndarray, offsets: tuple = _FOUR
+) -> np.ndarray:
+    """(P,) largest |img[p] - img[neighbour]| over the neighbours ``offsets`` (row, column
+    steps) of pixels (r, c); columns wrap round (the egosphere is closed in azimuth), rows stop
+    at the border; NaN and infinite neighbours are skipped (0 when none)."""
     H, W = img.shape
     v = img[r, c]
     out = np.zeros(r.size)
-    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+    for dr, dc in offsets:
         rr = np.clip(r + dr, 0, H - 1)
         with np.errstate(invalid="ignore"):  # inf - inf: an empty pixel, skipped
             d = np.abs(img[rr, (c + dc) % W] - v)

@@ -144,19 +144,19 @@ def test_patch_grid_recovers_a_plane_normal_and_roughness() -> None:
 def test_list_attributes_of_a_straight_range_edge() -> None:
     H, W = 8, 100
     slots = np.full((H, W), -1, np.int64)
-    slots[3, 10:60] = 0  # a 50-pixel horizontal edge at 10 m, 5 m in front of a far wall
+    slots[1:7, 30] = 0  # the right side of an object at 10 m, 5 m before a far wall
     rng = np.full((H, W), 15.0)
-    rng[:4, 10:60] = 10.0
+    rng[:, :31] = 10.0
     edge = slots >= 0
     br = edge_branches(edge)
     inten = np.ones((H, W))
     a = list_attributes(list_sums(slots, rng, inten, edge, br, 1), 2 * math.pi / W, 1.0)
-    assert a.ids.tolist() == [0] and a.n_pixels[0] == 50
+    assert a.ids.tolist() == [0] and a.n_pixels[0] == 6
     assert a.range_m[0] == pytest.approx(10.0)
-    assert a.size_m[0] == pytest.approx(50 * 10.0 * 2 * math.pi / W)
-    assert a.range_jump_m[0] == pytest.approx(5.0, abs=0.2)  # the ends see the sides too
-    assert a.orientation_rad[0] == pytest.approx(0.0, abs=1e-9)
-    assert a.edge_share[0] == 1.0 and a.vertex_share[0] == pytest.approx(2 / 50)
+    assert a.size_m[0] == pytest.approx(6 * 10.0 * 2 * math.pi / W)
+    assert a.range_jump_m[0] == pytest.approx(5.0)
+    assert a.orientation_rad[0] == pytest.approx(math.pi / 2, abs=1e-9)  # along a column
+    assert a.edge_share[0] == 1.0 and a.vertex_share[0] == pytest.approx(2 / 6)  # two ends
     assert a.contrast[0] == 0.0
 
 
