@@ -15,12 +15,17 @@ cell seen for the first time it is the lowest point of this sweep there, or the 
 of a neighbouring cell plus a slope allowance when that is lower (so a cell that only saw an
 object's face is not taken for ground). An obstacle point raises the occupancy log-odds and
 the cell's max height but not the ground estimate. A cell with ground points and no obstacle
-point this sweep lowers its log-odds (no ray casting: cells the beams pass over are not
-updated).
+point this sweep lowers its log-odds. Given the sensor position (``ray_origin_xyz``), the
+cells the beams cross before their returns are lowered too (:func:`cast_rays`: free space,
+once per cell and sweep, an obstacle point's hit winning); without it only cells with points
+change.
 
-Everything is vectorised: each point's cell gets a row among the sweep's touched cells (a
+Two implementations give the same layers: single-pass compiled kernels (:mod:`maps.kernels`,
+the default: two passes over the points and one over the touched cells) and the numpy
+reference (``FusionConfig(compiled=False)``), kept as the definition the kernels are tested
+against. In the numpy path each point's cell gets a row among the sweep's touched cells (a
 per-level dense lookup, never cleared: only touched entries are read), and ``np.bincount`` /
-``np.minimum.at`` scatter into compact (M,) arrays that stay in cache; the
+``np.minimum.at`` scatter into compact (M,) arrays that stay in cache. In both, the
 per-sweep sufficient statistics of a level (:class:`CellBatch`) are additive, so a finer level
 hands them to the next coarser one (see :mod:`maps.stack`) and no point is counted twice.
 """
@@ -32,6 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from maps import kernels
 from maps.level import MapLevel
 
 FUSION_LAYERS = (
@@ -583,8 +589,6 @@ def summarise_compiled(
     Returns the batch, the indices (int64) of the kept points outside the window (a view of
     scratch memory, valid until this level's next call), the number dropped, and ``z_ref``.
     """
-    from maps import kernels
-
     sc = _scratch(level)
     sweep = sc.next_sweep()
     size, res = level.size, level.resolution_m
@@ -643,8 +647,6 @@ def summarise_compiled(
 
 def apply_compiled(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns: int) -> int:
     """:func:`apply` by one kernel pass over the batch's cells; returns cells updated."""
-    from maps import kernels
-
     level.require(*FUSION_LAYERS)
     if batch.flat is None:  # a batch from elsewhere: keep the cells in the window
         col = batch.ix - level.origin_cell[0]
@@ -689,8 +691,6 @@ def cast_rays(
     (001, 4.4.7: "which regions are visible from a particular viewpoint"). Returns the cells
     lowered. NaN/inf points are skipped.
     """
-    from maps import kernels
-
     origin = np.asarray(origin_xyz, dtype=np.float64).reshape(-1)
     if origin.shape != (3,) or not np.all(np.isfinite(origin)):
         raise FusionError(f"ray_origin_xyz must be a finite world (x, y, z), got {origin_xyz!r}")

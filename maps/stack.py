@@ -8,8 +8,10 @@ Fusion: every point is fused raw into the finest level whose window holds it; th
 per-cell sweep statistics (:class:`~maps.fusion.CellBatch`) are then handed to the next
 coarser level together with the raw points that only it holds, and so on up. So every level
 sees every point in its window exactly once, and the coarse levels never re-bin raw points
-the fine levels already summarised. A priori terrain (an :class:`~maps.apriori.ElevationRaster`)
-feeds the coarse levels and refills their cells as they scroll in.
+the fine levels already summarised. Given the sensor position, the ``raycast_levels``
+(default the 0.4 m level) also trace free space along the beams. A priori terrain (an
+:class:`~maps.apriori.ElevationRaster`) feeds the coarse levels and refills their cells as
+they scroll in.
 """
 
 from __future__ import annotations
