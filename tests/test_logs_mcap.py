@@ -279,3 +279,21 @@ def test_writer_is_atomic_and_checks_its_input(tmp_path) -> None:
         with pytest.raises(LogError, match="non-string"):
             w.add_metadata("m", {"a": 1})
     assert path.exists() and open_log(path).info().message_count == 0
+
+
+def test_attachments_and_metadata_come_from_the_pass_info_made(written, tmp_path) -> None:
+    """info() reads the whole file once; attachments and metadata come from that pass (the
+    copy is moved away before they are asked for), and a fresh source reads them alone."""
+    path, _ = written
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(path.read_bytes())
+    src = open_log(copy)
+    src.info()
+    copy.rename(tmp_path / "gone.mcap")
+    assert src.attachments() == {"scenario.yaml": b"seed: 7\n"}
+    assert src.metadata() == {"run": {"seed": "7", "world": "test"}}
+    src.metadata()["run"]["seed"] = "changed"  # callers get copies
+    assert src.metadata() == {"run": {"seed": "7", "world": "test"}}
+    fresh = open_log(tmp_path / "gone.mcap")
+    assert fresh.metadata() == {"run": {"seed": "7", "world": "test"}}
+    assert fresh.attachments() == {"scenario.yaml": b"seed: 7\n"}

@@ -230,6 +230,8 @@ class McapLogSource(LogSource):
         self._channels: dict[int, Channel] = {}
         self._store: Any = None
         self._registered: set[str] = set()
+        # attachments and metadata, kept from the first pass over the file that met them
+        self._extras: tuple[dict[str, bytes], dict[str, dict[str, str]]] | None = None
         try:
             size = self.path.stat().st_size
             with open(self.path, "rb") as f:
@@ -393,10 +395,17 @@ class McapLogSource(LogSource):
     # -------------------------------------------------------------- the rest of the interface
     def _topics(self) -> list[TopicInfo]:
         times: dict[int, list[int]] = {}
+        attachments: dict[str, bytes] = {}
+        metadata: dict[str, dict[str, str]] = {}
         for item in self._scan(self.fail):  # info() runs once: its problems count in stats
             if isinstance(item, _ChunkMessages):
                 for m in item.messages:
                     times.setdefault(m.channel_id, []).append(m.log_time)
+            elif isinstance(item, Attachment):
+                attachments[item.name] = item.data
+            elif isinstance(item, Metadata):
+                metadata[item.name] = dict(item.metadata)
+        self._extras = attachments, metadata  # the same pass: no second read of the file
         by_topic: dict[tuple[str, str], list[int]] = {}
         for cid, channel in self._channels.items():
             key = (channel.topic, self._msgtype(channel))
@@ -407,11 +416,22 @@ class McapLogSource(LogSource):
         return frame_topics_of((t.name, t.msgtype) for t in self.info().topics)
 
     def attachments(self) -> dict[str, bytes]:
-        return {a.name: a.data for a in self._scan(self._quiet_fail) if isinstance(a, Attachment)}
+        return dict(self._attachments_and_metadata()[0])
 
     def metadata(self) -> dict[str, dict[str, str]]:
-        return {
-            m.name: dict(m.metadata)
-            for m in self._scan(self._quiet_fail)
-            if isinstance(m, Metadata)
-        }
+        return {k: dict(v) for k, v in self._attachments_and_metadata()[1].items()}
+
+    def _attachments_and_metadata(
+        self,
+    ) -> tuple[dict[str, bytes], dict[str, dict[str, str]]]:
+        """Both from one pass over the file (or the one :meth:`info` made), kept."""
+        if self._extras is None:
+            attachments: dict[str, bytes] = {}
+            metadata: dict[str, dict[str, str]] = {}
+            for item in self._scan(self._quiet_fail):
+                if isinstance(item, Attachment):
+                    attachments[item.name] = item.data
+                elif isinstance(item, Metadata):
+                    metadata[item.name] = dict(item.metadata)
+            self._extras = attachments, metadata
+        return self._extras
