@@ -112,6 +112,9 @@ class SPConfig:
     free_surfaces: bool = True  # level-3 surfaces beyond the ground and the objects' faces
     surfaces: SurfaceConfig = field(default_factory=SurfaceConfig)
     kd_refresh_sweeps: int = 8  # list and surface frames rewritten every this many sweeps
+    appearance_classes: bool = True  # objects classified with their observed appearance too
+    intensity_per_reflectance: float = 1.0  # LADAR intensity units of a unit reflectance
+    appearance_gain: float = 0.3  # running-mean gain of an object's observed appearance
     terrain_tilt_deg: float = 25.0  # a broad thin plane tilted less than this is ground ...
     terrain_breadth_m: float = 0.25  # ... when its points spread this far along its middle axis
     terrain_thick_m: float = 0.12  # ... and this little across its plane (std, m)
@@ -212,6 +215,8 @@ class SensoryProcessor:
         self._class_index = {n: i for i, n in enumerate(self.class_names)}
         self.ground_id: int | None = None
         self.track_class: dict[int, tuple[str | None, float]] = {}
+        self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
+        self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
         self.class_table = ClassTable()  # entity id -> class index, for the class images
         self._list_lut = np.full(1024, -1, dtype=np.int64)  # owner * 4 + kind -> list slot
         self._list_ids = np.zeros(0, dtype=np.int64)  # list slot -> list frame id
@@ -427,6 +432,7 @@ class SensoryProcessor:
             attrs = dict(self.kd.get(int(oid)).attributes)
             attrs["camera_intensity"] = Attribute(observed=float(inten), observed_var=0.01)
             attrs["camera_coverage"] = Attribute(observed=float(cov))
+            self._observe_appearance(self.track_camera, int(oid), float(inten))
             self.kd.update_entity(int(oid), attributes=attrs)
 
     def _deskew(
@@ -554,6 +560,7 @@ class SensoryProcessor:
             s = seg_of_track[k]
             if s >= 0:
                 changes["attributes"] = _attributes(a, s, tr.w[k], tr.Pw[k], tr.x[k])
+                self._observe_appearance(self.track_reflectance, tid, float(a.intensity[s]))
             kd.update_entity(tid, **changes)
             if was == int(status_code(status)) or (was < 0 and status == Status.HYPOTHESIZED):
                 continue
@@ -568,6 +575,8 @@ class SensoryProcessor:
         self._denied_ids = finished.id[(finished.status == TrackStatus.DENIED) & (finished.id >= 0)]
         for tid in finished.id:
             self.track_class.pop(int(tid), None)
+            self.track_reflectance.pop(int(tid), None)
+            self.track_camera.pop(int(tid), None)
             for part in self.track_surface.pop(int(tid), ()):
                 kd.update_entity(part, status=Status.GONE)  # the object's face goes with it
             for part in self._lists_of.pop(int(tid), ()):
@@ -592,6 +601,7 @@ class SensoryProcessor:
             l, w, h = (float(v) for v in tr.w[k, :3])
             m = self.classifier.classify(
                 {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
+                | self._appearance_of(tid)
             )
             old, _ = self.track_class.get(tid, (None, -2.0))
             confirmed = tr.status[k] == TrackStatus.CONFIRMED
@@ -625,6 +635,29 @@ class SensoryProcessor:
     def _set_class(self, entity_id: int, name: str | None) -> None:
         """Point ``entity_id``'s pixels in the class images at class ``name``."""
         self.class_table.set([entity_id], [self._class_index.get(name, -1) if name else -1])
+
+    def _observe_appearance(self, table: dict[int, float], tid: int, value: float) -> None:
+        """Running mean (exponential, ``appearance_gain``) of an object's observed appearance
+        (LADAR intensity or camera grey), for classification."""
+        if not math.isfinite(value):
+            return
+        old = table.get(tid)
+        table[tid] = value if old is None else old + self.config.appearance_gain * (value - old)
+
+    def _appearance_of(self, tid: int) -> dict[str, float]:
+        """The appearance attributes object ``tid`` has been observed with: ``reflectance``
+        (mean LADAR intensity over ``intensity_per_reflectance``) and ``camera_intensity``
+        (mean grey 0..1 of its returns in the camera image). An attribute never observed is
+        left out, so the classifier ignores it rather than reading it as zero."""
+        cfg = self.config
+        if not cfg.appearance_classes:
+            return {}
+        out = {}
+        if tid in self.track_reflectance:
+            out["reflectance"] = self.track_reflectance[tid] / cfg.intensity_per_reflectance
+        if tid in self.track_camera:
+            out["camera_intensity"] = self.track_camera[tid]
+        return out
 
     def _class_images(
         self, entity_images: dict[int, np.ndarray], flat: np.ndarray

@@ -1,0 +1,74 @@
+"""Appearance in classification: an observed appearance attribute (LADAR reflectance, camera
+intensity) counts; one never observed is left out, not read as zero."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+import kd_store
+from kd_store import ClassLibrary, Level
+from kd_store.classes import ClassPrototype
+from sp.classify import Classifier
+from sp.pipeline import SensoryProcessor, SPConfig
+
+APPEARANCE = ("reflectance", "camera_intensity")
+
+
+def _without_appearance(lib: ClassLibrary) -> ClassLibrary:
+    out = []
+    for p in lib:
+        keep = {a: v for a, v in p.attributes.items() if a not in APPEARANCE}
+        w = {a: v for a, v in p.weights.items() if a not in APPEARANCE}
+        out.append(ClassPrototype(p.name, p.kind, p.level, p.is_a, keep, w, p.value))
+    return ClassLibrary(out)
+
+
+SIZES = {"height_m": 1.6, "width_m": 0.4, "length_m": 0.4, "speed_mps": 0.0}
+
+
+def test_object_prototypes_carry_appearance() -> None:
+    lib = kd_store.open(":memory:").classes
+    for name in ("building", "tree", "bush", "rock", "post", "vehicle", "person"):
+        a = lib.get(name).attributes
+        assert all(0.0 < a[k] < 1.0 for k in APPEARANCE)  # reflectances
+
+
+def test_missing_appearance_is_left_out_not_zero() -> None:
+    lib = kd_store.open(":memory:").classes
+    c = Classifier(lib, Level.OBJECT)
+    bare = Classifier(_without_appearance(lib), Level.OBJECT)
+    m, ref = c.classify(SIZES), bare.classify(SIZES)
+    # without appearance observed, the scores are those of prototypes without it (mu of the
+    # other attributes is the same, so the features are too)
+    assert m.scores == pytest.approx(ref.scores, abs=1e-12)
+    nan = c.classify(SIZES | {"reflectance": math.nan, "camera_intensity": math.nan})
+    assert nan.scores == pytest.approx(ref.scores, abs=1e-12)
+    zero = c.classify(SIZES | {"reflectance": 0.0})
+    assert zero.scores != pytest.approx(ref.scores, abs=1e-6)  # a zero is an observation
+
+
+def test_appearance_tips_a_size_ambiguous_object() -> None:
+    c = Classifier(kd_store.open(":memory:").classes, Level.OBJECT)
+    bright = c.classify(SIZES | {"reflectance": 0.8, "camera_intensity": 0.7})
+    dark = c.classify(SIZES | {"reflectance": 0.2, "camera_intensity": 0.15})
+    assert (
+        bright.scores["post"] - bright.scores["person"]
+        > dark.scores["post"] - dark.scores["person"]
+    )
+
+
+def test_pipeline_passes_only_observed_appearance() -> None:
+    kd = kd_store.open(":memory:")
+    sp = SensoryProcessor(kd, SPConfig(intensity_per_reflectance=200.0))
+    assert sp._appearance_of(5) == {}
+    sp._observe_appearance(sp.track_reflectance, 5, 100.0)
+    sp._observe_appearance(sp.track_reflectance, 5, 140.0)  # running mean, gain 0.3
+    sp._observe_appearance(sp.track_reflectance, 5, math.nan)  # ignored
+    assert sp._appearance_of(5) == {"reflectance": pytest.approx(112.0 / 200.0)}
+    sp._observe_appearance(sp.track_camera, 5, 0.25)
+    assert sp._appearance_of(5)["camera_intensity"] == 0.25
+    off = SensoryProcessor(kd_store.open(":memory:"), SPConfig(appearance_classes=False))
+    off._observe_appearance(off.track_camera, 5, 0.25)
+    assert off._appearance_of(5) == {}
