@@ -287,8 +287,8 @@ class _Scratch:
         self.mark = np.zeros(ncell, dtype=np.uint8)
         self.row = np.zeros(ncell, dtype=np.intp)
         self.z_lo = np.full(ncell, np.inf)
-        # compiled path: a cell is touched this sweep when its stamp equals ``sweep``
-        self.stamp = np.zeros(ncell, dtype=np.int64)
+        # compiled path: ``tag = sweep << 32 | row`` of the cells touched this sweep
+        self.tag = np.zeros(ncell, dtype=np.int64)
         self.ray_stamp = np.zeros(ncell, dtype=np.int64)
         self.start_stamp = np.zeros(ncell, dtype=np.int64)
         self.start_beam = np.zeros(ncell, dtype=np.int64)
@@ -602,7 +602,7 @@ def summarise_compiled(
     index = idx if use_idx else _NO_INDEX
     args = (kp.xyz, kp.var, kp.mode, kp.origin, kp.s0, kp.k, index, use_idx)
     m, n_rest, n_drop, z_sum = kernels.bin_points(
-        *args, not use_idx, res, ox, oy, size, sc.stamp, sweep, sc.row,
+        *args, not use_idx, res, ox, oy, size, sc.tag, sweep,
         cells, cix, ciy, z_lo, point_row, rest,
     )  # fmt: skip
     if z_ref is None:
@@ -624,7 +624,7 @@ def summarise_compiled(
         c = child
         m = kernels.merge_child(
             m, c.ix, c.iy, c.w, c.wz, c.wzz, c.n, c.n_obstacle, c.z_min, c.z_max, c.z_ref,
-            c.resolution_m / res, z_ref, ox, oy, size, sc.stamp, sweep, sc.row,
+            c.resolution_m / res, z_ref, ox, oy, size, sc.tag, sweep,
             cells, cix, ciy, w, wz, wzz, n, n_obs, z_lo, z_hi,
         )  # fmt: skip
     batch = CellBatch(
@@ -670,7 +670,7 @@ def mark_touched(level: MapLevel, batch: CellBatch) -> None:
     """Start a sweep in the level's scratch with the batch's cells touched (what the compiled
     path does as it bins), so :func:`cast_rays` leaves them to their own hit / miss."""
     sc = _scratch(level)
-    sc.stamp[storage_flat(level, batch.ix, batch.iy)] = sc.next_sweep()
+    sc.tag[storage_flat(level, batch.ix, batch.iy)] = sc.next_sweep() << 32
 
 
 def cast_rays(
@@ -706,7 +706,7 @@ def cast_rays(
         kernels.cast_rays(
             xyz, idx, stride > 1, origin, level.resolution_m, ox, oy, level.size,
             float(config.ray_max_range_m), float(config.ray_free_height_m),
-            int(config.ray_stop_after_cells), sc.stamp, sc.sweep,
+            int(config.ray_stop_after_cells), sc.tag, sc.sweep,
             sc.ray_stamp, sc.start_stamp, sc.start_beam, level.storage("elevation").reshape(-1),
             level.storage("occupancy").reshape(-1), float(config.l_miss), float(config.l_min),
         )

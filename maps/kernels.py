@@ -17,7 +17,8 @@ reference the tests compare these kernels against (``FusionConfig(compiled=False
 
 Storage indices are flat toroidal indices ``(iy % size) * size + ix % size`` (see
 :mod:`maps.level`). Dense per-level scratch is never cleared: a cell's entry counts only when
-its ``stamp`` equals the current sweep number. Nothing is compiled at import: the first call of
+its ``tag`` holds the current sweep number in its high 32 bits (and its row among the
+sweep's touched cells in the low 32). Nothing is compiled at import: the first call of
 each kernel compiles it (seconds) and caches it on disk.
 """
 
@@ -49,7 +50,7 @@ def _variance(xyz, var, mode, origin, s0, k, i):
 @numba.njit(cache=True, nogil=True)
 def bin_points(
     xyz, var, mode, origin, s0, k, idx, use_idx, clean,
-    res, ox, oy, size, stamp, sweep, row_of, cells, cix, ciy, z_lo, point_row, rest,
+    res, ox, oy, size, tag, sweep, cells, cix, ciy, z_lo, point_row, rest,
 ):  # fmt: skip
     """One pass over points ``xyz`` (N, 3) float64 world metres (all of them, or the indices
     ``idx`` when ``use_idx``): each point's row among the sweep's touched cells of a level.
@@ -99,20 +100,19 @@ def bin_points(
             flat = (iy & mask) * size + (ix & mask)
         else:
             flat = (iy % size) * size + ix % size
-        if stamp[flat] != sweep:
-            stamp[flat] = sweep
-            row_of[flat] = m
+        t = tag[flat]
+        if (t >> 32) != sweep:
+            tag[flat] = (sweep << 32) | m
             cells[m] = flat
             cix[m] = ix
             ciy[m] = iy
             z_lo[m] = z
+            point_row[j] = m
             m += 1
-            point_row[j] = m - 1
         else:
-            r = row_of[flat]
+            r = t & 0xFFFFFFFF
             point_row[j] = r
-            if z < z_lo[r]:
-                z_lo[r] = z
+            z_lo[r] = min(z_lo[r], z)  # no branch: the comparison is a coin toss
     return m, n_rest, n_drop, z_sum
 
 
@@ -199,14 +199,13 @@ def sum_points(
             n[r] += 1
         else:
             n_obs[r] += 1
-        if z > z_hi[r]:
-            z_hi[r] = z
+        z_hi[r] = max(z_hi[r], z)  # no branch: the comparison is a coin toss
 
 
 @numba.njit(cache=True, nogil=True)
 def merge_child(
     m, c_ix, c_iy, c_w, c_wz, c_wzz, c_n, c_nobs, c_zmin, c_zmax, c_zref, scale,
-    z_ref, res_ox, res_oy, size, stamp, sweep, row_of, cells, cix, ciy,
+    z_ref, res_ox, res_oy, size, tag, sweep, cells, cix, ciy,
     w, wz, wzz, n, n_obs, z_lo, z_hi,
 ):  # fmt: skip
     """Add a finer level's per-cell sums (``c_*``, its cells ``c_ix, c_iy`` at ``scale`` =
@@ -225,9 +224,8 @@ def merge_child(
             flat = (iy & mask) * size + (ix & mask)
         else:
             flat = (iy % size) * size + ix % size
-        if stamp[flat] != sweep:
-            stamp[flat] = sweep
-            row_of[flat] = m
+        if (tag[flat] >> 32) != sweep:
+            tag[flat] = (sweep << 32) | m
             cells[m] = flat
             cix[m] = ix
             ciy[m] = iy
@@ -239,7 +237,7 @@ def merge_child(
             n[m] = 0
             n_obs[m] = 0
             m += 1
-        r = row_of[flat]
+        r = tag[flat] & 0xFFFFFFFF
         cw = c_w[j]
         cwz = c_wz[j]
         w[r] += cw
@@ -328,7 +326,7 @@ def apply_cells(
 @numba.njit(cache=True, nogil=True)
 def _walk(
     sx, sy, first, px, py, pz, qz, t_lim, res_ox, res_oy, size, free_h, stop_after,
-    stamp, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
+    tag, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
 ):  # fmt: skip
     """Walk one beam over the grid from ``(sx, sy)`` (cell units; the beam at parameter
     ``t_lim`` of the way from the origin ``(px, py)`` to its point) back to the origin cell;
@@ -370,7 +368,7 @@ def _walk(
                 c = (cy & mask) * size + (cx & mask)
             else:
                 c = (cy % size) * size + cx % size
-            if stamp[c] == sweep or ray_stamp[c] == sweep:
+            if (tag[c] >> 32) == sweep or ray_stamp[c] == sweep:
                 run += 1
                 if run == stop_after:
                     break
@@ -398,12 +396,12 @@ def _walk(
 @numba.njit(cache=True, nogil=True)
 def cast_rays(
     xyz, idx, use_idx, origin, res, ox, oy, size, max_range, free_h, stop_after,
-    stamp, sweep, ray_stamp, start_stamp, start_beam, elevation, occupancy, l_miss, l_min,
+    tag, sweep, ray_stamp, start_stamp, start_beam, elevation, occupancy, l_miss, l_min,
 ):  # fmt: skip
     """Free space: walk beams over the grid (2-D, Amanatides and Woo) from their points back
     to ``origin`` (world metres) and lower the log-odds of each cell they cross before their
     end cell by ``l_miss`` (clamped at ``l_min``), once per sweep (``ray_stamp``). Skipped:
-    cells holding points this sweep (``stamp == sweep``: their own hit / miss stands), cells
+    cells holding points this sweep (``tag >> 32 == sweep``: their own hit / miss stands), cells
     outside the window, cells beyond ``max_range`` (m, horizontal) and cells the beam crosses
     more than ``free_h`` (m) above their ground (the elevation estimate, else the beam end's
     z): a beam high over a cell says nothing about a low obstacle there.
@@ -446,7 +444,7 @@ def cast_rays(
         if cx - ox < 0 or cx - ox >= size or cy - oy < 0 or cy - oy >= size:
             lowered += _walk(
                 sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h, stop_after,
-                stamp, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
+                tag, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
             )  # fmt: skip
             continue
         if pow2:
@@ -471,6 +469,6 @@ def cast_rays(
         sy = py + t_lim * (qy - py)
         lowered += _walk(
             sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h, stop_after,
-            stamp, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
+            tag, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
         )  # fmt: skip
     return lowered
