@@ -9,9 +9,9 @@ Objects: non-ground returns are joined to their image neighbours (right, below, 
 next-but-one along the row so a dropped return does not split a surface, and the next row
 with a return when up to ``row_gap`` rows between hold none, as an elevation-binned image of a
 sparse beam pattern has) when the two points are closer than a range-scaled distance (the
-grazing-angle rule: proximity and contiguity), or closer than the ``join_m`` floor and the
-range does not step between them (:func:`_range_step`: an occluder's edge, a person or a car
-before a building front, is a step; a surface, even at a grazing angle, continues). The
+grazing-angle rule: proximity and contiguity) or than the ``join_m`` floor, unless the range
+steps between them (:func:`_range_step`: an occluder's edge, a person or a car before a
+building front, is a step; a surface, even one seen at a grazing angle, continues). The
 connected components of that graph are the object hypotheses; small pieces within ``near_m``
 of each other in 3D are one (proximity: a bicycle seen through). Components with fewer than
 ``min_pixels`` returns are left ungrouped (speckle). Azimuth wraps around.
@@ -55,8 +55,8 @@ class SegmentConfig:
                      of range), which is at most ``line_thick_m`` wide, and which is short
                      (under 2 m) and at most ``line_thick_m`` across the line, or long and
                      turned by at most ``line_max_turn_deg`` from it, continues it.
-    step_m, step_frac: the ``join_m`` floor does not join across a range step larger than
-                     ``step_m + step_frac * range`` (metres) that continues neither side.
+    step_m, step_frac: no join across a range step larger than ``step_m + step_frac * range``
+                     (metres) that continues neither side (0 turns the test off).
     row_gap:         a return is joined to the next one down its column across at most this
                      many rows without any return.
     near_pixels, near_m: pieces of fewer returns than this whose points come closer than
@@ -130,13 +130,14 @@ def label_objects(
         a, b = _links(mask, di, dj, empty)
         d = np.linalg.norm(flat[a] - flat[b], axis=1)
         r = np.minimum(rng[a], rng[b])
-        near = d <= r * step
-        # the distance floor joins only where the range does not step (an occluder's edge)
-        floor = ~near & (d <= cfg.join_m)
-        if cfg.step_m > 0 and floor.any():
-            f = np.flatnonzero(floor)
-            floor[f] = ~_range_step(rng, a[f], b[f], di, dj, (H, W), cfg)
-        near |= floor
+        near = d <= np.maximum(cfg.join_m, r * step)
+        if cfg.step_m > 0:
+            # no join across a step in range (an occluder's edge); only a link whose range
+            # differs by more than the step threshold can be one
+            with np.errstate(invalid="ignore"):
+                big = near & (np.abs(rng[a] - rng[b]) > cfg.step_m + cfg.step_frac * r)
+            f = np.flatnonzero(big)
+            near[f] = ~_range_step(rng, a[f], b[f], di, dj, (H, W), cfg)
         src.append(a[near])
         dst.append(b[near])
     idx = np.flatnonzero(mask.reshape(-1))

@@ -75,28 +75,30 @@ def apart(labels: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
     return not set(la[la >= 0].tolist()) & set(lb[lb >= 0].tolist())
 
 
-# a building front 7 m ahead: nearer than join_m / (join_per_rad * COL_STEP) = 16 m, where
-# the 0.6 m distance floor (not the grazing-angle rule) is what joins a 0.3 m step
-WALL = ((7.0, -6.0, -SENSOR_H), (7.4, 6.0, 2.0))
+def wall(x_m: float = 7.0):
+    """A building front ``x_m`` ahead, 12 m wide, 3.8 m tall."""
+    return ((x_m, -6.0, -SENSOR_H), (x_m + 0.4, 6.0, 2.0))
 
 
-def person(gap_m: float):
-    """A person-sized box (0.25 m deep, 0.5 m wide, 1.8 m tall) ``gap_m`` before WALL: the
-    range steps by gap_m + 0.25 m from its front to the wall."""
-    x = WALL[0][0] - gap_m
+WALL = wall()
+
+
+def person(gap_m: float, x_m: float = 7.0):
+    """A person-sized box (0.25 m deep, 0.5 m wide, 1.8 m tall) ``gap_m`` before the wall at
+    ``x_m``: the range steps by gap_m + 0.25 m from its front to the wall."""
+    x = x_m - gap_m
     return ((x - 0.25, -0.25, -SENSOR_H), (x, 0.25, 0.0))
 
 
-@pytest.mark.parametrize("gap_m", [0.3, 0.33])
-def test_person_in_front_of_a_wall_is_its_own_segment(gap_m: float) -> None:
-    labels, hit = segments_of([WALL, person(gap_m)])
-    assert np.count_nonzero(hit == 1) > 50
-    wall, body = one_label(labels, hit == 0), one_label(labels, hit == 1)
-    assert wall != body
+@pytest.mark.parametrize("x_m", [7.0, 12.0, 20.0])
+def test_person_in_front_of_a_wall_is_its_own_segment(x_m: float) -> None:
+    labels, hit = segments_of([wall(x_m), person(0.3, x_m)])
+    assert np.count_nonzero(hit == 1) > 20
+    assert apart(labels, hit == 0, hit == 1)
 
 
-def test_the_old_distance_floor_joined_them() -> None:
-    # the same scene with the range-step test off: the 0.6 m floor groups person and wall
+def test_without_the_step_test_contiguity_joins_them() -> None:
+    # the same scene with the range-step test off: the 0.6 m distance floor joins them
     labels, hit = segments_of([WALL, person(0.3)], SegmentConfig(step_m=0.0))
     assert one_label(labels, hit == 0) == one_label(labels, hit == 1)
 
