@@ -71,6 +71,13 @@ class OdometryConfig:
     icp_sigma_m, icp_sigma_rad: per-sweep standard deviation of a fully trusted registration.
     gate_sigma:     per axis, a registration further than this many standard deviations from
                     the wheel odometry is not used on that axis.
+    max_points_per_voxel: points KISS-ICP's local map keeps per voxel (its default is 20).
+                    Each source point's nearest neighbour is sought among the 27 voxels
+                    around it, so this bounds the registration's cost: on the default
+                    scenario (450 m) 5 instead of 20 cut the registration CPU by about a third
+                    and the final drift went 0.49 -> 0.42 % fused with wheel odometry,
+                    2.3 -> 1.9 % by registration alone.
+    max_threads:    KISS-ICP's threads (0: as many as cores).
     """
 
     max_range_m: float = 100.0
@@ -86,6 +93,7 @@ class OdometryConfig:
     icp_sigma_m: float = 0.02
     icp_sigma_rad: float = 0.002
     gate_sigma: float = 3.0
+    max_points_per_voxel: int = 5
     max_threads: int = 0
 
     def __post_init__(self) -> None:
@@ -96,6 +104,10 @@ class OdometryConfig:
         for name in ("max_step_m", "max_step_rad", "wheel_sigma_m", "wheel_sigma_rad"):
             if not getattr(self, name) > 0:
                 raise OdometryError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.max_points_per_voxel < 1:
+            raise OdometryError(
+                f"max_points_per_voxel must be >= 1, got {self.max_points_per_voxel}"
+            )
 
     @property
     def voxel_m(self) -> float:
@@ -193,6 +205,7 @@ class LadarOdometry:
         kiss.data.max_range, kiss.data.min_range = cfg.max_range_m, cfg.min_range_m
         kiss.data.deskew = cfg.deskew
         kiss.mapping.voxel_size = cfg.voxel_m
+        kiss.mapping.max_points_per_voxel = cfg.max_points_per_voxel
         kiss.registration.max_num_threads = cfg.max_threads
         self.kiss = KissICP(kiss)
         self.T_body_sensor = np.eye(4) if T_body_sensor is None else check_pose(T_body_sensor)
