@@ -14,6 +14,7 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,8 @@ import numpy as np
 
 import kd_store
 from maps.frames import NS_PER_S, se3_inverse
-from sp.logs import open_log
+from sp.logs import LogSource, open_log
+from sp.logs.prefetch import FramePrefetcher
 from sp.logs.types import CameraFrame, Frame, LadarScan, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
@@ -137,8 +139,12 @@ def run_log(
     render_dir: str | Path | None = None,
     progress: bool = True,
     seconds: float | None = None,
+    decode_process: bool = True,
 ) -> RunReport:
-    """Run the node over a whole log (or its first ``seconds``); see the module docstring."""
+    """Run the node over a whole log (or its first ``seconds``); see the module docstring.
+    With ``decode_process`` the log is decoded ahead in a child process
+    (:class:`~sp.logs.prefetch.FramePrefetcher`), which takes its few ms per sweep off the
+    node's process."""
     config = config or NodeConfig()
     source = open_log(Path(log_path))
     info = source.info()
@@ -149,12 +155,13 @@ def run_log(
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
     t_start, cpu_start = time.perf_counter(), time.process_time()
     read_cpu_s = [0.0]
-    with kd_store.open(kd_path) as kd:
+    # the decoding process forks before the KD opens (DuckDB runs threads)
+    with _reader(source, decode_process) as (frames_in, reader), kd_store.open(kd_path) as kd:
         stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
         node = WorldModelNode(kd, config, stack)
         odo, det = OdometryScore(), DetectionScore()
         first_t, last_t = None, None
-        frames = _cpu_timed(source.frames(), read_cpu_s)
+        frames = _cpu_timed(frames_in, read_cpu_s)
         for frame in _progress(frames, total, progress, Path(log_path).name):
             first_t = frame.t_ns if first_t is None else first_t
             if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
@@ -174,6 +181,8 @@ def run_log(
             "read": 1e3 * read_cpu_s[0] / n,
             "main_process": 1e3 * (time.process_time() - cpu_start) / n,
         }
+        if reader is not None and reader.decode_cpu_s:
+            report.cpu_ms_per_sweep["decode_process"] = 1e3 * reader.decode_cpu_s / n
         report.metrics.update(_metrics(node, odo, det, terrain))
         if render_dir is not None:
             from wm.render import render_run
@@ -183,6 +192,18 @@ def run_log(
         Path(report_path).parent.mkdir(parents=True, exist_ok=True)
         Path(report_path).write_text(json.dumps(report.to_json(), indent=2))
     return report
+
+
+@contextmanager
+def _reader(
+    source: LogSource, decode_process: bool
+) -> Iterator[tuple[Iterator[Frame], FramePrefetcher | None]]:
+    """The log's frames, decoded here or ahead in a child process (stopped on leaving)."""
+    if not decode_process:
+        yield source.frames(), None
+        return
+    with FramePrefetcher(source) as prefetcher:
+        yield iter(prefetcher), prefetcher
 
 
 def _cpu_timed(frames: Iterator[Frame], total_s: list[float]) -> Iterator[Frame]:

@@ -1,0 +1,72 @@
+"""Frames decoded ahead in a child process are exactly the frames read directly: same kinds,
+times, arrays and order; read statistics come back; errors surface where the frames are
+read; leaving early stops the child."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from test_logs_mcap import assert_same_frame, make_frames
+
+from sp.logs import LogError, McapLogWriter, open_log
+from sp.logs.prefetch import FramePrefetcher, PrefetchError
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("prefetch") / "log.mcap"
+    with McapLogWriter(path) as w:
+        for seed in range(3):  # repeated times go backwards: counted in stats
+            for f in make_frames(seed):
+                w.write(f)
+    return path
+
+
+@pytest.mark.parametrize("batch_frames, max_batches", [(1, 1), (3, 2), (1000, 4)])
+def test_prefetched_frames_are_the_frames(log, batch_frames, max_batches) -> None:
+    direct_source = open_log(log)
+    direct = list(direct_source.frames())
+    source = open_log(log)
+    with FramePrefetcher(source, batch_frames, max_batches) as pf:
+        ahead = list(pf)
+    assert len(ahead) == len(direct) > 10
+    for a, b in zip(direct, ahead, strict=True):
+        assert_same_frame(a, b)
+    assert source.stats.backwards_timestamps == direct_source.stats.backwards_timestamps > 0
+    assert source.stats.messages == direct_source.stats.messages
+    assert pf.decode_cpu_s > 0
+
+
+def test_frame_filters_pass_through(log) -> None:
+    from sp.logs import LadarScan
+
+    want = [f.t_ns for f in open_log(log).frames(kinds=LadarScan)]
+    with FramePrefetcher(open_log(log), kinds=LadarScan) as pf:
+        got = [f for f in pf]
+    assert [f.t_ns for f in got] == want and all(isinstance(f, LadarScan) for f in got)
+
+
+def test_a_corrupt_log_raises_the_readers_error(log, tmp_path) -> None:
+    bad = tmp_path / "bad.mcap"
+    data = bytearray(log.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 64] = b"\xff" * 64
+    bad.write_bytes(bytes(data))
+    with pytest.raises(LogError) as direct:
+        list(open_log(bad).frames())
+    with FramePrefetcher(open_log(bad)) as pf, pytest.raises(LogError) as ahead:
+        list(pf)
+    assert str(ahead.value) == str(direct.value)
+
+
+def test_leaving_early_stops_the_child(log) -> None:
+    pf = FramePrefetcher(open_log(log), batch_frames=1, max_batches=1)
+    first = next(iter(pf))
+    assert first.t_ns == next(open_log(log).frames()).t_ns
+    pf.close()
+    assert not pf._proc.is_alive()
+
+
+def test_bad_batch_sizes_are_refused(log) -> None:
+    with pytest.raises(PrefetchError, match="batch_frames 0"):
+        FramePrefetcher(open_log(log), batch_frames=0)
