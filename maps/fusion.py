@@ -77,7 +77,8 @@ class FusionConfig:
     confidence_var_m2: float = 0.01  # elevation variance at which confidence is 0.5
     compiled: bool = True  # numba kernels (maps.kernels); False: the numpy reference path
     ray_max_range_m: float = 40.0  # free space is traced this far along a beam (horizontal)
-    ray_free_height_m: float = 1.5  # a beam this far or less above a cell's ground frees it
+    ray_free_height_m: float = 0.3  # a beam this low over a cell's ground frees it (an
+    # obstacle's height: a beam passing higher says nothing about a low obstacle there)
     ray_stride: int = 1  # trace every k-th beam of a sweep
     ray_stop_after_cells: int = 8  # a walk ends after this many settled cells in a row (0: never)
 
@@ -685,7 +686,9 @@ def cast_rays(
     ``points_xyz`` (N, 3) float64 world metres (every ``config.ray_stride``-th beam) lowers the
     occupancy log-odds of the cells it crosses before its end cell by ``l_miss``, once per
     sweep, up to ``ray_max_range_m`` (horizontal) and only where it passes at most
-    ``ray_free_height_m`` above the cell's ground (its elevation, else the beam end's height).
+    ``ray_free_height_m`` above the cell's ground (its elevation, else the beam end's height)
+    and not above the highest point ever seen there (a beam over an object's top is not
+    through it; below it, the object has gone).
     Cells holding points this sweep keep their own update (an obstacle point's hit wins), so
     a cell changes once per sweep: the inverse sensor model of an occupancy grid
     (001, 4.4.7: "which regions are visible from a particular viewpoint"). Returns the cells
@@ -694,7 +697,7 @@ def cast_rays(
     origin = np.asarray(origin_xyz, dtype=np.float64).reshape(-1)
     if origin.shape != (3,) or not np.all(np.isfinite(origin)):
         raise FusionError(f"ray_origin_xyz must be a finite world (x, y, z), got {origin_xyz!r}")
-    level.require("elevation", "occupancy")
+    level.require("elevation", "elevation_max", "occupancy")
     xyz = np.ascontiguousarray(points_xyz, dtype=np.float64)
     stride = int(config.ray_stride)
     if stride < 1:
@@ -708,7 +711,8 @@ def cast_rays(
             float(config.ray_max_range_m), float(config.ray_free_height_m),
             int(config.ray_stop_after_cells), sc.tag, sc.sweep,
             sc.ray_stamp, sc.start_stamp, sc.start_beam, level.storage("elevation").reshape(-1),
-            level.storage("occupancy").reshape(-1), float(config.l_miss), float(config.l_min),
+            level.storage("elevation_max").reshape(-1), level.storage("occupancy").reshape(-1),
+            float(config.l_miss), float(config.l_min),
         )
     )  # fmt: skip
 

@@ -326,7 +326,7 @@ def apply_cells(
 @numba.njit(cache=True, nogil=True)
 def _walk(
     sx, sy, first, px, py, pz, qz, t_lim, res_ox, res_oy, size, free_h, stop_after,
-    tag, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
+    tag, sweep, ray_stamp, elevation, elevation_max, occupancy, l_miss, l_min,
 ):  # fmt: skip
     """Walk one beam over the grid from ``(sx, sy)`` (cell units; the beam at parameter
     ``t_lim`` of the way from the origin ``(px, py)`` to its point) back to the origin cell;
@@ -378,7 +378,8 @@ def _walk(
                 ground = np.float64(elevation[c])
                 if math.isnan(ground):
                     ground = qz
-                if z_beam - ground <= free_h:
+                top = np.float64(elevation_max[c])  # NaN (never a point there): no limit
+                if z_beam - ground <= free_h and not z_beam > top:
                     ray_stamp[c] = sweep
                     occupancy[c] = max(np.float64(occupancy[c]) + l_miss, l_min)
                     lowered += 1
@@ -396,7 +397,8 @@ def _walk(
 @numba.njit(cache=True, nogil=True)
 def cast_rays(
     xyz, idx, use_idx, origin, res, ox, oy, size, max_range, free_h, stop_after,
-    tag, sweep, ray_stamp, start_stamp, start_beam, elevation, occupancy, l_miss, l_min,
+    tag, sweep, ray_stamp, start_stamp, start_beam, elevation, elevation_max, occupancy,
+    l_miss, l_min,
 ):  # fmt: skip
     """Free space: walk beams over the grid (2-D, Amanatides and Woo) from their points back
     to ``origin`` (world metres) and lower the log-odds of each cell they cross before their
@@ -404,7 +406,9 @@ def cast_rays(
     cells holding points this sweep (``tag >> 32 == sweep``: their own hit / miss stands), cells
     outside the window, cells beyond ``max_range`` (m, horizontal) and cells the beam crosses
     more than ``free_h`` (m) above their ground (the elevation estimate, else the beam end's
-    z): a beam high over a cell says nothing about a low obstacle there.
+    z): a beam high over a cell says nothing about a low obstacle there; and cells the beam
+    crosses above the highest point ever seen there (``elevation_max``): it passed over
+    whatever stands there, not through it.
 
     Of the beams that start their walk in one cell (they end there, or reach ``max_range``
     there) only the one with the lowest end is walked: from one origin through one cell, the
@@ -444,7 +448,7 @@ def cast_rays(
         if cx - ox < 0 or cx - ox >= size or cy - oy < 0 or cy - oy >= size:
             lowered += _walk(
                 sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h, stop_after,
-                tag, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
+                tag, sweep, ray_stamp, elevation, elevation_max, occupancy, l_miss, l_min,
             )  # fmt: skip
             continue
         if pow2:
@@ -469,6 +473,6 @@ def cast_rays(
         sy = py + t_lim * (qy - py)
         lowered += _walk(
             sx, sy, t_lim < 1.0, px, py, pz, qz, t_lim, ox, oy, size, free_h, stop_after,
-            tag, sweep, ray_stamp, elevation, occupancy, l_miss, l_min,
+            tag, sweep, ray_stamp, elevation, elevation_max, occupancy, l_miss, l_min,
         )  # fmt: skip
     return lowered

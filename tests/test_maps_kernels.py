@@ -182,9 +182,11 @@ def _reference_rays(level, pts, origin, touched, cfg: FusionConfig) -> set:
                 continue
             z = origin[2] + (pts[i, 2] - origin[2]) * t_lim[i] * (1 - 0.5 * (u0 + u1))
             if (ix, iy) not in elev:
-                elev[ix, iy] = level.read("elevation", np.array([[ix + 0.5, iy + 0.5]]) * res)[0]
-            ground = pts[i, 2] if np.isnan(elev[ix, iy]) else elev[ix, iy]
-            if z - ground <= cfg.ray_free_height_m:
+                centre = np.array([[ix + 0.5, iy + 0.5]]) * res
+                elev[ix, iy] = [level.read(n, centre)[0] for n in ("elevation", "elevation_max")]
+            ground, top = elev[ix, iy]
+            ground = pts[i, 2] if np.isnan(ground) else ground
+            if z - ground <= cfg.ray_free_height_m and not z > top:
                 lowered.add((ix, iy))
     return lowered
 
@@ -214,15 +216,16 @@ def test_ray_kernel_equals_segment_reference() -> None:
 
 
 def test_rays_free_the_cells_before_a_wall_and_leave_those_behind() -> None:
-    """A wall of returns 10 m ahead: the cells between the sensor and the wall end free
-    (negative log-odds), the wall cells occupied, the cells behind it and beside the beam fan
-    untouched."""
+    """A wall of returns 10 m ahead (no ground seen; the height rule off: plain 2-D
+    traversal): the cells between the sensor and the wall end free (negative log-odds), the
+    wall cells occupied, the cells behind it and beside the beam fan untouched."""
+    cfg = FusionConfig(ray_free_height_m=100.0)
     level = MapLevel(LevelConfig("t", 0.4, 128))
     sensor = np.array([0.2, 0.2, 1.5])
     y, z = np.meshgrid(np.linspace(-3.0, 3.0, 121), np.linspace(0.1, 2.0, 20))
     wall = np.column_stack([np.full(y.size, 10.1), y.ravel() + 0.2, z.ravel()])
     for t in range(3):
-        stats = fuse_points(level, wall, 1e-3, t_ns=t, ray_origin_xyz=sensor)
+        stats = fuse_points(level, wall, 1e-3, t_ns=t, config=cfg, ray_origin_xyz=sensor)
     assert stats.cells_freed["t"] > 100
     occ = level.window("occupancy")
     cx = (np.arange(128) + level.origin_cell[0] + 0.5) * 0.4  # window column centres, x
@@ -240,21 +243,35 @@ def test_rays_free_the_cells_before_a_wall_and_leave_those_behind() -> None:
 
 
 def test_rays_do_not_free_cells_they_pass_high_above() -> None:
-    """A beam to a far wall top crosses the near cells (their ground known at 0 m) higher than
-    ``ray_free_height_m``: they stay unknown; the cells near the wall, where it is low, free."""
+    """A beam to a far low point crosses the near cells (their ground known at 0 m, a priori)
+    higher than ``ray_free_height_m``: they stay unknown; the cells near its end, where it is
+    low, free."""
     cfg = FusionConfig(ray_free_height_m=1.0)
     level = MapLevel(LevelConfig("t", 0.5, 64))
-    g = np.arange(-15, 15, 0.5) + 0.25  # one ground point per cell
-    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    ground = np.column_stack([xy, np.zeros(len(xy))])
-    fuse_points(level, ground, 1e-4, t_ns=0, config=cfg)
-    occ0 = level.window("occupancy").copy()
+    level.set_window("elevation", np.zeros((64, 64), dtype=np.float32))
     sensor = np.array([0.1, 0.1, 3.0])  # 3 m up: a beam to (10, 0.1, 0.5) is low only near it
     fuse_points(level, np.array([[10.1, 0.1, 0.5]]), 1e-4, t_ns=1, config=cfg,
                 ray_origin_xyz=sensor)  # fmt: skip
-    lowered = level.window("occupancy") < occ0
-    rows, cols = np.nonzero(lowered)
-    x = level.window_to_world(rows, cols)[:, 0]
+    rows, cols = np.nonzero(level.window("occupancy") < 0)
+    xy = level.window_to_world(rows, cols)
     # beam height above ground at x: 3 - 2.5 x / 10 <= 1 m  ->  x >= 8 m
-    assert len(x) > 0 and x.min() >= 7.5 and x.max() < 10.0
-    assert np.all(np.abs(level.window_to_world(rows, cols)[:, 1] - 0.1) < 0.5)
+    assert len(xy) > 0 and xy[:, 0].min() >= 7.5 and xy[:, 0].max() < 10.0
+    assert np.all(np.abs(xy[:, 1] - 0.1) < 0.5)
+
+
+def test_rays_pass_over_an_object_top_but_clear_a_cell_it_has_left() -> None:
+    """Cells with a 1 m high top seen in them: a beam over the top leaves them, a beam below
+    it (the object has gone) frees them."""
+    cfg = FusionConfig(ray_free_height_m=2.0)
+    level = MapLevel(LevelConfig("t", 0.5, 64))
+    top = np.column_stack([np.full(5, 5.25), np.full(5, 0.25), np.linspace(0.2, 1.0, 5)])
+    fuse_points(level, top, 1e-4, t_ns=0, config=cfg)  # max 1.0 m in cell (10, 0)
+    cell = np.array([[5.25, 0.25]])
+    occ0 = level.read("occupancy", cell)[0]
+    far = np.array([[10.25, 0.25, 1.6]])
+    fuse_points(level, far, 1e-4, t_ns=1, config=cfg, ray_origin_xyz=[0.25, 0.25, 1.6])
+    assert level.read("occupancy", cell)[0] == occ0  # crossed at 1.6 m, over the 1 m top
+    assert level.read("occupancy", np.array([[3.25, 0.25]]))[0] < 0  # no point there: freed
+    low = np.array([[10.25, 0.25, 0.6]])
+    fuse_points(level, low, 1e-4, t_ns=2, config=cfg, ray_origin_xyz=[0.25, 0.25, 0.6])
+    assert level.read("occupancy", cell)[0] == pytest.approx(occ0 + cfg.l_miss)

@@ -108,7 +108,9 @@ def occupancy_against_truth(seconds: float) -> dict[str, float]:
     return {
         "occupied_on_objects": float(on_object[occupied].mean()),
         "free_in_solid_objects": float(solid[free].mean()),
-        "solid_cells_free": float(free[solid].mean()) if solid.any() else 0.0,
+        "solid_cells": int(solid.sum()),
+        "solid_cells_free": int(free[solid].sum()),
+        "solid_cells_free_points_only": int((occ_points < 0)[solid].sum()),
         "free_cells": int(free.sum()),
         "free_cells_points_only": int((occ_points < 0).sum()),
         "occupied_cells": int(occupied.sum()),
@@ -148,6 +150,17 @@ def test_ray_casting_occupancy_on_simulated_default_log() -> None:
         baseline="free cells without ray casting (ground points only)",
         baseline_value=got["free_cells_points_only"],
         target="reported (30 s of the default scenario)",
+        command=cmd,
+    )
+    record(
+        "maps_rays_solid_interior_cells_free_0.4m",
+        got["solid_cells_free"],
+        "cells",
+        baseline="the same without ray casting",
+        baseline_value=got["solid_cells_free_points_only"],
+        target=f"reported (of {got['solid_cells']} cells more than 0.2 m inside static solid "
+        "objects in the final window; low objects whose top is taken for ground are free "
+        "either way)",
         command=cmd,
     )
     assert got["occupied_on_objects"] > 0.8
