@@ -96,8 +96,9 @@ class KnowledgeDatabase:
     """Entity and event frames with pointer graphs, a class library and three memory tiers.
 
     Open with :func:`open` (``":memory:"`` for a throwaway KD). Use as a context manager: a
-    clean exit flushes and closes. Not safe for concurrent writers; readers in other threads
-    use :meth:`reader` (their own DuckDB cursor, a consistent snapshot per query).
+    clean exit flushes and closes (a throwaway KD's is not flushed: closing discards it).
+    Not safe for concurrent writers; readers in other threads use :meth:`reader` (their own
+    DuckDB cursor, a consistent snapshot per query).
     """
 
     def __init__(self, con: duckdb.DuckDBPyConnection, path: str, config: KDConfig) -> None:
@@ -140,7 +141,7 @@ class KnowledgeDatabase:
     def __exit__(
         self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
     ) -> None:
-        if et is None and not self._read_only:
+        if et is None and not self._read_only and str(self.path) != ":memory:":
             self.flush()
         self.close()
 

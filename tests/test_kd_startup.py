@@ -33,3 +33,19 @@ def test_opening_and_reopening_a_kd_does_not_load_pandas(tmp_path: Path) -> None
     assert (frame_a, frame_b) == ("world", "odom")
     assert np.isclose(float(xa), 2.0) and np.isclose(float(yb), 2.0)
     assert pandas == "False"
+
+
+def test_leaving_a_throwaway_kd_skips_the_flush() -> None:
+    """Closing discards an in-memory KD, so its clean exit does not write it to DuckDB first
+    (the write would load pandas through pyarrow: a quarter second of a short run)."""
+    code = (
+        "import sys, kd_store\n"
+        "from kd_store import Level, State\n"
+        "with kd_store.open() as kd:\n"
+        "    kd.begin_cycle(0)\n"
+        "    e = kd.add_entity('a', Level.OBJECT, noteworthy=True).id\n"
+        "    kd.observe(e, State(1, 'world', (1, 0, 0)))\n"
+        "print('pandas' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False"]
