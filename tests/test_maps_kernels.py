@@ -215,11 +215,12 @@ def test_ray_kernel_equals_segment_reference() -> None:
     assert got == ref
 
 
-def test_rays_free_the_cells_before_a_wall_and_leave_those_behind() -> None:
+@pytest.mark.parametrize("stride", [1, 4])
+def test_rays_free_the_cells_before_a_wall_and_leave_those_behind(stride: int) -> None:
     """A wall of returns 10 m ahead (no ground seen; the height rule off: plain 2-D
     traversal): the cells between the sensor and the wall end free (negative log-odds), the
     wall cells occupied, the cells behind it and beside the beam fan untouched."""
-    cfg = FusionConfig(ray_free_height_m=100.0)
+    cfg = FusionConfig(ray_free_height_m=100.0, ray_stride=stride)
     level = MapLevel(LevelConfig("t", 0.4, 128))
     sensor = np.array([0.2, 0.2, 1.5])
     y, z = np.meshgrid(np.linspace(-3.0, 3.0, 121), np.linspace(0.1, 2.0, 20))
@@ -233,7 +234,8 @@ def test_rays_free_the_cells_before_a_wall_and_leave_those_behind() -> None:
     X, Y = np.meshgrid(cx, cy)  # [row, col] like the window
     in_fan = np.abs(Y - 0.2) < 0.25 * (X - 0.2)  # well inside the fan of beams (|y| < 3 m at x=10)
     between = in_fan & (X > 0.6) & (X < 9.6)
-    assert np.all(occ[between] == pytest.approx(3 * FusionConfig().l_miss))
+    free = np.isclose(occ[between], 3 * cfg.l_miss)
+    assert free.mean() == 1.0 if stride == 1 else free.mean() > 0.95  # beams left out: gaps
     wall_cells = (np.abs(X - 10.2) < 0.2) & (np.abs(Y - 0.2) < 2.8)
     assert np.all(occ[wall_cells] > 0)
     behind = X > 10.6
