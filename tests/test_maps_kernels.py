@@ -5,6 +5,8 @@ Python segment-square reference and a hand-built scene with known free and occup
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -101,20 +103,24 @@ def test_stack_kernel_equals_numpy_stack_and_counts_each_point_once_per_level() 
         LevelConfig("b", 0.5, 32, keep_tiles=False),
         LevelConfig("c", 2.5, 32, keep_tiles=False),
     )
-    stacks = [MapStack(StackConfig(levels=levels, fusion=f)) for f in (KERNEL, NUMPY)]
+    fusions = [replace(f, ray_free_height_m=3.0) for f in (KERNEL, NUMPY)]
+    stacks = [MapStack(StackConfig(levels, f, raycast_levels=("b", "c"))) for f in fusions]
     sensor = np.array([0.0, 0.0, 2.0])
     for t, centre in enumerate(([0.3, 0.2], [1.7, -0.9], [4.0, 2.2], [4.1, 2.2])):
-        xy = np.array(centre) + rng.normal(0, 12.0, size=(20000, 2))
+        xy = np.array(centre) + rng.normal(0, 12.0, size=(20000 if t < 3 else 1500, 2))
         z = 0.05 * xy[:, 0] + rng.normal(0, 0.02, len(xy))
         z[rng.random(len(xy)) < 0.05] += 1.5
         pts = np.column_stack([xy, z])
         pts[rng.random(len(xy)) < 0.01, 2] = np.nan
         kw = {"variance_m2": rng.uniform(1e-4, 4e-4, len(xy))} if t < 2 else {"sensor_xyz": sensor}
+        if t == 3:
+            kw["ray_origin_xyz"] = sensor + np.array([*centre, 0.0])
         got = []
         for stack in stacks:
             stack.move_to(np.array(centre))
             got.append(stack.fuse(pts, t_ns=t, **kw))
         assert got[0] == got[1]
+        assert t < 3 or got[0].cells_freed["b"] > 20
         for lvl in stacks[0].levels:  # every level counts each point of its window once
             inside = lvl.contains(pts) & np.isfinite(pts).all(axis=1)
             assert got[0].ground[lvl.name] + got[0].obstacle[lvl.name] == int(inside.sum())
