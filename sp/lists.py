@@ -69,23 +69,31 @@ class ListConfig:
     max_patch_roughness_m: float = 0.15
 
 
+def mean_intensity(intensity: np.ndarray, valid: np.ndarray) -> float:
+    """Mean of ``intensity`` over the ``valid`` pixels (1.0 when there are none)."""
+    n = int(np.count_nonzero(valid))
+    return float(np.where(valid, intensity, 0.0).sum(dtype=np.float64)) / n if n else 1.0
+
+
 def brightness_edges(
-    intensity: np.ndarray, valid: np.ndarray, config: ListConfig | None = None
+    intensity: np.ndarray,
+    valid: np.ndarray,
+    config: ListConfig | None = None,
+    mean: float | None = None,
 ) -> np.ndarray:
-    """(H, W) bool pixels on a brightness edge of ``intensity`` ((H, W) sensor units, any
-    value where not ``valid``). Intensity is scaled by its mean over the valid pixels, so the
-    thresholds are relative (a reflectance step, whatever the sensor's units)."""
+    """(H, W) bool pixels on a brightness edge of ``intensity`` ((H, W) sensor units, NaN or
+    any value where not ``valid``). Intensity is scaled by ``mean``, its mean over the valid
+    pixels (:func:`mean_intensity`, computed when not given), so the thresholds are relative
+    (a reflectance step, whatever the sensor's units)."""
     cfg = config or ListConfig()
     if intensity.shape != valid.shape or intensity.ndim != 2:
         raise ListError(f"intensity {intensity.shape} and valid {valid.shape} must be one (H, W)")
-    n = int(np.count_nonzero(valid))
-    if n == 0:
+    mean = mean_intensity(intensity, valid) if mean is None else mean
+    if not mean > 0.0 or not valid.any():
         return np.zeros(valid.shape, dtype=bool)
-    i = np.where(valid, intensity, 0.0).astype(np.float32)
-    mean = float(i.sum(dtype=np.float64)) / n
-    if not mean > 0.0:
-        return np.zeros(valid.shape, dtype=bool)
-    img8 = cv2.convertScaleAbs(i, alpha=100.0 / mean)
+    # |x| scaled and saturated to 0..255; NaN becomes 0, and the erosion below drops every
+    # pixel next to an invalid one, whatever its value there
+    img8 = cv2.convertScaleAbs(np.asarray(intensity, dtype=np.float32), alpha=100.0 / mean)
     edge = cv2.Canny(img8, cfg.canny_low, cfg.canny_high, L2gradient=True) > 0
     inner = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0
     return edge & inner
@@ -317,13 +325,13 @@ def _list_slots_kernel(
     brightness_edge: np.ndarray,
     patch: np.ndarray,
     lut: np.ndarray,
+    list_ids: np.ndarray,
     branches: np.ndarray,
     slots: np.ndarray,
-    missing: np.ndarray,
-) -> int:
+    ids: np.ndarray,
+) -> None:
     H, W = owner.shape
     n_kinds = 4
-    n_missing = 0
     for i in range(H):
         for j in range(W):
             br = 0
@@ -356,11 +364,9 @@ def _list_slots_kernel(
                 if key < lut.size:
                     slot = lut[key]
                 if slot < 0:
-                    if n_missing < missing.size:
-                        missing[n_missing] = key
-                    n_missing += 1
+                    slot = -2 - key  # no list for this key yet: the key, encoded
             slots[i, j] = slot
-    return n_missing
+            ids[i, j] = list_ids[slot] if slot >= 0 else -1
 
 
 def list_slots(
@@ -369,16 +375,21 @@ def list_slots(
     brightness_edge: np.ndarray,
     patch: np.ndarray,
     lut: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    list_ids: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The list each pixel belongs to, in one compiled pass: its kind (a vertex where the
     edge crossing number is 1 or >= 3, else a range edge, a brightness edge, or a surface
-    patch where ``patch``), the key ``owner * 4 + kind`` of its (owner, kind) list, and
-    that list's slot ``lut[key]``. ``owner`` (H, W) int64 (-1 none); the three masks (H, W)
-    bool; ``lut`` (K,) int64 key -> slot (-1 none). Returns (slots (H, W) int64 (-1 none,
-    also where the key has no slot yet), branches (H, W) int8 from :func:`edge_branches`, the
-    sorted keys that have no slot). :func:`list_slots_numpy` is its reference."""
+    patch where ``patch``), the key ``owner * 4 + kind`` of its (owner, kind) list, that
+    list's slot ``lut[key]`` and frame id ``list_ids[slot]``. ``owner`` (H, W) int64 (-1
+    none); the three masks (H, W) bool; ``lut`` (K,) int64 key -> slot (-1 none);
+    ``list_ids`` (S,) int64. Returns (slots (H, W) int64: the slot, -1 no list, ``-2 - key``
+    where the key has no slot yet (:func:`fill_slots` fills them once the lists exist); list
+    ids (H, W) int64 (the level-2 entity image, -1 none); branches (H, W) int8 from
+    :func:`edge_branches`; the sorted keys that have no slot). :func:`list_slots_numpy` is its
+    reference."""
     H, W = owner.shape
     slots = np.empty((H, W), dtype=np.int64)
+    ids = np.empty((H, W), dtype=np.int64)
     branches = np.empty((H, W), dtype=np.int8)
     args = (
         np.ascontiguousarray(owner, dtype=np.int64),
@@ -386,13 +397,22 @@ def list_slots(
         np.ascontiguousarray(brightness_edge, dtype=np.bool_),
         np.ascontiguousarray(patch, dtype=np.bool_),
         np.ascontiguousarray(lut, dtype=np.int64),
+        np.ascontiguousarray(list_ids, dtype=np.int64),
     )
-    missing = np.empty(256, dtype=np.int64)
-    n = _list_slots_kernel(*args, branches, slots, missing)
-    if n > missing.size:  # more pixels without a list than the buffer holds: once more
-        missing = np.empty(n, dtype=np.int64)
-        n = _list_slots_kernel(*args, branches, slots, missing)
-    return slots, branches, np.unique(missing[:n])
+    _list_slots_kernel(*args, branches, slots, ids)
+    pending = slots <= -2
+    missing = np.unique(-2 - slots[pending]) if pending.any() else np.zeros(0, np.int64)
+    return slots, ids, branches, missing
+
+
+def fill_slots(slots: np.ndarray, ids: np.ndarray, lut: np.ndarray, list_ids: np.ndarray) -> None:
+    """In place: the pixels :func:`list_slots` left waiting for a list (``-2 - key``) get the
+    slot ``lut[key]`` and the id ``list_ids[slot]`` now that their lists exist."""
+    pending = np.flatnonzero(slots.reshape(-1) <= -2)
+    if pending.size:
+        slot = lut[-2 - slots.reshape(-1)[pending]]
+        slots.reshape(-1)[pending] = slot
+        ids.reshape(-1)[pending] = np.where(slot >= 0, list_ids[np.maximum(slot, 0)], -1)
 
 
 def list_slots_numpy(
@@ -401,7 +421,8 @@ def list_slots_numpy(
     brightness_edge: np.ndarray,
     patch: np.ndarray,
     lut: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    list_ids: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Reference of :func:`list_slots` in plain numpy."""
     branches = edge_branches(range_edge | brightness_edge)
     kind = np.full(owner.shape, -1, dtype=np.int64)
@@ -414,7 +435,11 @@ def list_slots_numpy(
     inside = on & (key < lut.size)
     slots = np.full(owner.shape, -1, dtype=np.int64)
     slots[inside] = lut[key[inside]]
-    return slots, branches, np.unique(key[on & (slots < 0)])
+    wait = on & (slots < 0)
+    slots[wait] = -2 - key[wait]
+    ids = np.full(owner.shape, -1, dtype=np.int64)
+    ids[slots >= 0] = list_ids[slots[slots >= 0]]
+    return slots, ids, branches, np.unique(key[wait])
 
 
 SUMS = ("n", "range", "range_step", "inten_step", "edge", "vertex", "branches", "r", "c",
@@ -481,8 +506,8 @@ def list_sums(
     out = np.zeros((n_slots, len(SUMS)))
     _list_sums_kernel(
         np.ascontiguousarray(slot, dtype=np.int64),
-        np.ascontiguousarray(range_m, dtype=np.float64),
-        np.ascontiguousarray(intensity, dtype=np.float64),
+        np.ascontiguousarray(range_m),  # float32 or float64 as given (compiled for each)
+        np.ascontiguousarray(intensity),
         np.ascontiguousarray(edge, dtype=np.bool_),
         np.ascontiguousarray(branches, dtype=np.int8),
         out,

@@ -61,9 +61,11 @@ from sp.lists import (
     ListConfig,
     ListKind,
     brightness_edges,
+    fill_slots,
     list_attributes,
     list_slots,
     list_sums,
+    mean_intensity,
     patch_grid,
 )
 from sp.logs.types import CameraFrame, LadarScan
@@ -709,14 +711,20 @@ class SensoryProcessor:
             ).id
             self._set_class(self.ground_id, "ground")
         gid = self.ground_id
-        near = pts_w[np.linalg.norm(pts_w[:, :2] - T_world_ladar[:2, 3], axis=1) < 20.0]
+        # the plane z = a x + b y + c through the ground within 20 m, in coordinates centred
+        # on the sensor (small numbers), by its 3 x 3 normal equations: the least-squares
+        # solution without an SVD of the N x 3 design matrix
+        d = pts_w - T_world_ladar[:3, 3]
+        near = d[d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] < 400.0]
         if near.shape[0] >= 10:
-            A = np.c_[near[:, 0], near[:, 1], np.ones(near.shape[0])].astype(np.float64)
-            coef, *_ = np.linalg.lstsq(A, near[:, 2].astype(np.float64), rcond=None)
-            resid = near[:, 2] - A @ coef
+            x, y, z = near[:, 0], near[:, 1], near[:, 2]
+            sx, sy = float(x.sum()), float(y.sum())
+            AtA = np.array([[x @ x, x @ y, sx], [x @ y, y @ y, sy], [sx, sy, float(near.shape[0])]])
+            coef, *_ = np.linalg.lstsq(AtA, np.array([x @ z, y @ z, z.sum()]), rcond=None)
+            resid = z - (coef[0] * x + coef[1] * y + coef[2])
             slope = float(math.atan(math.hypot(coef[0], coef[1])))
             rough = float(np.sqrt(np.mean(resid**2)))
-            z0 = float(coef @ [T_world_ladar[0, 3], T_world_ladar[1, 3], 1.0])
+            z0 = float(T_world_ladar[2, 3] + coef[2])  # the plane under the sensor
             kd.update_entity(
                 gid,
                 attributes={
@@ -958,9 +966,12 @@ class SensoryProcessor:
         cfg = self.config
         kd = self.kd
         r_edge = range_edges(rng, valid, cfg.segments)
-        b_edge = brightness_edges(intensity, valid, cfg.list_config) & ~r_edge
+        inten_mean = mean_intensity(intensity, valid)
+        b_edge = brightness_edges(intensity, valid, cfg.list_config, inten_mean) & ~r_edge
         patch = self._free_px if self._free_px.shape == owner.shape else np.zeros_like(valid)
-        slots, branches, missing = list_slots(owner, r_edge, b_edge, patch, self._list_lut)
+        slots, out, branches, missing = list_slots(
+            owner, r_edge, b_edge, patch, self._list_lut, self._list_ids
+        )
         first_new = self._list_ids.size
         if missing.size:
             if int(missing.max()) >= self._list_lut.size:
@@ -982,17 +993,16 @@ class SensoryProcessor:
                 self._lists_of.setdefault(oid, []).append(lid)
                 new.append(lid)
             self._list_ids = np.r_[self._list_ids, np.array(new, dtype=np.int64)]
-            slots, branches, _ = list_slots(owner, r_edge, b_edge, patch, self._list_lut)
+            fill_slots(slots, out, self._list_lut, self._list_ids)
         if self._list_ids.size == 0:
             return np.full(owner.shape, -1, dtype=np.int64)
         edge = r_edge | b_edge
         # attributes of every list seen (one compiled pass); classes and frames of those due
         # this sweep and the new ones
         sums = list_sums(slots, rng, intensity, edge, branches, self._list_ids.size)
-        a = list_attributes(sums, 2 * math.pi / owner.shape[1], _mean_valid(intensity, valid))
+        a = list_attributes(sums, 2 * math.pi / owner.shape[1], inten_mean)
         ids = self._list_ids[a.ids]
         due = self._due(ids) | (a.ids >= first_new)
-        out = np.where(slots >= 0, self._list_ids[np.maximum(slots, 0)], -1)
         rows = [r for r, d in zip(a.as_dicts(), due, strict=True) if d]
         matches = self._list_classifier.classify_many(rows)
         ids = ids[due]
@@ -1138,12 +1148,6 @@ def status_code(s: Status) -> int:
 
 def _unit(x: float) -> float:
     return float(min(max(x, 0.0), 1.0))
-
-
-def _mean_valid(x: np.ndarray, valid: np.ndarray) -> float:
-    """Mean of ``x`` over the ``valid`` pixels (1.0 when there are none)."""
-    n = int(np.count_nonzero(valid))
-    return float(np.where(valid, x, 0.0).sum(dtype=np.float64)) / n if n else 1.0
 
 
 def _with_min(cfg: SegmentConfig, min_pixels: int) -> SegmentConfig:

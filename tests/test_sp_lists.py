@@ -19,6 +19,7 @@ from sp.lists import (
     block_moments_numpy,
     brightness_edges,
     edge_branches,
+    fill_slots,
     list_attributes,
     list_slots,
     list_slots_numpy,
@@ -56,22 +57,36 @@ def test_list_slots_and_sums_match_numpy(seed: int) -> None:
     patch = g.random((H, W)) < 0.5
     lut = np.full(5 * 4 - 3, -1, np.int64)  # too short for the last owner's keys: missing
     lut[g.permutation(lut.size)[: lut.size // 2]] = np.arange(lut.size // 2)
-    got = list_slots(owner, r_edge, b_edge, patch, lut)
-    ref = list_slots_numpy(owner, r_edge, b_edge, patch, lut)
+    list_ids = np.arange(lut.size) * 3 + 100
+    got = list_slots(owner, r_edge, b_edge, patch, lut, list_ids)
+    ref = list_slots_numpy(owner, r_edge, b_edge, patch, lut, list_ids)
     for a, b in zip(got, ref, strict=True):
         np.testing.assert_array_equal(a, b)
-    slots, branches, _ = got
+    slots, ids, branches, missing = got
+    assert (ids[slots >= 0] == list_ids[slots[slots >= 0]]).all() and (ids[slots < 0] == -1).all()
+    # the lists of the missing keys are made: the waiting pixels get them
+    full = np.full(max(lut.size, int(missing.max(initial=-1)) + 1), -1)
+    full[: lut.size] = lut
+    full[missing] = lut.size + np.arange(missing.size)
+    more_ids = np.r_[list_ids, 1000 + np.arange(missing.size)]
+    filled_slots, filled_ids = slots.copy(), ids.copy()
+    fill_slots(filled_slots, filled_ids, full, more_ids)
+    again = list_slots(owner, r_edge, b_edge, patch, full, more_ids)
+    np.testing.assert_array_equal(filled_slots, again[0])
+    np.testing.assert_array_equal(filled_ids, again[1])
+    assert again[3].size == 0 and (again[0] >= -1).all()
+    slots = filled_slots
     rng = g.uniform(1.0, 50.0, (H, W))
     rng[g.random((H, W)) < 0.1] = np.inf
     rng[g.random((H, W)) < 0.1] = np.nan
-    inten = g.random((H, W)).astype(np.float32)
+    inten = g.random((H, W)).astype(np.float32)  # float32 as the egosphere gives it
     inten[g.random((H, W)) < 0.1] = np.nan
     edge = r_edge | b_edge
-    n = int(lut.max()) + 1
+    n = int(slots.max()) + 1
     np.testing.assert_allclose(
         list_sums(slots, rng, inten, edge, branches, n),
         list_sums_numpy(slots, rng, inten, edge, branches, n),
-        rtol=1e-12,
+        rtol=1e-6,  # the kernel takes float32 intensity steps in float32, the reference in 64
         atol=1e-9,
     )
 
@@ -79,8 +94,10 @@ def test_list_slots_and_sums_match_numpy(seed: int) -> None:
 def test_list_slots_with_no_lists_and_no_edges() -> None:
     owner = np.full((3, 4), -1, np.int64)
     z = np.zeros((3, 4), bool)
-    slots, br, missing = list_slots(owner, z, z, z, np.zeros(0, np.int64))
-    assert (slots == -1).all() and (br == 0).all() and missing.size == 0
+    slots, ids, br, missing = list_slots(
+        owner, z, z, z, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    )
+    assert (slots == -1).all() and (ids == -1).all() and (br == 0).all() and missing.size == 0
 
 
 # ---------------------------------------------------------------- edges and vertices

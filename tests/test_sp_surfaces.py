@@ -134,6 +134,10 @@ def test_pipeline_free_surface_on_the_wall_persists_and_touches_the_ground() -> 
         assert np.mean(img3[wall & ~r.ground_mask] == on[0]) > 0.85
         first = int(on[0]) if first is None else first
         assert on[0] == first  # the same surface from sweep to sweep
+    g = kd.get(sp.ground_id)  # the ground plane: flat, under the sensor at world z = 0
+    assert g.attributes["slope_rad"].observed < 0.01
+    assert g.attributes["roughness_m"].observed < 0.01
+    assert g.state.position_xyz[2] == pytest.approx(0.0, abs=0.02)
     s = kd.get(first)
     assert s.level == Level.SURFACE and IMAGE_NAMES[3] in s.images
     assert s.status == Status.CONFIRMED  # seen in confirm_hits sweeps
