@@ -156,7 +156,11 @@ def run_log(
     t_start, cpu_start = time.perf_counter(), time.process_time()
     read_cpu_s = [0.0]
     # the decoding process forks before the KD opens (DuckDB runs threads)
-    with _reader(source, decode_process) as (frames_in, reader), kd_store.open(kd_path) as kd:
+    with (
+        compute_threads(config.compute_threads),
+        _reader(source, decode_process) as (frames_in, reader),
+        kd_store.open(kd_path) as kd,
+    ):
         stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
         node = WorldModelNode(kd, config, stack)
         odo, det = OdometryScore(), DetectionScore()
@@ -192,6 +196,19 @@ def run_log(
         Path(report_path).parent.mkdir(parents=True, exist_ok=True)
         Path(report_path).write_text(json.dumps(report.to_json(), indent=2))
     return report
+
+
+@contextmanager
+def compute_threads(n: int | None) -> Iterator[None]:
+    """BLAS and OpenMP libraries limited to ``n`` threads inside the block (None: no limit);
+    the previous limits come back after it."""
+    if n is None:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=n):
+        yield
 
 
 @contextmanager
@@ -316,12 +333,14 @@ def run_node(
     """Feed a log (or its first ``seconds``) through a node and return it, its KD still open
     (the caller closes ``node.kd``): for What If / render from the shell and for tests."""
     source = open_log(Path(log_path))
-    node = WorldModelNode(kd_store.open(kd_path), config or NodeConfig())
+    config = config or NodeConfig()
+    node = WorldModelNode(kd_store.open(kd_path), config)
     first_t = None
-    for frame in source.frames():
-        first_t = frame.t_ns if first_t is None else first_t
-        if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
-            break
-        node.feed(frame)
-    node.finish()
+    with compute_threads(config.compute_threads):
+        for frame in source.frames():
+            first_t = frame.t_ns if first_t is None else first_t
+            if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
+                break
+            node.feed(frame)
+        node.finish()
     return node
