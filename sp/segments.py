@@ -13,7 +13,8 @@ grazing-angle rule: proximity and contiguity) or than the ``join_m`` floor, unle
 steps between them (:func:`_range_step`: an occluder's edge, a person or a car before a
 building front, is a step; a surface, even one seen at a grazing angle, continues). The
 connected components of that graph are the object hypotheses; small pieces within ``near_m``
-of each other in 3D are one (proximity: a bicycle seen through). Components with fewer than
+of each other in 3D are one when far enough for the beams to lie apart (proximity: a
+bicycle seen through). Components with fewer than
 ``min_pixels`` returns are left ungrouped (speckle). Azimuth wraps around.
 
 Continuity (:func:`merge_collinear`): a long straight segment (a wall, a fence, a building
@@ -52,15 +53,16 @@ class SegmentConfig:
                      ``line_min_aspect`` times longer than wide is a line; another segment whose
                      centre lies within ``line_offset_m`` of that line, whose extent along it
                      leaves a gap of at most ``line_gap_m`` (both plus ``line_per_m`` per metre
-                     of range), which is at most ``line_thick_m`` wide, and which is short
-                     (under 2 m) and at most ``line_thick_m`` across the line, or long and
-                     turned by at most ``line_max_turn_deg`` from it, continues it.
+                     of range), which is at most ``line_thick_m`` wide (across its own long
+                     axis), and which is short (under 2 m) or turned by at most
+                     ``line_max_turn_deg`` from it, continues it.
     step_m, step_frac: no join across a range step larger than ``step_m + step_frac * range``
                      (metres) that continues neither side (0 turns the test off).
     row_gap:         a return is joined to the next one down its column across at most this
                      many rows without any return.
-    near_pixels, near_m: pieces of fewer returns than this whose points come closer than
-                     ``near_m`` (metres, 3D) are one piece.
+    near_pixels, near_m, near_min_range_m: beyond ``near_min_range_m`` (metres), pieces of
+                     fewer returns than ``near_pixels`` whose points come closer than ``near_m``
+                     (metres, 3D) are one piece.
     edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
     """
 
@@ -82,6 +84,7 @@ class SegmentConfig:
     row_gap: int = 2
     near_pixels: int = 10
     near_m: float = 0.4
+    near_min_range_m: float = 15.0
 
     def __post_init__(self) -> None:
         if self.join_m <= 0 or self.join_per_rad < 0 or self.min_pixels < 1:
@@ -152,7 +155,7 @@ def label_objects(
     g = coo_matrix((np.ones(s.size, dtype=np.int8), (s, t)), shape=(idx.size, idx.size))
     _, comp = connected_components(g, directed=False)
     if cfg.near_pixels > 0 and cfg.near_m > 0:
-        comp = _join_near_pieces(comp, flat[idx], cfg)
+        comp = _join_near_pieces(comp, flat[idx], rng[idx], cfg)
     counts = np.bincount(comp)
     keep = counts >= cfg.min_pixels
     new_id = np.full(counts.size, -1, dtype=np.int64)
@@ -161,16 +164,19 @@ def label_objects(
     return labels.reshape(H, W)
 
 
-def _join_near_pieces(comp: np.ndarray, points: np.ndarray, cfg: SegmentConfig) -> np.ndarray:
-    """Proximity in 3D (reference 001, 4.5.1: "subentities are close together"): pieces of
-    fewer than ``near_pixels`` returns closer than ``near_m`` to each other are one piece (a
-    bicycle or a far car seen through, whose returns are not image neighbours).
-    comp: (n,) component of each grouped pixel; points: (n, 3) their points. Returns the new
-    (n,) components, numbered 0..K-1."""
+def _join_near_pieces(
+    comp: np.ndarray, points: np.ndarray, range_m: np.ndarray, cfg: SegmentConfig
+) -> np.ndarray:
+    """Proximity in 3D (reference 001, 4.5.1: "subentities are close together"): beyond
+    ``near_min_range_m``, where the beams lie too far apart for image contiguity to hold a thin
+    object together (a bicycle seen through), pieces of fewer than ``near_pixels`` returns
+    whose points come closer than ``near_m`` to each other are one piece.
+    comp: (n,) component of each grouped pixel; points: (n, 3) their points (m); range_m:
+    (n,) their ranges (m). Returns the new (n,) components, numbered 0..K-1."""
     from scipy.spatial import cKDTree
 
     counts = np.bincount(comp)
-    small = np.flatnonzero(counts[comp] < cfg.near_pixels)
+    small = np.flatnonzero((counts[comp] < cfg.near_pixels) & (range_m > cfg.near_min_range_m))
     if small.size < 2:
         return comp
     pairs = cKDTree(points[small]).query_pairs(cfg.near_m, output_type="ndarray")
@@ -289,13 +295,10 @@ def merge_collinear(
     turn = np.abs((yaw_rad[None, :] - yaw_rad[li, None] + np.pi / 2) % np.pi - np.pi / 2)
     slack = cfg.line_per_m * np.minimum(range_m[li, None], range_m[None, :])
     gap = along - 0.5 * (length_m[li, None] + length_m[None, :])
-    # a piece of a line is thin: a long one runs along it, a short one (whose heading means
-    # little) is thin across it; a person or a car beside a wall is not a piece of the wall
-    thick = np.abs(np.sin(turn)) * length_m[None, :] + np.abs(np.cos(turn)) * width_m[None, :]
-    along_line = (width_m[None, :] <= cfg.line_thick_m) & np.where(
-        length_m[None, :] < 2.0,
-        thick <= cfg.line_thick_m,
-        turn <= np.radians(cfg.line_max_turn_deg),
+    # a piece of a line is thin (a person or a car beside a wall is not a piece of it); a long
+    # one runs along it, a short one (a corner's return face, too) may turn
+    along_line = (width_m[None, :] <= cfg.line_thick_m) & (
+        (length_m[None, :] < 2.0) | (turn <= np.radians(cfg.line_max_turn_deg))
     )
     ok = (across <= cfg.line_offset_m + slack) & (gap <= cfg.line_gap_m + slack) & along_line
     ok[np.arange(li.size), li] = False

@@ -6,6 +6,8 @@ the mask, as the pipeline does.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -145,14 +147,21 @@ def test_empty_rows_between_beams_do_not_split_a_surface() -> None:
     assert np.unique(labels[hit == 0]).size > 1
 
 
-def test_a_see_through_object_is_one_segment() -> None:
-    # a bicycle-like frame 10 m out: two thin bars 0.35 m apart (6 columns), each one column
-    # wide, with the ground between them (not grouped) so no two bars are image neighbours
-    bars = [((10.0, y, -SENSOR_H + 0.3), (10.05, y + 0.05, -SENSOR_H + 1.0)) for y in (0.0, 0.35)]
-    labels, hit = segments_of(bars, SegmentConfig(min_pixels=1))
-    assert np.count_nonzero(hit == 0) >= 5 and np.count_nonzero(hit == 1) >= 5
+def test_a_see_through_object_far_out_is_one_segment() -> None:
+    # a bicycle-like frame: two thin bars 0.5 m apart, each about a column wide at 20 m, with
+    # the ground between them (not grouped) so no two bars are image neighbours
+    def bars(x_m: float):
+        lo, hi = -SENSOR_H + 0.3, -SENSOR_H + 1.0
+        return [((x_m, y, lo), (x_m + 0.05, y + 0.13, hi)) for y in (0.0, 0.5)]
+
+    cfg = SegmentConfig(min_pixels=1, near_m=0.6)
+    labels, hit = segments_of(bars(20.0), cfg)
+    assert np.count_nonzero(hit == 0) >= 4 and np.count_nonzero(hit == 1) >= 4
     one_label(labels, hit >= 0)
-    labels, _ = segments_of(bars, SegmentConfig(min_pixels=1, near_m=0.0))
+    labels, _ = segments_of(bars(20.0), dataclasses.replace(cfg, near_m=0.0))
+    assert np.unique(labels[hit >= 0]).size == 2
+    # nearer than near_min_range_m the beams are dense enough: proximity alone does not join
+    labels, hit = segments_of(bars(10.0), cfg)
     assert np.unique(labels[hit >= 0]).size == 2
 
 
@@ -249,9 +258,10 @@ def test_join_near_pieces_matches_pairwise_distances() -> None:
         comp = rng.integers(0, max(n // 2, 1), size=n)
         comp = np.unique(comp, return_inverse=True)[1]
         pts = rng.uniform(0.0, 3.0, size=(n, 3))
-        got = _join_near_pieces(comp, pts, cfg)
-        # reference: union of small pieces whose points come within near_m, by a plain loop
-        small = np.bincount(comp)[comp] < cfg.near_pixels
+        r = rng.uniform(10.0, 20.0, size=n)
+        got = _join_near_pieces(comp, pts, r, cfg)
+        # reference: union of small far pieces whose points come within near_m, by a loop
+        small = (np.bincount(comp)[comp] < cfg.near_pixels) & (r > cfg.near_min_range_m)
         parent = list(range(comp.max() + 1))
         for i in range(n):
             for j in range(i + 1, n):
