@@ -115,7 +115,10 @@ class SPConfig:
     surfaces: SurfaceConfig = field(default_factory=SurfaceConfig)
     kd_refresh_sweeps: int = 8  # list and surface frames rewritten every this many sweeps
     appearance_classes: bool = True  # objects classified with their observed appearance too
-    intensity_per_reflectance: float = 1.0  # LADAR intensity units of a unit reflectance
+    # LADAR intensity units of a unit reflectance: 1.0 for sensors that report reflectance
+    # 0..1 (the simulator, KITTI); None (unknown units) leaves the LADAR intensity out of
+    # classification, since a wrong scale would mislead it; the camera's grey is 0..1 always
+    intensity_per_reflectance: float | None = None
     appearance_gain: float = 0.3  # running-mean gain of an object's observed appearance
     terrain_tilt_deg: float = 25.0  # a broad thin plane tilted less than this is ground ...
     terrain_breadth_m: float = 0.25  # ... when its points spread this far along its middle axis
@@ -648,14 +651,15 @@ class SensoryProcessor:
 
     def _appearance_of(self, tid: int) -> dict[str, float]:
         """The appearance attributes object ``tid`` has been observed with: ``reflectance``
-        (mean LADAR intensity over ``intensity_per_reflectance``) and ``camera_intensity``
+        (mean LADAR intensity over ``intensity_per_reflectance``, when that is known) and
+        ``camera_intensity``
         (mean grey 0..1 of its returns in the camera image). An attribute never observed is
         left out, so the classifier ignores it rather than reading it as zero."""
         cfg = self.config
         if not cfg.appearance_classes:
             return {}
         out = {}
-        if tid in self.track_reflectance:
+        if tid in self.track_reflectance and cfg.intensity_per_reflectance:
             out["reflectance"] = self.track_reflectance[tid] / cfg.intensity_per_reflectance
         if tid in self.track_camera:
             out["camera_intensity"] = self.track_camera[tid]

@@ -72,3 +72,7 @@ def test_pipeline_passes_only_observed_appearance() -> None:
     off = SensoryProcessor(kd_store.open(":memory:"), SPConfig(appearance_classes=False))
     off._observe_appearance(off.track_camera, 5, 0.25)
     assert off._appearance_of(5) == {}
+    unknown = SensoryProcessor(kd_store.open(":memory:"))  # LADAR units unknown: camera only
+    unknown._observe_appearance(unknown.track_reflectance, 5, 100.0)
+    unknown._observe_appearance(unknown.track_camera, 5, 0.25)
+    assert unknown._appearance_of(5) == {"camera_intensity": 0.25}
