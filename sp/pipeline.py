@@ -722,9 +722,14 @@ class SensoryProcessor:
         near = d[d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] < 400.0]
         if near.shape[0] >= 10:
             x, y, z = near[:, 0], near[:, 1], near[:, 2]
-            sx, sy = float(x.sum()), float(y.sum())
-            AtA = np.array([[x @ x, x @ y, sx], [x @ y, y @ y, sy], [sx, sy, float(near.shape[0])]])
-            coef, *_ = np.linalg.lstsq(AtA, np.array([x @ z, y @ z, z.sum()]), rcond=None)
+            # sums of products by einsum, not BLAS: on a busy machine a threaded dot product
+            # waits on its threads far longer than the sum takes
+            m = np.einsum("ni,nj->ij", near, near)
+            s = near.sum(axis=0)
+            AtA = np.array(
+                [[m[0, 0], m[0, 1], s[0]], [m[0, 1], m[1, 1], s[1]], [s[0], s[1], len(near)]]
+            )
+            coef, *_ = np.linalg.lstsq(AtA, np.array([m[0, 2], m[1, 2], s[2]]), rcond=None)
             resid = z - (coef[0] * x + coef[1] * y + coef[2])
             slope = float(math.atan(math.hypot(coef[0], coef[1])))
             rough = float(np.sqrt(np.mean(resid**2)))
