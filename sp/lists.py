@@ -326,12 +326,16 @@ def _list_slots_kernel(
     patch: np.ndarray,
     lut: np.ndarray,
     list_ids: np.ndarray,
+    range_m: np.ndarray,
+    intensity: np.ndarray,
     branches: np.ndarray,
     slots: np.ndarray,
     ids: np.ndarray,
+    sums: np.ndarray,
 ) -> None:
     H, W = owner.shape
     n_kinds = 4
+    n_sums = sums.shape[0]
     for i in range(H):
         for j in range(W):
             br = 0
@@ -367,6 +371,9 @@ def _list_slots_kernel(
                     slot = -2 - key  # no list for this key yet: the key, encoded
             slots[i, j] = slot
             ids[i, j] = list_ids[slot] if slot >= 0 else -1
+            if 0 <= slot < n_sums:
+                edge = range_edge[i, j] or brightness_edge[i, j]
+                _accumulate(sums, slot, i, j, range_m, intensity, edge, br)
 
 
 def list_slots(
@@ -399,10 +406,49 @@ def list_slots(
         np.ascontiguousarray(lut, dtype=np.int64),
         np.ascontiguousarray(list_ids, dtype=np.int64),
     )
-    _list_slots_kernel(*args, branches, slots, ids)
+    none = np.zeros((1, 1))
+    _list_slots_kernel(*args, none, none, branches, slots, ids, np.zeros((0, len(SUMS))))
+    return slots, ids, branches, _missing(slots)
+
+
+def list_slots_and_sums(
+    owner: np.ndarray,
+    range_edge: np.ndarray,
+    brightness_edge: np.ndarray,
+    patch: np.ndarray,
+    lut: np.ndarray,
+    list_ids: np.ndarray,
+    range_m: np.ndarray,
+    intensity: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`list_slots` and, in the same pass, :func:`list_sums` of the pixels whose list
+    exists (one row per slot of ``list_ids``); pixels still waiting for their list are not
+    summed (sum again once :func:`fill_slots` gave them one)."""
+    H, W = owner.shape
+    slots = np.empty((H, W), dtype=np.int64)
+    ids = np.empty((H, W), dtype=np.int64)
+    branches = np.empty((H, W), dtype=np.int8)
+    sums = np.zeros((list_ids.size, len(SUMS)))
+    _list_slots_kernel(
+        np.ascontiguousarray(owner, dtype=np.int64),
+        np.ascontiguousarray(range_edge, dtype=np.bool_),
+        np.ascontiguousarray(brightness_edge, dtype=np.bool_),
+        np.ascontiguousarray(patch, dtype=np.bool_),
+        np.ascontiguousarray(lut, dtype=np.int64),
+        np.ascontiguousarray(list_ids, dtype=np.int64),
+        np.ascontiguousarray(range_m),
+        np.ascontiguousarray(intensity),
+        branches,
+        slots,
+        ids,
+        sums,
+    )
+    return slots, ids, branches, _missing(slots), sums
+
+
+def _missing(slots: np.ndarray) -> np.ndarray:
     pending = slots <= -2
-    missing = np.unique(-2 - slots[pending]) if pending.any() else np.zeros(0, np.int64)
-    return slots, ids, branches, missing
+    return np.unique(-2 - slots[pending]) if pending.any() else np.zeros(0, np.int64)
 
 
 def fill_slots(slots: np.ndarray, ids: np.ndarray, lut: np.ndarray, list_ids: np.ndarray) -> None:
@@ -446,6 +492,45 @@ SUMS = ("n", "range", "range_step", "inten_step", "edge", "vertex", "branches", 
         "rr", "cc", "rc")  # fmt: skip
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _accumulate(
+    out: np.ndarray,
+    s: int,
+    i: int,
+    j: int,
+    range_m: np.ndarray,
+    intensity: np.ndarray,
+    edge: bool,
+    br: int,
+) -> None:
+    """Add pixel (i, j) to row ``s`` of the :data:`SUMS` table ``out``."""
+    H, W = range_m.shape
+    r0, i0 = range_m[i, j], intensity[i, j]
+    dr, di = 0.0, 0.0
+    right = j + 1 if j + 1 < W else 0
+    left = j - 1 if j > 0 else W - 1
+    for a, b in ((i, right), (i, left)):  # range: along the row only
+        d = abs(range_m[a, b] - r0)
+        if d > dr and d < np.inf:  # NaN and infinite (empty) neighbours are skipped
+            dr = d
+    for a, b in ((i, right), (i, left), (min(i + 1, H - 1), j), (max(i - 1, 0), j)):
+        d = abs(intensity[a, b] - i0)
+        if d > di and d < np.inf:
+            di = d
+    out[s, 0] += 1.0
+    out[s, 1] += r0 if abs(r0) < np.inf else 0.0
+    out[s, 2] += dr
+    out[s, 3] += di
+    out[s, 4] += 1.0 if edge else 0.0
+    out[s, 5] += 1.0 if (br == 1 or br >= 3) else 0.0
+    out[s, 6] += br
+    out[s, 7] += i
+    out[s, 8] += j
+    out[s, 9] += i * i
+    out[s, 10] += j * j
+    out[s, 11] += i * j
+
+
 @numba.njit(cache=True, nogil=True)
 def _list_sums_kernel(
     slot: np.ndarray,
@@ -459,33 +544,8 @@ def _list_sums_kernel(
     for i in range(H):
         for j in range(W):
             s = slot[i, j]
-            if s < 0:
-                continue
-            r0, i0 = range_m[i, j], intensity[i, j]
-            dr, di = 0.0, 0.0
-            right = j + 1 if j + 1 < W else 0
-            left = j - 1 if j > 0 else W - 1
-            for a, b in ((i, right), (i, left)):  # range: along the row only
-                d = abs(range_m[a, b] - r0)
-                if d > dr and d < np.inf:  # NaN and infinite (empty) neighbours are skipped
-                    dr = d
-            for a, b in ((i, right), (i, left), (min(i + 1, H - 1), j), (max(i - 1, 0), j)):
-                d = abs(intensity[a, b] - i0)
-                if d > di and d < np.inf:
-                    di = d
-            br = branches[i, j]
-            out[s, 0] += 1.0
-            out[s, 1] += r0 if abs(r0) < np.inf else 0.0
-            out[s, 2] += dr
-            out[s, 3] += di
-            out[s, 4] += 1.0 if edge[i, j] else 0.0
-            out[s, 5] += 1.0 if (br == 1 or br >= 3) else 0.0
-            out[s, 6] += br
-            out[s, 7] += i
-            out[s, 8] += j
-            out[s, 9] += i * i
-            out[s, 10] += j * j
-            out[s, 11] += i * j
+            if s >= 0:
+                _accumulate(out, s, i, j, range_m, intensity, edge[i, j], branches[i, j])
 
 
 def list_sums(

@@ -63,7 +63,7 @@ from sp.lists import (
     brightness_edges,
     fill_slots,
     list_attributes,
-    list_slots,
+    list_slots_and_sums,
     list_sums,
     mean_intensity,
     patch_grid,
@@ -978,8 +978,9 @@ class SensoryProcessor:
         inten_mean = mean_intensity(intensity, valid)
         b_edge = brightness_edges(intensity, valid, cfg.list_config, inten_mean) & ~r_edge
         patch = self._free_px if self._free_px.shape == owner.shape else np.zeros_like(valid)
-        slots, out, branches, missing = list_slots(
-            owner, r_edge, b_edge, patch, self._list_lut, self._list_ids
+        # each pixel's list, its branches and the lists' sums, in one compiled pass
+        slots, out, branches, missing, sums = list_slots_and_sums(
+            owner, r_edge, b_edge, patch, self._list_lut, self._list_ids, rng, intensity
         )
         first_new = self._list_ids.size
         if missing.size:
@@ -1005,10 +1006,9 @@ class SensoryProcessor:
             fill_slots(slots, out, self._list_lut, self._list_ids)
         if self._list_ids.size == 0:
             return np.full(owner.shape, -1, dtype=np.int64)
-        edge = r_edge | b_edge
-        # attributes of every list seen (one compiled pass); classes and frames of those due
-        # this sweep and the new ones
-        sums = list_sums(slots, rng, intensity, edge, branches, self._list_ids.size)
+        if missing.size:  # new lists: sum again with their pixels
+            sums = list_sums(slots, rng, intensity, r_edge | b_edge, branches, self._list_ids.size)
+        # attributes of every list seen; classes and frames of those due this sweep and new
         a = list_attributes(sums, 2 * math.pi / owner.shape[1], inten_mean)
         ids = self._list_ids[a.ids]
         due = self._due(ids) | (a.ids >= first_new)

@@ -22,6 +22,7 @@ from sp.lists import (
     fill_slots,
     list_attributes,
     list_slots,
+    list_slots_and_sums,
     list_slots_numpy,
     list_sums,
     list_sums_numpy,
@@ -82,6 +83,16 @@ def test_list_slots_and_sums_match_numpy(seed: int) -> None:
     inten = g.random((H, W)).astype(np.float32)  # float32 as the egosphere gives it
     inten[g.random((H, W)) < 0.1] = np.nan
     edge = r_edge | b_edge
+    # the fused pass: the same slots, and the sums of the pixels whose list existed
+    fused = list_slots_and_sums(owner, r_edge, b_edge, patch, lut, list_ids, rng, inten)
+    for x, y in zip(fused[:4], got, strict=True):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_allclose(
+        fused[4],
+        list_sums_numpy(got[0], rng, inten, r_edge | b_edge, got[2], list_ids.size),
+        rtol=1e-6,
+        atol=1e-9,
+    )
     n = int(slots.max()) + 1
     np.testing.assert_allclose(
         list_sums(slots, rng, inten, edge, branches, n),
