@@ -15,11 +15,13 @@ The pixel-level primitives live here, as numpy / OpenCV over the whole image at 
   it: 1 a line end, 2 inside an edge, 3 a T or Y, 4 and more a cross), from which vertices;
 * :func:`patch_grid`: a plane fitted to the pixels of each block of a coarse grid (``rows x
   cols`` pixels), with its normal, roughness, centroid and extent;
-* :func:`list_sums` then :func:`list_attributes`: attributes integrated over the pixels of
-  each list entity.
+* :func:`list_slots` (with :func:`list_slots_and_sums`): the (owner, kind) list of every
+  pixel, and :func:`list_sums` then :func:`list_attributes`: attributes integrated over the
+  pixels of each list entity.
 
-:func:`block_moments` and :func:`list_sums` are compiled single passes over the image
-(numba; compiled on first call, cached on disk); ``*_numpy`` are their references.
+:func:`block_moments`, :func:`list_slots` (and its fused form) and :func:`list_sums` are
+compiled single passes over the image (numba; compiled on first call, cached on disk);
+``*_numpy`` are their references, compared in the tests.
 """
 
 from __future__ import annotations
@@ -276,7 +278,8 @@ def patch_grid(xyz: np.ndarray, mask: np.ndarray, config: ListConfig | None = No
 class ListAttributes:
     """Attributes of L list entities integrated over their pixels (arrays (L,)).
 
-    ids:           int64 list entity ids (sorted).
+    ids:           int64 the lists' slots (rows of the sums table, sorted); the caller
+                   maps them to frame ids.
     n_pixels:      int64 pixels this sweep.
     range_m:       mean range (m).
     size_m:        pixels times their mean footprint (range x azimuth step, m): an edge's
