@@ -23,12 +23,12 @@ def log(tmp_path_factory) -> Path:
     return path
 
 
-@pytest.mark.parametrize("batch_frames, max_batches", [(1, 1), (3, 2), (1000, 4)])
-def test_prefetched_frames_are_the_frames(log, batch_frames, max_batches) -> None:
+@pytest.mark.parametrize("batch_frames", [1, 3, 1000])
+def test_prefetched_frames_are_the_frames(log, batch_frames) -> None:
     direct_source = open_log(log)
     direct = list(direct_source.frames())
     source = open_log(log)
-    with FramePrefetcher(source, batch_frames, max_batches) as pf:
+    with FramePrefetcher(source, batch_frames) as pf:
         ahead = list(pf)
     assert len(ahead) == len(direct) > 10
     for a, b in zip(direct, ahead, strict=True):
@@ -60,11 +60,28 @@ def test_a_corrupt_log_raises_the_readers_error(log, tmp_path) -> None:
 
 
 def test_leaving_early_stops_the_child(log) -> None:
-    pf = FramePrefetcher(open_log(log), batch_frames=1, max_batches=1)
+    pf = FramePrefetcher(open_log(log), batch_frames=1)
     first = next(iter(pf))
     assert first.t_ns == next(open_log(log).frames()).t_ns
     pf.close()
     assert not pf._proc.is_alive()
+
+
+def test_a_child_that_dies_is_noted_and_the_rest_read_here(log) -> None:
+    import os
+    import signal
+
+    direct = list(open_log(log).frames())
+    source = open_log(log)
+    with FramePrefetcher(source, batch_frames=1) as pf:
+        it = iter(pf)
+        got = [next(it)]
+        os.kill(pf._proc.pid, signal.SIGKILL)
+        got += list(it)
+    assert len(got) == len(direct)
+    for a, b in zip(direct, got, strict=True):
+        assert_same_frame(a, b)
+    assert any("decoding process stopped" in m for m in source.stats.messages)
 
 
 def test_bad_batch_sizes_are_refused(log) -> None:
