@@ -76,7 +76,7 @@ def bench_pipeline() -> None:
                               progress=False)  # fmt: skip
         serial = run_log(log, ":memory:", config=NodeConfig(odometry_process=False),
                          progress=False)  # fmt: skip
-        rep = run_log(log, ":memory:", config=NodeConfig(), progress=False)
+        rep = run_log(log, ":memory:", config=NodeConfig(), progress=False, decode_process=True)
     print("ms per sweep:", {k: round(v, 1) for k, v in rep.stage_ms_per_sweep.items()})
     print("CPU ms per sweep:", {k: round(v, 1) for k, v in rep.cpu_ms_per_sweep.items()})
     record("wm_pipeline_default_real_time_factor", rep.real_time_factor, "x real time",

@@ -189,7 +189,6 @@ def test_wm_run_report_and_pictures(log, tmp_path) -> None:
     # within what the whole main process spent
     cpu = data["cpu_ms_per_sweep"]
     assert cpu["odometry"] > 0 and cpu["read"] > 0 and cpu["sp"] > 0
-    assert cpu["decode_process"] > 0  # the log was decoded ahead in its own process
     node_thread = sum(cpu[k] for k in ("pose", "maps", "sp", "levels", "predict", "read"))
     assert node_thread <= cpu["main_process"] * 1.001
     assert len(report.pictures) == 8 and all((tmp_path / "pics").glob("*.png"))

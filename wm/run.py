@@ -139,12 +139,13 @@ def run_log(
     render_dir: str | Path | None = None,
     progress: bool = True,
     seconds: float | None = None,
-    decode_process: bool = True,
+    decode_process: bool = False,
 ) -> RunReport:
     """Run the node over a whole log (or its first ``seconds``); see the module docstring.
-    With ``decode_process`` the log is decoded ahead in a child process
+    With ``decode_process`` the log is decoded ahead in a forked child process
     (:class:`~sp.logs.prefetch.FramePrefetcher`), which takes its few ms per sweep off the
-    node's process."""
+    node's process; off by default, since a fork of a process that has run other threaded
+    work can die (seen inside a test runner; the prefetcher then reads on in-process)."""
     config = config or NodeConfig()
     source = open_log(Path(log_path))
     info = source.info()
