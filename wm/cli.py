@@ -163,6 +163,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         render_dir=args.render,
         progress=not args.no_progress,
         seconds=args.seconds,
+        decode_process=not getattr(args, "decode_in_process", False),
     )
     print(report.text())
     if args.report:
@@ -313,6 +314,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--render", default=None, help="write pictures of every map level here")
     r.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument(
+        "--decode-in-process", action="store_true",
+        help="decode the log in the node's process (default: ahead, in a child process)",
+    )  # fmt: skip
     pose_flag(r)
     r.set_defaults(func=cmd_run)
 

@@ -257,7 +257,12 @@ class WorldModelNode:
             self._compare_prediction(pts, T_world_ladar)
         self.stack.move_to_pose(T_world_body)
         if len(pts):
-            self.stack.fuse(pts, t_ns=scan.t_ns, sensor_xyz=T_world_ladar[:3, 3])
+            self.stack.fuse(
+                pts,
+                t_ns=scan.t_ns,
+                sensor_xyz=T_world_ladar[:3, 3],
+                ray_origin_xyz=T_world_ladar[:3, 3],  # free space along the beams
+            )
         clock.lap("maps")
 
         sp_result = self._sensory_processing(scan, T_world_ladar, t_mid, camera)
