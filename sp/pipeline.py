@@ -60,6 +60,7 @@ from sp.lists import (
     KIND_CLASS,
     ListConfig,
     ListKind,
+    PatchGrid,
     brightness_edges,
     fill_slots,
     list_attributes,
@@ -70,7 +71,14 @@ from sp.lists import (
 )
 from sp.logs.types import CameraFrame, LadarScan
 from sp.segments import SegmentConfig, label_objects, merge_collinear, range_edges
-from sp.surfaces import SurfaceConfig, SurfaceTracker, group_patches
+from sp.surfaces import (
+    SurfaceConfig,
+    SurfaceObservations,
+    SurfaceTracker,
+    find_creases,
+    group_patches,
+    plane_fit,
+)
 from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
 from sp.windowing import WindowConfig, window_mask
 
@@ -229,6 +237,8 @@ class SensoryProcessor:
         self._list_classifier = Classifier(kd.classes, Level.LIST, self.config.classify)
         self.surface_tracker = SurfaceTracker(self.config.surfaces)
         self._surface_contact: dict[int, int] = {}  # free surface id -> its contact list id
+        self._surface_status: dict[int, int] = {}  # free surface id -> status written to KD
+        self._crease: dict[tuple[int, int], tuple[int, int]] = {}  # surfaces -> (list, t_ns)
         self._free_px = np.zeros((0, 0), dtype=bool)
         self._values: tuple[int, dict[str, np.ndarray]] = (-1, {})
         self._sweep = 0
@@ -834,11 +844,14 @@ class SensoryProcessor:
         in no confirmed object) are fitted with surface patches on a coarse grid (level 2),
         coplanar neighbouring patches grouped into surfaces (:func:`group_patches`), and each
         surface continued from the last sweeps by its plane and centroid
-        (:class:`SurfaceTracker`) so its id persists; it is confirmed after
-        ``confirm_hits`` sweeps and classified among the level-3 prototypes (ground, road,
-        wall ...). Where a surface stands on the ground, its pixels just above a ground pixel
-        are its contact boundary, a level-2 list belonging to the surface and lying on the
-        ground (written into ``contact``). Returns (image3 with the surfaces, their ids)."""
+        (:class:`SurfaceTracker`) so its id persists, its plane and attributes filtered
+        recursively; the confidence from its innovations confirms or denies it (a denied
+        surface releases its pixels), and it is classified among the level-3 prototypes
+        (ground, road, wall ...). Where two surfaces (or one and an object's face) meet at an
+        angle, their crease is a level-2 list of both (:meth:`_creases`). Where a surface
+        stands on the ground, its pixels just above a ground pixel are its contact boundary,
+        a level-2 list belonging to the surface and lying on the ground (written into
+        ``contact``, as are the creases). Returns (image3 with the surfaces, their ids)."""
         cfg = self.config
         kd = self.kd
         H, W = free.shape
@@ -855,7 +868,6 @@ class SensoryProcessor:
         bh, bw = grid.block
         lab = obs.label[(row // bh) * grid.shape[1] + col // bw]
         px, row, lab = px[lab >= 0], row[lab >= 0], lab[lab >= 0]
-        self._free_px.reshape(-1)[px] = True
         c_w = obs.centroid + T_world_ladar[:3, 3]
         index = tracker.match(obs.normal, c_w, obs.area_m2)
         n_new = int(np.count_nonzero(index < 0))
@@ -872,8 +884,10 @@ class SensoryProcessor:
             ],
             dtype=np.int64,
         )
-        ids = tracker.update(index, new_ids, obs.normal, c_w, obs.extent_m, t_ns)
-        hits = tracker.hits[np.searchsorted(tracker.ids, ids)]
+        ids = tracker.update(index, new_ids, obs, c_w, t_ns)
+        row_k = tracker.rows(ids)
+        status, conf = tracker.status[row_k], tracker.confidence[row_k]
+        denied = status == TrackStatus.DENIED
         rows = [
             {
                 "slope_rad": float(obs.slope_rad[k]),
@@ -888,20 +902,29 @@ class SensoryProcessor:
         ]
         matches = self._surface_classifier.classify_many(rows)
         self.class_table.set(ids, [self._class_index.get(m.name or "", -1) for m in matches])
-        due = self._due(ids) | (index < 0) | (hits == cfg.surfaces.confirm_hits)
-        for k in np.flatnonzero(due):
+        was = self._surface_status.get
+        changed = np.array([was(int(i)) != int(st) for i, st in zip(ids, status, strict=True)])
+        due = self._due(ids) | (index < 0) | changed
+        for k in np.flatnonzero(due & ~denied):
             sid = int(ids[k])
-            confirmed = hits[k] >= cfg.surfaces.confirm_hits
+            self._surface_status[sid] = int(status[k])
             kd.update_entity(
                 sid,
                 attributes={n: Attribute(observed=v) for n, v in rows[k].items()},
                 generic_classes=matches[k].generic,
-                status=Status.CONFIRMED if confirmed else Status.HYPOTHESIZED,
-                confidence=_unit(hits[k] / (hits[k] + 2.0)),
+                status=_STATUS[TrackStatus(int(status[k]))],
+                confidence=_unit(conf[k]),
             )
             last = kd.get(sid).state
             if last is None or last.t_ns < t_ns:
                 kd.observe(sid, kd_store.State(t_ns, "world", c_w[k]))
+        # a denied grouping hypothesis releases its pixels
+        for sid in tracker.drop_denied():
+            self._surface_gone(int(sid), Status.DENIED)
+        keep = ~denied[lab]
+        px, row, lab = px[keep], row[keep], lab[keep]
+        self._free_px.reshape(-1)[px] = True
+        self._creases(t_ns, contact, image3, obs, ids, denied, px, lab, xyz_g, free, grid)
         # ground contact: a surface pixel just above a ground pixel
         low = row < H - 1
         touch = np.zeros(px.size, dtype=bool)
@@ -912,7 +935,85 @@ class SensoryProcessor:
                 boundary[k] = self._contact_of(int(ids[k]), t_ns)
             contact.reshape(-1)[px[touch]] = boundary[lab[touch]]
         image3.reshape(-1)[px] = ids[lab]
-        return image3, [int(i) for i in ids]
+        return image3, [int(i) for i in ids[~denied]]
+
+    def _creases(
+        self,
+        t_ns: int,
+        contact: np.ndarray,
+        image3: np.ndarray,
+        obs: SurfaceObservations,
+        ids: np.ndarray,
+        denied: np.ndarray,
+        px: np.ndarray,
+        lab: np.ndarray,
+        xyz_g: np.ndarray,
+        free: np.ndarray,
+        grid: PatchGrid,
+    ) -> None:
+        """Creases (:func:`find_creases`) between this sweep's free surfaces (``obs``, ids
+        ``ids``, pixels ``px`` of surface ``lab``) and the objects' faces already in
+        ``image3``: one level-2 ``slope_edge`` list per pair of surfaces (belonging to the
+        free one, beside the other), written into ``contact`` on its pixels; a crease unseen
+        for ``forget_s`` is gone."""
+        kd = self.kd
+        H, W = free.shape
+        S = len(obs)
+        flat3 = image3.reshape(-1)
+        ground_id = -1 if self.ground_id is None else self.ground_id
+        face_px = np.flatnonzero((flat3 >= 0) & (flat3 != ground_id))
+        face_ids, face_lab = np.unique(flat3[face_px], return_inverse=True)
+        if S + face_ids.size >= 2:
+            label = np.full(H * W, -1, dtype=np.int64)
+            label[px] = lab
+            label[face_px] = S + face_lab
+            blocks = np.where(denied[np.maximum(obs.label, 0)], -1, obs.label)
+            blk_face = grid.block_of_pixel(H, W).reshape(-1)[face_px]
+            blocks[blk_face] = np.where(blocks[blk_face] < 0, S + face_lab, blocks[blk_face])
+            c_f, n_f, _ = plane_fit(face_lab, xyz_g.reshape(-1, 3)[face_px], face_ids.size)
+            cr = find_creases(
+                blocks.reshape(grid.shape),
+                grid.block,
+                label.reshape(H, W),
+                xyz_g,
+                free | (label.reshape(H, W) >= S),
+                np.r_[obs.normal, n_f],
+                np.r_[obs.centroid, c_f],
+                self.config.surfaces,
+            )
+            ent = np.r_[ids, face_ids]
+            pairs = zip(ent[cr.a].tolist(), ent[cr.b].tolist(), strict=True)
+            crease_ids = np.array([self._crease_of(a, b, t_ns) for a, b in pairs], np.int64)
+            if crease_ids.size:
+                contact.reshape(-1)[cr.pixel] = crease_ids[cr.crease]
+        forget_ns = self.config.surfaces.forget_s * 1e9
+        for key, (lid, seen_ns) in list(self._crease.items()):
+            if t_ns - seen_ns > forget_ns:
+                kd.update_entity(lid, status=Status.GONE)
+                del self._crease[key]
+
+    def _crease_of(self, sid_a: int, sid_b: int, t_ns: int) -> int:
+        """The crease list between surfaces ``sid_a`` and ``sid_b``, made on first sight: a
+        slope edge belonging to ``sid_a`` and beside ``sid_b`` (the KD's belongs_to is a tree:
+        one parent), its name naming both."""
+        key = (min(sid_a, sid_b), max(sid_a, sid_b))
+        if key not in self._crease:
+            kd = self.kd
+            lid = kd.add_entity(
+                f"crease of {key[0]} and {key[1]}",
+                Level.LIST,
+                generic_classes=("slope_edge",) if "slope_edge" in kd.classes else (),
+                images=(IMAGE_NAMES[2],),
+                status=Status.CONFIRMED,
+                confidence=1.0,
+            ).id
+            kd.relate(lid, "belongs_to", sid_a, t_ns=t_ns)
+            kd.relate(lid, "beside", sid_b, t_ns=t_ns)
+            self._set_class(lid, "slope_edge")
+            self._crease[key] = (lid, t_ns)
+        lid = self._crease[key][0]
+        self._crease[key] = (lid, t_ns)
+        return lid
 
     def _due(self, ids: np.ndarray) -> np.ndarray:
         """(n,) bool: frames rewritten this sweep. List and surface frames are rewritten in
@@ -942,9 +1043,11 @@ class SensoryProcessor:
             self._set_class(bid, "slope_edge")
         return self._surface_contact[sid]
 
-    def _surface_gone(self, sid: int) -> None:
-        """A free surface unseen for ``forget_s``: it and its lists are gone."""
-        self.kd.update_entity(sid, status=Status.GONE)
+    def _surface_gone(self, sid: int, status: Status = Status.GONE) -> None:
+        """A free surface unseen for ``forget_s`` (or denied, ``status``): it and its lists
+        are gone."""
+        self.kd.update_entity(sid, status=status)
+        self._surface_status.pop(sid, None)
         parts = self._lists_of.pop(sid, [])
         if sid in self._surface_contact:
             parts.append(self._surface_contact.pop(sid))

@@ -16,6 +16,33 @@ is within ``max_angle_deg`` and whose plane and centroid are close (``max_offset
 plane, ``match_radius_m`` plus half its extent along it), largest first; otherwise it starts a
 new one. A surface unseen for ``forget_s`` is dropped, so the table (and its KD frames) stay
 bounded by what the sensor saw recently.
+
+Filtering (reference 001, 4.5.4 eq. 4.3 and 4.5.6 "Level 3 Filtering": "a recursive estimation
+process compares observed surface entity attributes with predicted surface entity attributes
+... A confidence level associated with each estimated entity confirms or rejects the surface
+entity grouping hypothesis"): every tracked surface carries a Kalman filter in filterpy's
+symbols, run for all surfaces at once as stacked arrays. The state x (7,) is the plane and the
+"what" attributes, ``STATE``: the normal vector (3, world frame, unit when observed), the
+offset d (m) of the plane along it from the surface's anchor (its first centroid, so the
+offset's variance does not grow with the distance from the world origin), area (m^2),
+height (m) and roughness (m). A surface is static: F = I with a little process noise Q per
+second; every component is observed, H = I. R comes from the plane fit: the normal's error
+lies in the tangent plane with variance 12 sigma^2 / (N L^2) (N pixels of residual sigma
+spread over L = sqrt(area)), the offset's from sigma^2 / N plus the normal's error over the
+lever arm to the anchor (correlated with the normal's), the attributes' grow with their size
+(the visible part of a wall changes with the view). The plane part's normalised innovation
+squared (NIS, 4 dof) against its chi-square gate scores each sighting, the confidence moves
+towards the score (``alpha``) and decays on misses (``miss_decay``): above ``confirm`` (after
+``confirm_hits`` sightings) the hypothesis is confirmed, below ``deny`` it is denied (a
+confirmed surface only on a sighting: one that merely leaves the view is forgotten). The
+covariance update is Joseph's form, symmetrised, so P stays symmetric positive definite for
+degenerate fits (one pixel, zero area, no normal).
+
+Creases (:func:`find_creases`, 4.5.6 "Level 3 Computation": boundary types include slope
+boundaries): two surfaces whose blocks lie within ``crease_gap_blocks`` of each other and
+whose normals differ by more than ``crease_angle_deg`` meet along the intersection line of
+their planes; the pixels near both surfaces whose points lie within ``crease_tol_m`` of that
+line are their crease, a level-2 ``slope_edge`` list belonging to both.
 """
 
 from __future__ import annotations
@@ -29,6 +56,12 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from sp.lists import PatchGrid
+from sp.tracking import TrackStatus
+
+STATE = ("normal_x", "normal_y", "normal_z", "offset_m", "area_m2", "height_m", "roughness_m")
+N_STATE = len(STATE)
+N_PLANE = 4  # the plane part of the state: normal (3) and offset
+GATE_CHI2_4DOF = 18.47  # 99.9 % of a chi-square with 4 degrees of freedom
 
 
 class SurfaceError(ValueError):
@@ -42,7 +75,33 @@ class SurfaceConfig:
     min_patches: int = 3  # smaller components are no surface
     match_radius_m: float = 3.0  # centroid shift allowed along the plane (plus half its size)
     forget_s: float = 2.0  # a surface unseen this long is dropped
-    confirm_hits: int = 3  # seen this many sweeps: confirmed
+    confirm_hits: int = 3  # seen at least this many sweeps to be confirmed
+    # filter (units per second of process noise, standard deviations)
+    q_normal_per_s: float = 0.01  # random walk of the normal vector
+    q_offset_m_per_s: float = 0.02
+    q_area_m2_per_s: float = 2.0
+    q_height_m_per_s: float = 0.2
+    q_roughness_m_per_s: float = 0.01
+    sigma_fit_m: float = 0.02  # floor of the fit's residual sigma (range noise)
+    sigma_normal: float = 0.02  # floor of the normal's error (mean of patch normals)
+    sigma_offset_m: float = 0.05  # floor of the offset's error
+    area_rel: float = 0.25  # area sigma: area_rel * area + area_m2
+    area_m2: float = 1.0
+    height_rel: float = 0.2
+    height_m: float = 0.2
+    roughness_rel: float = 0.5
+    roughness_m: float = 0.02
+    # confirm / deny (as sp.tracking: confidence moves towards exp(-max(NIS - 4, 0) / 8))
+    gate_chi2: float = GATE_CHI2_4DOF
+    confidence0: float = 0.3
+    alpha: float = 0.6
+    miss_decay: float = 0.2
+    confirm: float = 0.6
+    deny: float = 0.15
+    # creases between surfaces
+    crease_angle_deg: float = 30.0  # normals differ by more than this
+    crease_gap_blocks: int = 2  # surfaces' blocks this close (grid steps) may meet
+    crease_tol_m: float = 0.25  # crease pixels lie this close to the planes' intersection
 
 
 @dataclass
@@ -71,6 +130,16 @@ class SurfaceObservations:
 
     def __len__(self) -> int:
         return int(self.n_pixels.size)
+
+    def take(self, keep: np.ndarray) -> SurfaceObservations:
+        """The surfaces ``keep`` ((S,) bool) of these, renumbered in order (blocks of the
+        others unlabelled)."""
+        new = np.full(len(self) + 1, -1, dtype=np.int64)  # last: label -1 stays -1
+        new[:-1][keep] = np.arange(int(np.count_nonzero(keep)))
+        return SurfaceObservations(
+            new[self.label], self.n_pixels[keep], self.area_m2[keep], self.centroid[keep],
+            self.normal[keep], self.roughness_m[keep], self.height_m[keep], self.extent_m[keep],
+        )  # fmt: skip
 
     @property
     def slope_rad(self) -> np.ndarray:
@@ -201,10 +270,106 @@ def _no_surfaces(B: int) -> SurfaceObservations:
     )  # fmt: skip
 
 
+# ---------------------------------------------------------------- recursive estimation
+
+
+def process_noise(dt_s: np.ndarray, config: SurfaceConfig) -> np.ndarray:
+    """(T, 7, 7) Q of the static-surface model over intervals dt_s (T,) seconds (a random
+    walk: variance per second times the interval)."""
+    c = config
+    q = np.array(
+        [c.q_normal_per_s] * 3
+        + [c.q_offset_m_per_s, c.q_area_m2_per_s, c.q_height_m_per_s, c.q_roughness_m_per_s]
+    )
+    Q = np.zeros((dt_s.size, N_STATE, N_STATE))
+    idx = np.arange(N_STATE)
+    Q[:, idx, idx] = q * q * np.maximum(dt_s, 0.0)[:, None]
+    return Q
+
+
+def measure(
+    obs: SurfaceObservations,
+    centroid_w: np.ndarray,
+    anchor_w: np.ndarray,
+    normal_ref: np.ndarray,
+    config: SurfaceConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Measurement z (S, 7) and its noise R (S, 7, 7) of S observed surfaces (module
+    docstring). ``centroid_w`` (S, 3) world centroids, ``anchor_w`` (S, 3) the anchors of
+    the surfaces they update (the centroid itself for a new one), ``normal_ref`` (S, 3) the
+    estimated normals they update: the observed normal is flipped to agree (a plane has two).
+    A degenerate fit (zero normal, one pixel, zero area) gets a large, still positive
+    definite R."""
+    c = config
+    S = len(obs)
+    n = obs.normal.astype(np.float64)
+    norm = np.linalg.norm(n, axis=1)
+    flat = norm < 0.5  # no normal from the fit
+    n = n / np.maximum(norm, 1e-12)[:, None]
+    n *= np.where(np.einsum("ij,ij->i", n, normal_ref) < 0.0, -1.0, 1.0)[:, None]
+    r = centroid_w - anchor_w  # lever arm to the anchor (m)
+    sigma = np.maximum(np.nan_to_num(obs.roughness_m), c.sigma_fit_m)
+    N = np.maximum(obs.n_pixels, 1).astype(np.float64)
+    L2 = np.maximum(np.nan_to_num(obs.area_m2), 0.01)
+    var_n = np.minimum(12.0 * sigma**2 / (N * L2), 1.0) + c.sigma_normal**2
+    nn = np.einsum("si,sj->sij", n, n)
+    R_nn = var_n[:, None, None] * (np.eye(3) - nn) + c.sigma_normal**2 * nn
+    R_nn[flat] = np.eye(3)
+    z = np.zeros((S, N_STATE))
+    z[:, :3] = np.where(flat[:, None], normal_ref, n)
+    z[:, 3] = np.einsum("ij,ij->i", z[:, :3], r)
+    z[:, 4], z[:, 5], z[:, 6] = obs.area_m2, obs.height_m, obs.roughness_m
+    R = np.zeros((S, N_STATE, N_STATE))
+    R[:, :3, :3] = R_nn
+    cross = np.einsum("sij,sj->si", R_nn, r)  # cov(normal, offset) through the lever arm
+    R[:, :3, 3] = R[:, 3, :3] = cross
+    R[:, 3, 3] = sigma**2 / N + c.sigma_offset_m**2 + np.einsum("si,si->s", r, cross)
+    R[:, 4, 4] = (c.area_rel * np.abs(z[:, 4]) + c.area_m2) ** 2
+    R[:, 5, 5] = (c.height_rel * np.abs(z[:, 5]) + c.height_m) ** 2
+    R[:, 6, 6] = (c.roughness_rel * np.abs(z[:, 6]) + c.roughness_m) ** 2
+    return np.nan_to_num(z), R
+
+
+def predict(x: np.ndarray, P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """x*(t|t-1) = F x, P* = F P F' + Q with F = I (a static surface): (x, P + Q)."""
+    return x, P + Q
+
+
+def update(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x(t|t) = x* + K (z - H x*) with H = I, for stacked filters x (T, 7), P (T, 7, 7),
+    z (T, 7), R (T, 7, 7). Returns (x, P, NIS of the plane part (T,)); Joseph-form
+    covariance, symmetrised."""
+    y = z - x  # innovation y(t) - y*(t|t-1)
+    S = P + R
+    K = np.linalg.solve(S, P).transpose(0, 2, 1)  # P S^-1 (P and S symmetric)
+    x_new = x + np.einsum("tij,tj->ti", K, y)
+    IKH = np.eye(N_STATE) - K
+    P_new = IKH @ P @ IKH.transpose(0, 2, 1) + K @ R @ K.transpose(0, 2, 1)
+    P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
+    yp = y[:, :N_PLANE]
+    w = np.linalg.solve(S[:, :N_PLANE, :N_PLANE], yp[..., None])[..., 0]
+    nis = np.einsum("ti,ti->t", yp, w)
+    return x_new, P_new, nis
+
+
+def sighting_score(nis: np.ndarray, gate_chi2: float) -> np.ndarray:
+    """(T,) how well a sighting fits its prediction: exp(-max(NIS - 4, 0) / 8) inside the
+    chi-square gate (4 dof, mean 4), 0 outside."""
+    return np.where(nis <= gate_chi2, np.exp(-np.maximum(nis - N_PLANE, 0.0) / (2 * N_PLANE)), 0.0)
+
+
+_TABLE = ("ids", "normal", "centroid", "extent", "hits", "last_ns", "x", "P", "anchor",
+          "status", "confidence", "nis")  # fmt: skip
+
+
 @dataclass
 class SurfaceTracker:
-    """Tracked free surfaces (world frame): ids, unit normals (T, 3), centroids (T, 3), extent
-    (T,), hits (T,), last seen (T,) int64 ns."""
+    """Tracked free surfaces (world frame), T rows: ids, unit normals (T, 3) (the filter's),
+    last observed centroids (T, 3), extent (T,), hits (T,), last seen (T,) int64 ns; the
+    filters x (T, 7), P (T, 7, 7) (``STATE``), anchors (T, 3); status (T,) int8
+    (:class:`sp.tracking.TrackStatus`), confidence (T,), the last sighting's NIS (T,)."""
 
     config: SurfaceConfig = field(default_factory=SurfaceConfig)
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -213,6 +378,12 @@ class SurfaceTracker:
     extent: np.ndarray = field(default_factory=lambda: np.zeros(0))
     hits: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     last_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    x: np.ndarray = field(default_factory=lambda: np.zeros((0, N_STATE)))
+    P: np.ndarray = field(default_factory=lambda: np.zeros((0, N_STATE, N_STATE)))
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    status: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
+    confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nis: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def match(self, normal_w: np.ndarray, centroid_w: np.ndarray, area: np.ndarray) -> np.ndarray:
         """(S,) index into the table of the surface each observation continues, -1 new; each
@@ -245,35 +416,92 @@ class SurfaceTracker:
         self,
         index: np.ndarray,
         new_ids: np.ndarray,
-        normal_w: np.ndarray,
+        obs: SurfaceObservations,
         centroid_w: np.ndarray,
-        extent: np.ndarray,
         t_ns: int,
     ) -> np.ndarray:
-        """Write this sweep's observations: those with ``index`` >= 0 update their surface,
-        the others append with ``new_ids`` (one per -1, in order). Returns (S,) their ids."""
+        """One sweep's filtering: observations with ``index`` >= 0 update their surface's
+        filter (predict over the time since its last sighting, update, score the NIS), the
+        others are born with ``new_ids`` (one per -1, in order; x = z, P = R); the surfaces
+        not seen decay. Then each hypothesis is confirmed or denied. Returns (S,) the ids of
+        the observations (look their rows up by :meth:`rows`)."""
+        cfg = self.config
         upd = index >= 0
-        k = index[upd]
-        self.normal[k] = (
-            normal_w[upd] * np.sign(np.einsum("ij,ij->i", normal_w[upd], self.normal[k]))[:, None]
-        )
-        self.centroid[k] = centroid_w[upd]
-        self.extent[k] = np.maximum(self.extent[k], extent[upd])
-        self.hits[k] += 1
-        self.last_ns[k] = t_ns
         fresh = ~upd
         if new_ids.size != int(fresh.sum()):
             raise SurfaceError(f"{new_ids.size} new ids for {int(fresh.sum())} new surfaces")
+        k = index[upd]
+        seen = np.zeros(self.ids.size, dtype=bool)
+        seen[k] = True
+        if k.size:
+            z, R = measure(obs.take(upd), centroid_w[upd], self.anchor[k], self.normal[k], cfg)
+            dt = (t_ns - self.last_ns[k]) * 1e-9
+            x, P = predict(self.x[k], self.P[k], process_noise(dt, cfg))
+            self.x[k], self.P[k], self.nis[k] = update(x, P, z, R)
+            score = sighting_score(self.nis[k], cfg.gate_chi2)
+            self.confidence[k] += cfg.alpha * (score - self.confidence[k])
+            est = self.x[k, :3]
+            self.normal[k] = est / np.maximum(np.linalg.norm(est, axis=1), 1e-12)[:, None]
+            self.centroid[k] = centroid_w[upd]
+            self.extent[k] = np.maximum(self.extent[k], obs.extent_m[upd])
+            self.hits[k] += 1
+            self.last_ns[k] = t_ns
+        self.confidence[~seen] *= 1.0 - cfg.miss_decay
+        self._confirm_or_deny(seen)
         start = self.ids.size
-        self.ids = np.r_[self.ids, new_ids.astype(np.int64)]
-        self.normal = np.r_[self.normal, normal_w[fresh]]
-        self.centroid = np.r_[self.centroid, centroid_w[fresh]]
-        self.extent = np.r_[self.extent, extent[fresh]]
-        self.hits = np.r_[self.hits, np.ones(new_ids.size, np.int64)]
-        self.last_ns = np.r_[self.last_ns, np.full(new_ids.size, t_ns, np.int64)]
+        if new_ids.size:
+            c_new = centroid_w[fresh]
+            born = obs.take(fresh)
+            z, R = measure(born, c_new, c_new, born.normal, cfg)
+            n = new_ids.size
+            self._append(
+                ids=new_ids.astype(np.int64),
+                normal=z[:, :3].copy(),
+                centroid=c_new,
+                extent=born.extent_m,
+                hits=np.ones(n, np.int64),
+                last_ns=np.full(n, t_ns, np.int64),
+                x=z,
+                P=R,
+                anchor=c_new,
+                status=np.full(n, TrackStatus.HYPOTHESIZED, np.int8),
+                confidence=np.full(n, cfg.confidence0),
+                nis=np.zeros(n),
+            )
         out = np.empty(index.size, dtype=np.int64)
         out[upd] = self.ids[k]
         out[fresh] = self.ids[start:]
+        return out
+
+    def _confirm_or_deny(self, seen: np.ndarray) -> None:
+        cfg = self.config
+        hyp = self.status == TrackStatus.HYPOTHESIZED
+        conf = self.status == TrackStatus.CONFIRMED
+        low = self.confidence < cfg.deny
+        up = hyp & (self.confidence >= cfg.confirm) & (self.hits >= cfg.confirm_hits)
+        self.status[up] = TrackStatus.CONFIRMED
+        self.status[(hyp & low) | (conf & seen & low)] = TrackStatus.DENIED
+
+    def rows(self, ids: np.ndarray) -> np.ndarray:
+        """(n,) table rows of surface ``ids`` (each must be in the table)."""
+        order = np.argsort(self.ids)
+        pos = order[np.searchsorted(self.ids, ids, sorter=order)]
+        if ids.size and not np.array_equal(self.ids[pos], ids):
+            raise SurfaceError(f"surface ids {ids[self.ids[pos] != ids]} not in the table")
+        return pos
+
+    def plane(self) -> tuple[np.ndarray, np.ndarray]:
+        """The estimated planes: unit normals (T, 3) and offsets (T,) m, world frame, so that
+        a point p on surface t has normal[t] . p = offset[t]."""
+        return self.normal, self.x[:, 3] / np.maximum(
+            np.linalg.norm(self.x[:, :3], axis=1), 1e-12
+        ) + np.einsum("ij,ij->i", self.normal, self.anchor)
+
+    def drop_denied(self) -> np.ndarray:
+        """Remove the denied surfaces; returns their ids."""
+        out = self.ids[self.status == TrackStatus.DENIED]
+        if out.size:
+            self._keep(self.status != TrackStatus.DENIED)
         return out
 
     def forget(self, t_ns: int) -> np.ndarray:
@@ -281,7 +509,139 @@ class SurfaceTracker:
         old = (t_ns - self.last_ns) > self.config.forget_s * 1e9
         gone = self.ids[old]
         if gone.size:
-            keep = ~old
-            for name in ("ids", "normal", "centroid", "extent", "hits", "last_ns"):
-                setattr(self, name, getattr(self, name)[keep])
+            self._keep(~old)
         return gone
+
+    def _keep(self, keep: np.ndarray) -> None:
+        for name in _TABLE:
+            setattr(self, name, getattr(self, name)[keep])
+
+    def _append(self, **rows: np.ndarray) -> None:
+        for name in _TABLE:
+            setattr(self, name, np.concatenate([getattr(self, name), rows[name]]))
+
+
+# ---------------------------------------------------------------- creases
+
+
+@dataclass
+class Creases:
+    """C creases (slope boundaries) between pairs of surfaces.
+
+    a, b:   (C,) int64 indices of the two surfaces (a < b) in the labels given.
+    pixel:  (K,) int64 flat pixel indices (row * W + col) of the creases' pixels.
+    crease: (K,) int64 the crease of each pixel (index into a, b).
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    pixel: np.ndarray
+    crease: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.a.size)
+
+
+def _no_creases() -> Creases:
+    z = np.zeros(0, np.int64)
+    return Creases(z, z, z, z)
+
+
+def plane_fit(
+    label: np.ndarray, xyz: np.ndarray, n_labels: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares planes of labelled pixels: ``label`` (N,) int64 in [0, n_labels), ``xyz``
+    (N, 3) float64 points (m). Returns (centroid (L, 3), unit normal (L, 3) the smallest
+    scatter axis, zero for a label without pixels, pixels (L,) int64)."""
+    n = np.bincount(label, minlength=n_labels).astype(np.float64)
+    k = np.maximum(n, 1.0)[:, None]
+    mean = np.stack([np.bincount(label, xyz[:, i], n_labels) for i in range(3)], axis=1) / k
+    d = xyz - mean[label]
+    cov = np.einsum("ni,nj->nij", d, d).reshape(-1, 9)
+    cov = np.stack([np.bincount(label, cov[:, i], n_labels) for i in range(9)], axis=1)
+    _, v = np.linalg.eigh(cov.reshape(-1, 3, 3))
+    normal = np.where(n[:, None] > 0, v[:, :, 0], 0.0)
+    return mean, normal, n.astype(np.int64)
+
+
+def _block_pairs(
+    rc: np.ndarray, lab: np.ndarray, n_cols: int, gap: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unique label pairs (a < b) of labelled blocks at rows/cols ``rc`` (M, 2) within ``gap``
+    grid steps (Chebyshev distance, columns wrapping round ``n_cols``)."""
+    dr = np.abs(rc[:, None, 0] - rc[None, :, 0])
+    dc = np.abs(rc[:, None, 1] - rc[None, :, 1])
+    dc = np.minimum(dc, n_cols - dc)
+    near = (dr <= gap) & (dc <= gap) & (lab[:, None] < lab[None, :])
+    i, j = np.nonzero(near)
+    key = np.unique(lab[i] * (int(lab.max(initial=0)) + 1) + lab[j])
+    return np.divmod(key, int(lab.max(initial=0)) + 1)
+
+
+def find_creases(
+    block_label: np.ndarray,
+    block: tuple[int, int],
+    label: np.ndarray,
+    xyz: np.ndarray,
+    candidate: np.ndarray,
+    normal: np.ndarray,
+    point: np.ndarray,
+    config: SurfaceConfig | None = None,
+) -> Creases:
+    """Creases between surfaces (module docstring).
+
+    block_label: (nbr, nbc) int64 surface index of each block of the patch grid, -1 none.
+    block:       (rows, cols) pixels per block.
+    label:       (H, W) int64 surface index of each pixel, -1 none.
+    xyz:         (H, W, 3) points (m), in the frame of the planes.
+    candidate:   (H, W) bool pixels that may lie on a crease (a surface's, or owned by none).
+    normal, point: (S, 3) unit normal and a point of each surface's plane.
+    """
+    cfg = config or SurfaceConfig()
+    nbr, nbc = block_label.shape
+    H, W = label.shape
+    on = np.flatnonzero(block_label.reshape(-1) >= 0)
+    if on.size < 2:
+        return _no_creases()
+    lab = block_label.reshape(-1)[on]
+    rc = np.stack(np.divmod(on, nbc), axis=1)
+    a, b = _block_pairs(rc, lab, nbc, cfg.crease_gap_blocks)
+    cos = np.abs(np.einsum("ij,ij->i", normal[a], normal[b]))
+    sharp = cos < math.cos(math.radians(cfg.crease_angle_deg))
+    a, b = a[sharp], b[sharp]
+    if a.size == 0:
+        return _no_creases()
+    g = cfg.crease_gap_blocks
+    all_rc = np.stack(np.divmod(np.arange(nbr * nbc), nbc), axis=1)
+    dr = np.abs(all_rc[:, None, 0] - rc[None, :, 0]) <= g  # (B, M) block near labelled block
+    dc = np.abs(all_rc[:, None, 1] - rc[None, :, 1])
+    near = dr & (np.minimum(dc, nbc - dc) <= g)
+    bh, bw = block
+    inner = (np.arange(bh)[:, None] * W + np.arange(bw)[None, :]).reshape(-1)
+    pixels, owner = [], []
+    for c, (sa, sb) in enumerate(zip(a.tolist(), b.tolist(), strict=True)):
+        region = np.flatnonzero(near[:, lab == sa].any(axis=1) & near[:, lab == sb].any(axis=1))
+        r0, c0 = all_rc[region, 0] * bh, all_rc[region, 1] * bw
+        px = ((r0 * W + c0)[:, None] + inner[None, :]).reshape(-1)
+        col = (c0[:, None] + inner[None, :] % W).reshape(-1)
+        px = px[(px < H * W) & (col < W)]
+        px = px[candidate.reshape(-1)[px]]
+        own = label.reshape(-1)[px]
+        px = px[(own < 0) | (own == sa) | (own == sb)]
+        u = np.cross(normal[sa], normal[sb])
+        u /= np.linalg.norm(u)
+        A = np.stack([normal[sa], normal[sb], u])
+        p0 = np.linalg.solve(A, [normal[sa] @ point[sa], normal[sb] @ point[sb], 0.0])
+        d = xyz.reshape(-1, 3)[px] - p0
+        dist = np.linalg.norm(d - np.outer(d @ u, u), axis=1)
+        px = px[dist <= cfg.crease_tol_m]
+        pixels.append(px)
+        owner.append(np.full(px.size, c, np.int64))
+    keep = np.array([p.size > 0 for p in pixels])
+    renum = np.cumsum(keep) - 1
+    return Creases(
+        a[keep],
+        b[keep],
+        np.concatenate(pixels).astype(np.int64),
+        renum[np.concatenate(owner)].astype(np.int64),
+    )
