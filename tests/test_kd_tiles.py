@@ -21,7 +21,7 @@ from kd_store import KDConfig, KDError
 from kd_store.persist import SCHEMA_VERSION
 from maps.level import LevelConfig
 from maps.stack import MapStack, StackConfig
-from wm.tiles import KDTileStore, keep_windows, map_stack_over_kd
+from wm.tiles import KDTileStore, keep_windows, map_stack_over_kd, stored_maps
 
 DTYPES = ("float32", "float64", "int32", "int64", "uint8", "bool")
 
@@ -303,9 +303,9 @@ def test_a_killed_writer_leaves_whole_tiles_or_none(tmp_path: Path, delay_s: flo
 
 
 def test_wm_run_keeps_the_map_in_the_kd_file(tmp_path: Path) -> None:
-    """A run over a simulated log leaves its tiles in the KD file; a stack rebuilt from the
-    file at the vehicle's last position scores against the simulator's terrain exactly as the
-    run's own map did."""
+    """A run over a simulated log leaves its tiles in the KD file, the last windows of every
+    level included; a stack rebuilt from the file at the vehicle's last position scores
+    against the simulator's terrain exactly as the run's own map did."""
     from fixtures.simulate import simulate_to_log
     from sp.logs import open_log
     from wm.config import NodeConfig, PoseSource
@@ -320,11 +320,40 @@ def test_wm_run_keeps_the_map_in_the_kd_file(tmp_path: Path) -> None:
     terrain = TerrainTruth.from_log(source.attachments(), source.metadata())
     with kd_store.open(path, read_only=True) as kd:
         levels = {k[0] for k in kd.tile_keys()}
-        assert levels == {"subsystem", "vehicle", "section"}  # primitive keeps no tiles
+        assert levels == {"primitive", "subsystem", "vehicle", "section"}
+        # the primitive level keeps no tiles while running: only its last window (256 cells
+        # in tiles of 64, at most 5 x 5 when not aligned to the tile grid)
+        assert 4 <= len(kd.tile_keys("primitive")) <= 25
         self_xy = next(f.state.position_xyz[:2] for f in kd.entities() if f.name == "self")
         stack = map_stack_over_kd(kd)
         stack.move_to(self_xy)
         restored = elevation_error(stack.level("subsystem"), terrain)
-    live = report.metrics["elevation_subsystem"]
-    assert restored["cells"] == live["cells"] > 1000
-    assert restored["rmse_m"] == live["rmse_m"] < 0.5
+        primitive = elevation_error(stored_maps(kd).stack.level("primitive"), terrain)
+    for name, got in (("subsystem", restored), ("primitive", primitive)):
+        live = report.metrics[f"elevation_{name}"]
+        assert got["cells"] == live["cells"] > 1000, name
+        assert got["rmse_m"] == live["rmse_m"] < 0.5, name
+
+
+def test_keep_windows_puts_the_last_window_of_a_level_that_keeps_no_tiles() -> None:
+    """A level with ``keep_tiles=False`` sends nothing to the KD while it scrolls, but its last
+    window goes in at the end (and the level stays tile-free afterwards)."""
+    config = StackConfig(
+        levels=(LevelConfig("fine", 0.5, size=32, tile_cells=8, keep_tiles=False), SMALL.levels[1])
+    )
+    kd = kd_store.open()
+    stack = map_stack_over_kd(kd, config)
+    _survey(stack, HOME, 1)
+    _drive(stack, HOME, HOME + np.array([100.0, 0.0]))
+    _survey(stack, HOME + np.array([100.0, 0.0]), 2)
+    assert kd.tile_keys("fine") == []  # nothing kept on the way
+    end = _windows(stack)
+    assert keep_windows(stack) > 0
+    ox, oy = stack.level("fine").origin_cell.tolist()  # the 32-cell window in 8-cell tiles
+    tiles = {("fine", tx, ty) for tx in range(ox // 8, (ox + 31) // 8 + 1)
+             for ty in range(oy // 8, (oy + 31) // 8 + 1)}  # fmt: skip
+    assert set(kd.tile_keys("fine")) == tiles
+    assert stack.level("fine").store is None
+    back = MapStack(SMALL, store=KDTileStore(kd))  # a level that reads tiles, moved there
+    back.move_to(HOME + np.array([100.0, 0.0]))
+    _assert_windows_equal({"fine": end["fine"]}, {"fine": _windows(back)["fine"]})

@@ -1,4 +1,5 @@
-"""`wm run`, `whatis`, `whatif`, `render` from the shell: real subprocesses and files."""
+"""`wm run`, `whatis`, `whatif`, `render` from the shell (from a log and from the KD a run
+wrote): real subprocesses and files."""
 
 from __future__ import annotations
 
@@ -54,6 +55,23 @@ def test_whatif_straight_ahead_and_bad_waypoints(ran) -> None:
     assert r.returncode == 2 and "times must increase" in r.stderr
     r = run("whatif", str(log), "--waypoints", "0,0,0;1,1,0", "--level", "galaxy")
     assert r.returncode == 2 and "does not exist" in r.stderr
+
+
+def test_render_and_whatif_from_the_kd_alone_and_render_from_a_log(ran, tmp_path) -> None:
+    log, kd, d = ran
+    run_pictures = sorted(p.name for p in (d / "pics").glob("*.png"))
+    r = run("render", "--kd", str(kd), str(tmp_path / "kd"))
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in (tmp_path / "kd").glob("*.png")) == run_pictures
+    r = run("render", str(log), "--out", str(tmp_path / "log"), "--seconds", "0.5", "--poses",
+            "truth")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in (tmp_path / "log").glob("*.png")) == run_pictures
+    r = run("whatif", "--kd", str(kd), "--waypoints", "0,0,0;2,10,0;4,20,0")
+    assert r.returncode == 0, r.stderr
+    assert "first collision:" in r.stdout and "VJ: cost" in r.stdout
+    r = run("render", "--kd", str(kd), str(log), str(tmp_path / "both"))
+    assert r.returncode == 2 and "no LOG" in r.stderr
 
 
 def test_run_on_a_missing_log_is_one_clear_line(tmp_path) -> None:

@@ -5,8 +5,10 @@
     wm query KD.duckdb "SELECT ..." [--parquet OUT]
     wm run LOG --kd KD.duckdb [--report report.json] [--render DIR] [--poses odometry|truth]
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
-    wm whatif LOG --kd KD.duckdb --waypoints "t,x,y;t,x,y;..." [--seconds S]
+    wm whatif LOG [--kd KD.duckdb] --waypoints "t,x,y;t,x,y;..." [--seconds S]
+    wm whatif --kd KD.duckdb --waypoints "t,x,y;..."   (the maps and entities a run stored)
     wm render LOG --out DIR [--seconds S]
+    wm render --kd KD.duckdb OUT_DIR                    (the maps and entities a run stored)
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -36,6 +38,7 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
     from maps.frames import GeometryError
     from sp.logs.types import LogError
     from wm.node import NodeError
+    from wm.tiles import TileError
     from wm.whatif import WhatIfError
     from wm.whatis import WhatIsError
 
@@ -48,6 +51,7 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
         NodeError,
         WhatIfError,
         WhatIsError,
+        TileError,
     ]
     try:
         from fixtures.scenario import ScenarioError
@@ -207,41 +211,117 @@ def _parse_waypoints(text: str) -> tuple[np.ndarray, np.ndarray]:
     return arr[:, 0], arr[:, 1:]
 
 
-def cmd_whatif(args: argparse.Namespace) -> int:
-    """Run a log (its first --seconds), then ask What If about one waypoint plan (body frame
-    waypoints relative to the final pose) and print VJ's judgement."""
-    from maps.frames import transform_points
-    from wm import vj
-    from wm.config import VJConfig
-    from wm.run import run_node
-    from wm.whatif import WaypointPlan, WhatIf
+def _open_stored_kd(path_text: str):
+    """A KD file an earlier ``wm run`` wrote, opened read-only (one clear error if missing)."""
+    import kd_store
 
+    path = Path(path_text)
+    if path_text == ":memory:" or not path.exists():
+        raise FileNotFoundError(f"KD file {path} does not exist")
+    return kd_store.open(path, read_only=True)
+
+
+def _no_log_options(args: argparse.Namespace, command: str) -> None:
+    """Refuse log-only options in the stored-KD form (they would be silently ignored)."""
+    if args.seconds is not None:
+        raise UserError(f"wm {command} --kd {args.kd}: --seconds applies to a log; give LOG")
+
+
+def cmd_whatif(args: argparse.Namespace) -> int:
+    """What If about one waypoint plan (body-frame waypoints relative to the vehicle's last
+    pose), judged by VJ. With LOG: run the log (its first --seconds), then ask the live node.
+    Without LOG: ask over the maps and entities a run stored in --kd (tiles, last states)."""
     t_s, xy_body = _parse_waypoints(args.waypoints)
-    node = run_node(_check_log(args.log), args.kd, _node_config(args), seconds=args.seconds)
-    T = node.stack.T_world_body
-    xy = transform_points(T, np.column_stack([xy_body, np.zeros(len(xy_body))]))[:, :2]
-    wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
-    res = wi.simulate([WaypointPlan(t_s, xy, "cli")], level=args.level)
-    ev = vj.evaluate(res, xy[-1], VJConfig())
-    hit = int(res.collision_entity[0])
-    print(f"plan over {res.t_s[-1]:.1f} s at level {args.level}: {res.distance_m[0]:.1f} m")
-    when = f"entity {hit} at {res.collision_t_s[0]:.1f} s" if hit >= 0 else "none"
-    print(f"first collision: {when}")
-    print(f"least clearance {res.min_clearance_m[0]:.2f} m; limited steps {res.limited_steps[0]}")
-    print(f"VJ: cost {ev.cost[0]:.2f}, risk {ev.risk[0]:.2f}, benefit {ev.benefit[0]:.2f}")
-    node.kd.close()
+    if args.log is not None:
+        from wm.run import run_node
+
+        node = run_node(_check_log(args.log), args.kd, _node_config(args), seconds=args.seconds)
+        try:
+            lines = whatif_lines(
+                node.kd, node.stack, node.self_id, node.stack.T_world_body, t_s, xy_body,
+                args.level,
+            )  # fmt: skip
+        finally:
+            node.kd.close()
+    else:
+        from wm.tiles import TileError, stored_maps
+
+        if args.kd == ":memory:":
+            raise UserError("whatif needs a LOG, or --kd KD.duckdb written by `wm run`")
+        _no_log_options(args, "whatif")
+        with _open_stored_kd(args.kd) as kd:
+            maps = stored_maps(kd)
+            known = [lvl.name for lvl in maps.stack.levels]
+            if args.level in known and args.level not in maps.levels:
+                raise TileError(
+                    f"KD {args.kd} holds no map tiles of level {args.level!r}; "
+                    f"levels with tiles: {maps.levels}"
+                )
+            lines = whatif_lines(
+                kd, maps.stack, maps.self_id, maps.T_world_body, t_s, xy_body, args.level
+            )
+    print("\n".join(lines))
     return 0
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    """Run a log (or its first --seconds) and write pictures of every map level."""
-    from wm.render import render_run
-    from wm.run import run_node
+def whatif_lines(
+    kd, stack, self_id: int, T_world_body: np.ndarray, t_s: np.ndarray, xy_body: np.ndarray,
+    level: str,
+) -> list[str]:  # fmt: skip
+    """Simulate the plan ``t_s`` (K,) s, ``xy_body`` (K, 2) m in the body frame of
+    ``T_world_body`` over ``stack`` and ``kd`` at ``level``; the lines a user reads."""
+    from maps.frames import transform_points
+    from wm import vj
+    from wm.config import VJConfig
+    from wm.whatif import WaypointPlan, WhatIf
 
-    node = run_node(_check_log(args.log), ":memory:", _node_config(args), seconds=args.seconds)
-    for p in render_run(node, Path(args.out)):
+    xy = transform_points(T_world_body, np.column_stack([xy_body, np.zeros(len(xy_body))]))[:, :2]
+    wi = WhatIf(kd, stack, self_id=self_id)
+    res = wi.simulate([WaypointPlan(t_s, xy, "cli")], level=level)
+    ev = vj.evaluate(res, xy[-1], VJConfig())
+    hit = int(res.collision_entity[0])
+    when = f"entity {hit} at {res.collision_t_s[0]:.1f} s" if hit >= 0 else "none"
+    return [
+        f"plan over {res.t_s[-1]:.1f} s at level {level}: {res.distance_m[0]:.1f} m",
+        f"first collision: {when}",
+        f"least clearance {res.min_clearance_m[0]:.2f} m; limited steps {res.limited_steps[0]}",
+        f"VJ: cost {ev.cost[0]:.2f}, risk {ev.risk[0]:.2f}, benefit {ev.benefit[0]:.2f}",
+    ]
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """Pictures of every map level: ``LOG --out DIR`` runs the log (or its first --seconds);
+    ``--kd KD OUT_DIR`` draws the maps and entities a run stored in the KD, without the log."""
+    paths_in = list(args.paths)
+    if args.kd is not None:
+        _no_log_options(args, "render")
+        if len(paths_in) + (args.out is not None) != 1:
+            raise UserError(
+                f"render --kd {args.kd}: give one output folder (OUT_DIR or --out), no LOG; "
+                f"got {paths_in + ([args.out] if args.out else [])}"
+            )
+        from wm.render import render_kd
+
+        out = Path(args.out or paths_in[0])
+        with _open_stored_kd(args.kd) as kd:
+            paths = render_kd(kd, out)
+    else:
+        if args.out is None and len(paths_in) == 2:
+            paths_in, args.out = paths_in[:1], paths_in[1]
+        if len(paths_in) != 1 or args.out is None:
+            raise UserError(
+                f"render: give LOG --out DIR, or --kd KD.duckdb OUT_DIR; got {paths_in}"
+            )
+        from wm.render import render_run
+        from wm.run import run_node
+
+        node = run_node(_check_log(paths_in[0]), ":memory:", _node_config(args), args.seconds)
+        try:
+            paths = render_run(node, Path(args.out))
+        finally:
+            node.kd.close()
+    for p in paths:
         print(f"picture {p}")
-    node.kd.close()
     return 0
 
 
@@ -327,18 +407,29 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--t-ns", type=int, default=None, help="as of this time (ns)")
     w.set_defaults(func=cmd_whatis)
 
-    f = sub.add_parser("whatif", help="run a log, then simulate a waypoint plan from its end")
-    f.add_argument("log", help="any supported log")
-    f.add_argument("--kd", default=":memory:", help="KD file (default: in memory)")
+    f = sub.add_parser(
+        "whatif", help="simulate a waypoint plan from the end of a log, or of a run stored in a KD"
+    )
+    f.add_argument("log", nargs="?", default=None, help="any supported log (omit: use --kd alone)")
+    f.add_argument(
+        "--kd", default=":memory:",
+        help="with LOG: the KD to write (default: in memory); without: a KD `wm run` wrote",
+    )  # fmt: skip
     f.add_argument("--waypoints", required=True, help="'t,x,y;...' seconds, body-frame metres")
     f.add_argument("--level", default="subsystem", help="map level (default subsystem)")
     f.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
     pose_flag(f)
     f.set_defaults(func=cmd_whatif)
 
-    g = sub.add_parser("render", help="run a log and write pictures of every map level")
-    g.add_argument("log", help="any supported log")
-    g.add_argument("--out", required=True, help="folder for the PNG files")
+    g = sub.add_parser(
+        "render", help="pictures of every map level: of a log's run, or of a run stored in a KD"
+    )
+    g.add_argument(
+        "paths", nargs="*", metavar="LOG | OUT_DIR",
+        help="LOG (with --out DIR), or OUT_DIR with --kd",
+    )  # fmt: skip
+    g.add_argument("--out", default=None, help="folder for the PNG files")
+    g.add_argument("--kd", default=None, help="draw the maps a run stored in this KD file")
     g.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
     pose_flag(g)
     g.set_defaults(func=cmd_render)

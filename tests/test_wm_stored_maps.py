@@ -1,0 +1,195 @@
+"""`wm render --kd` and `wm whatif --kd` work from the KD file a `wm run` wrote, without the
+log: the maps rebuilt from its tiles are the live node's final windows (every level and layer,
+bit for bit), the pictures are the live maps' pictures, What If finds the same collision and
+clearance as the log-driven form, and a KD without tiles is one clear error line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import kd_store
+import wm.run
+from fixtures.simulate import simulate_to_log
+from kd_store import Level, State, Status
+from maps.frames import se3_inverse, transform_points
+from sp.logs import open_log
+from wm.cli import main
+from wm.config import NodeConfig, PoseSource
+from wm.node import WorldModelNode
+from wm.render import render_maps
+from wm.tiles import TileError, stored_maps
+from wm.truth import TerrainTruth, elevation_error
+from wm.whatif import WaypointPlan, WhatIf
+
+TRUTH = ["--poses", "truth"]
+
+
+class Live:
+    """What the live node of a `wm run` had at the end."""
+
+    def __init__(self, node: WorldModelNode) -> None:
+        self.stack = node.stack
+        self.T_world_body = node.stack.T_world_body.copy()
+        self.windows = {
+            lvl.name: {n: lvl.window(n) for n in lvl.layer_names} for lvl in node.stack.levels
+        }
+
+
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory) -> tuple[Path, Path, Live]:
+    """A 1.5 s simulated log through `wm run --kd` (in this process, so the node is seen)."""
+    d = tmp_path_factory.mktemp("stored")
+    log = simulate_to_log("default", d / "s.mcap", seconds=1.5, seed=3, progress=False)
+    kd = d / "kd.duckdb"
+    nodes: list[WorldModelNode] = []
+
+    class Recorded(WorldModelNode):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            nodes.append(self)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(wm.run, "WorldModelNode", Recorded)
+        rc = main(["run", str(log), "--kd", str(kd), *TRUTH, "--no-progress",
+                   "--decode-in-process"])  # fmt: skip
+    assert rc == 0 and len(nodes) == 1
+    return log, kd, Live(nodes[0])
+
+
+def test_the_stored_maps_are_the_live_windows(ran) -> None:
+    log, kd_path, live = ran
+    with kd_store.open(kd_path, read_only=True) as kd:
+        maps = stored_maps(kd)
+        assert maps.levels == ["primitive", "subsystem", "vehicle", "section"]
+        assert np.allclose(maps.T_world_body, live.T_world_body, atol=1e-12)
+        for lvl in maps.stack.levels:
+            assert set(lvl.layer_names) == set(live.windows[lvl.name])
+            for name, arr in live.windows[lvl.name].items():
+                assert np.array_equal(lvl.window(name), arr, equal_nan=True), (lvl.name, name)
+        assert np.isfinite(maps.stack.level("primitive").window("elevation")).sum() > 10_000
+        source = open_log(log)  # and the stored map is the simulator's terrain
+        terrain = TerrainTruth.from_log(source.attachments(), source.metadata())
+        err = elevation_error(maps.stack.level("subsystem"), terrain)
+        assert err["cells"] > 1000 and err["rmse_m"] < 0.1
+
+
+def test_render_from_the_kd_alone_draws_the_live_maps(ran, tmp_path: Path, capsys) -> None:
+    _, kd_path, live = ran
+    assert main(["render", "--kd", str(kd_path), str(tmp_path / "kd")]) == 0
+    printed = capsys.readouterr().out.split()
+    stored = sorted((tmp_path / "kd").glob("*.png"))
+    assert len(stored) == 8 and printed.count("picture") == 8  # 4 levels x (elevation, cost)
+    with kd_store.open(kd_path, read_only=True) as kd:
+        self_id = stored_maps(kd).self_id
+        mine = render_maps(kd, live.stack, self_id, tmp_path / "live")
+    assert [p.name for p in stored] == sorted(p.name for p in mine)
+    for p in stored:
+        a, b = cv2.imread(str(p)), cv2.imread(str(tmp_path / "live" / p.name))
+        assert a.shape == b.shape and np.array_equal(a, b), p.name
+
+
+def _plans_at(kd, T_world_body: np.ndarray) -> tuple[int, list[np.ndarray]]:
+    """A confirmed object ahead of the vehicle, and two body-frame plans (t, x, y rows) over
+    20 s: one through the object where its constant-velocity prediction will be, one passing
+    it 8 m to the side."""
+    T_body_world = se3_inverse(T_world_body)
+    best = None
+    for f in kd.entities():
+        if f.name == "self" or f.level < Level.OBJECT or f.status != Status.CONFIRMED:
+            continue
+        b = transform_points(T_body_world, f.state.position_xyz[None])[0]
+        bearing = abs(np.arctan2(b[1], b[0]))
+        if bearing < np.radians(45) and (best is None or bearing < best[0]):
+            best = (bearing, f)
+    assert best is not None, "the log's run confirms an object ahead of the vehicle"
+    f = best[1]
+    t0_ns = kd.get(max(e.id for e in kd.entities() if e.name == "self")).state.t_ns
+    arrive_s = 10.0
+    xyz = f.state.position_xyz + (arrive_s + (t0_ns - f.state.t_ns) * 1e-9) * f.state.velocity_xyz
+    target = transform_points(T_body_world, xyz[None])[0, :2]
+    side = np.array([-target[1], target[0]]) / np.linalg.norm(target) * 8.0
+    plans = []
+    for offset in (np.zeros(2), side):
+        p = target + offset
+        plans.append(np.array([[0.0, 0.0, 0.0], [arrive_s, *p], [20.0, *(2 * p)]]))
+    return f.id, plans
+
+
+def _cli_whatif(args: list[str], capsys) -> list[str]:
+    assert main(["whatif", *args, "--level", "vehicle"]) == 0
+    return capsys.readouterr().out.strip().splitlines()[-4:]
+
+
+def test_whatif_from_the_kd_alone_finds_what_the_log_driven_form_finds(ran, capsys) -> None:
+    log, kd_path, _ = ran
+    node = wm.run.run_node(log, ":memory:", NodeConfig(pose_source=PoseSource.TRUTH))
+    with kd_store.open(kd_path, read_only=True) as kd:
+        maps = stored_maps(kd)
+        target_id, plans = _plans_at(kd, maps.T_world_body)
+        results = []
+        for kd_, stack, self_id, T in (
+            (node.kd, node.stack, node.self_id, node.stack.T_world_body),
+            (kd, maps.stack, maps.self_id, maps.T_world_body),
+        ):
+            world = [
+                WaypointPlan(p[:, 0], transform_points(T, np.c_[p[:, 1:], np.zeros(3)])[:, :2])
+                for p in plans
+            ]
+            results.append(WhatIf(kd_, stack, self_id=self_id).simulate(world, level="vehicle"))
+    node.kd.close()
+    from_log, from_kd = results
+    assert from_kd.collision_entity.tolist() == [target_id, -1]  # through it, then beside it
+    assert from_log.collision_entity.tolist() == from_kd.collision_entity.tolist()
+    assert np.array_equal(from_log.collision_t_s, from_kd.collision_t_s, equal_nan=True)
+    assert from_kd.min_clearance_m[0] == 0.0 and from_kd.min_clearance_m[1] > 1.0
+    assert np.allclose(from_log.min_clearance_m, from_kd.min_clearance_m, atol=1e-9)
+    assert np.allclose(from_log.xy, from_kd.xy, atol=1e-9)
+    for name in ("elevation", "slope", "traversability", "cost", "unknown_fraction"):
+        a, b = getattr(from_log, name), getattr(from_kd, name)
+        assert np.allclose(a, b, atol=1e-9, equal_nan=True), name
+    # the command line says the same in both forms
+    text = ";".join(",".join(f"{v:.6f}" for v in row) for row in plans[0])
+    by_log = _cli_whatif([str(log), *TRUTH, "--waypoints", text], capsys)
+    by_kd = _cli_whatif(["--kd", str(kd_path), "--waypoints", text], capsys)
+    assert by_kd[:3] == by_log[:3]  # distance, first collision, least clearance
+    assert f"first collision: entity {target_id} at" in by_kd[1]
+
+
+def _kd_without_tiles(path: Path) -> None:
+    with kd_store.open(path) as kd:
+        me = kd.add_entity("self", Level.OBJECT, status=Status.CONFIRMED, confidence=1.0,
+                           noteworthy=True)  # fmt: skip
+        kd.observe(me.id, State(5, "world", (1.0, 2.0, 0.0)))
+
+
+@pytest.mark.parametrize("command", ["render", "whatif"])
+def test_a_kd_without_tiles_is_one_clear_line(tmp_path: Path, capsys, command: str) -> None:
+    path = tmp_path / "bare.duckdb"
+    _kd_without_tiles(path)
+    args = [str(tmp_path / "out")] if command == "render" else ["--waypoints", "0,0,0;1,1,0"]
+    assert main([command, "--kd", str(path), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "holds no map tiles" in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_kd_missing_the_asked_level_or_the_vehicle_says_so(tmp_path: Path, capsys) -> None:
+    path = tmp_path / "part.duckdb"
+    _kd_without_tiles(path)
+    with kd_store.open(path) as kd:
+        kd.put_tile("subsystem", 0, 0, {"elevation": np.zeros((64, 64), np.float32)})
+    assert main(["whatif", "--kd", str(path), "--waypoints", "0,0,0;1,1,0",
+                 "--level", "primitive"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert f"KD {path} holds no map tiles of level 'primitive'" in err and "subsystem" in err
+    with kd_store.open(tmp_path / "noself.duckdb") as kd:
+        kd.put_tile("subsystem", 0, 0, {"elevation": np.zeros((64, 64), np.float32)})
+    with (
+        kd_store.open(tmp_path / "noself.duckdb", read_only=True) as kd,
+        pytest.raises(TileError, match=r"noself\.duckdb: no self entity"),
+    ):
+        stored_maps(kd)
