@@ -858,6 +858,7 @@ class SensoryProcessor:
         tracker = self.surface_tracker
         for sid in tracker.forget(t_ns):
             self._surface_gone(int(sid))
+        self._forget_creases(t_ns)
         grid = patch_grid(xyz_g, free, cfg.list_config)
         obs = group_patches(grid, 2 * math.pi / W, _row_step(row_el), cfg.surfaces)
         if len(obs) == 0:
@@ -924,7 +925,6 @@ class SensoryProcessor:
         keep = ~denied[lab]
         px, row, lab = px[keep], row[keep], lab[keep]
         self._free_px.reshape(-1)[px] = True
-        self._creases(t_ns, contact, image3, obs, ids, denied, px, lab, xyz_g, free, grid)
         # ground contact: a surface pixel just above a ground pixel
         low = row < H - 1
         touch = np.zeros(px.size, dtype=bool)
@@ -935,6 +935,7 @@ class SensoryProcessor:
                 boundary[k] = self._contact_of(int(ids[k]), t_ns)
             contact.reshape(-1)[px[touch]] = boundary[lab[touch]]
         image3.reshape(-1)[px] = ids[lab]
+        self._creases(t_ns, contact, image3, obs, ids, denied, xyz_g, free, grid)
         return image3, [int(i) for i in ids[~denied]]
 
     def _creases(
@@ -945,51 +946,42 @@ class SensoryProcessor:
         obs: SurfaceObservations,
         ids: np.ndarray,
         denied: np.ndarray,
-        px: np.ndarray,
-        lab: np.ndarray,
         xyz_g: np.ndarray,
         free: np.ndarray,
         grid: PatchGrid,
     ) -> None:
         """Creases (:func:`find_creases`) between this sweep's free surfaces (``obs``, ids
-        ``ids``, pixels ``px`` of surface ``lab``) and the objects' faces already in
-        ``image3``: one level-2 ``slope_edge`` list per pair of surfaces (belonging to the
-        free one, beside the other), written into ``contact`` on its pixels; a crease unseen
-        for ``forget_s`` is gone."""
-        kd = self.kd
+        ``ids``, already in ``image3``) and with the objects' faces in ``image3``: one level-2
+        ``slope_edge`` list per pair of surfaces (belonging to the free one, beside the
+        other), written into ``contact`` on its pixels."""
         H, W = free.shape
-        S = len(obs)
-        flat3 = image3.reshape(-1)
-        ground_id = -1 if self.ground_id is None else self.ground_id
-        face_px = np.flatnonzero((flat3 >= 0) & (flat3 != ground_id))
-        face_ids, face_lab = np.unique(flat3[face_px], return_inverse=True)
-        if S + face_ids.size >= 2:
-            label = np.full(H * W, -1, dtype=np.int64)
-            label[px] = lab
-            label[face_px] = S + face_lab
-            blocks = np.where(denied[np.maximum(obs.label, 0)], -1, obs.label)
-            blk_face = grid.block_of_pixel(H, W).reshape(-1)[face_px]
-            blocks[blk_face] = np.where(blocks[blk_face] < 0, S + face_lab, blocks[blk_face])
+        blocks = np.where(denied[np.maximum(obs.label, 0)], -1, obs.label)
+        ent, normal, point = ids, obs.normal, obs.centroid
+        faces = [f for f, _ in self.track_surface.values()]
+        if faces:  # the objects' faces: their planes and blocks
+            face_px = np.flatnonzero(np.isin(image3, faces))
+            face_ids, face_lab = np.unique(image3.reshape(-1)[face_px], return_inverse=True)
             c_f, n_f, _ = plane_fit(face_lab, xyz_g.reshape(-1, 3)[face_px], face_ids.size)
-            cr = find_creases(
-                blocks.reshape(grid.shape),
-                grid.block,
-                label.reshape(H, W),
-                xyz_g,
-                free | (label.reshape(H, W) >= S),
-                np.r_[obs.normal, n_f],
-                np.r_[obs.centroid, c_f],
-                self.config.surfaces,
-            )
-            ent = np.r_[ids, face_ids]
+            blk = grid.block_of_pixel(H, W).reshape(-1)[face_px]
+            blocks[blk] = np.where(blocks[blk] < 0, len(obs) + face_lab, blocks[blk])
+            ent, normal, point = np.r_[ids, face_ids], np.r_[normal, n_f], np.r_[point, c_f]
+        if ent.size < 2:
+            return
+        cr = find_creases(
+            blocks.reshape(grid.shape), grid.block, image3, free, xyz_g, ent, normal, point,
+            self.config.surfaces,
+        )  # fmt: skip
+        if len(cr):
             pairs = zip(ent[cr.a].tolist(), ent[cr.b].tolist(), strict=True)
             crease_ids = np.array([self._crease_of(a, b, t_ns) for a, b in pairs], np.int64)
-            if crease_ids.size:
-                contact.reshape(-1)[cr.pixel] = crease_ids[cr.crease]
+            contact.reshape(-1)[cr.pixel] = crease_ids[cr.crease]
+
+    def _forget_creases(self, t_ns: int) -> None:
+        """Creases unseen for ``forget_s`` are gone."""
         forget_ns = self.config.surfaces.forget_s * 1e9
         for key, (lid, seen_ns) in list(self._crease.items()):
             if t_ns - seen_ns > forget_ns:
-                kd.update_entity(lid, status=Status.GONE)
+                self.kd.update_entity(lid, status=Status.GONE)
                 del self._crease[key]
 
     def _crease_of(self, sid_a: int, sid_b: int, t_ns: int) -> int:

@@ -564,84 +564,230 @@ def plane_fit(
     return mean, normal, n.astype(np.int64)
 
 
-def _block_pairs(
-    rc: np.ndarray, lab: np.ndarray, n_cols: int, gap: int
+def _near_blocks_numpy(block_label: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of :func:`near_blocks` (one shifted comparison of the grid per offset)."""
+    nbr, nbc = block_label.shape
+    idx = np.arange(nbr * nbc).reshape(nbr, nbc)
+    offsets = [(0, dc) for dc in range(1, gap + 1)]
+    offsets += [(dr, dc) for dr in range(1, gap + 1) for dc in range(-gap, gap + 1)]
+    out_i, out_j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for dr, dc in offsets:
+        if dr >= nbr or 2 * abs(dc) > nbc:
+            continue
+        a = block_label[: nbr - dr]
+        b = np.roll(block_label, -dc, axis=1)[dr:]
+        hit = (a >= 0) & (b >= 0) & (a != b)
+        out_i.append(idx[: nbr - dr][hit])
+        out_j.append(np.roll(idx, -dc, axis=1)[dr:][hit])
+    return np.concatenate(out_i), np.concatenate(out_j)
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_blocks_kernel(block_label: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray]:
+    nbr, nbc = block_label.shape
+    cap = nbr * nbc * (gap + 1) * (2 * gap + 1)
+    out_i = np.empty(cap, np.int64)
+    out_j = np.empty(cap, np.int64)
+    n = 0
+    for r in range(nbr):
+        for c in range(nbc):
+            la = block_label[r, c]
+            if la < 0:
+                continue
+            for dr in range(min(gap, nbr - 1 - r) + 1):
+                for dc in range(-gap, gap + 1):
+                    if (dr == 0 and dc <= 0) or 2 * abs(dc) > nbc:
+                        continue
+                    c2 = (c + dc) % nbc
+                    lb = block_label[r + dr, c2]
+                    if lb >= 0 and lb != la:
+                        out_i[n] = r * nbc + c
+                        out_j[n] = (r + dr) * nbc + c2
+                        n += 1
+    return out_i[:n], out_j[:n]
+
+
+def near_blocks(block_label: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of blocks (i, j) (flat indices into the (nbr, nbc) grid ``block_label``) of
+    different surfaces (labels >= 0) within ``gap`` grid steps (Chebyshev distance, columns
+    wrapping round), each pair once. One compiled pass over the grid;
+    :func:`_near_blocks_numpy` is its reference (same pairs, another order)."""
+    return _near_blocks_kernel(np.ascontiguousarray(block_label, dtype=np.int64), int(gap))
+
+
+def _crease_pixels_numpy(
+    pair: np.ndarray,
+    blk: np.ndarray,
+    n_block_cols: int,
+    block: tuple[int, int],
+    label: np.ndarray,
+    free: np.ndarray,
+    xyz: np.ndarray,
+    id_a: np.ndarray,
+    id_b: np.ndarray,
+    p0: np.ndarray,
+    u: np.ndarray,
+    tol_m: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Unique label pairs (a < b) of labelled blocks at rows/cols ``rc`` (M, 2) within ``gap``
-    grid steps (Chebyshev distance, columns wrapping round ``n_cols``)."""
-    dr = np.abs(rc[:, None, 0] - rc[None, :, 0])
-    dc = np.abs(rc[:, None, 1] - rc[None, :, 1])
-    dc = np.minimum(dc, n_cols - dc)
-    near = (dr <= gap) & (dc <= gap) & (lab[:, None] < lab[None, :])
-    i, j = np.nonzero(near)
-    key = np.unique(lab[i] * (int(lab.max(initial=0)) + 1) + lab[j])
-    return np.divmod(key, int(lab.max(initial=0)) + 1)
+    """Reference of :func:`crease_pixels` (the candidate pixels expanded, then filtered)."""
+    H, W = label.shape
+    bh, bw = block
+    br, bc = np.divmod(blk, n_block_cols)
+    pr = (br[:, None] * bh + np.arange(bh).repeat(bw)[None, :]).reshape(-1)
+    pc = (bc[:, None] * bw + np.tile(np.arange(bw), bh)[None, :]).reshape(-1)
+    q = np.repeat(pair, bh * bw)
+    ok = (pr < H) & (pc < W)
+    px, q = pr[ok] * W + pc[ok], q[ok]
+    own = label.reshape(-1)[px]
+    ok = (own == id_a[q]) | (own == id_b[q]) | ((own < 0) & free.reshape(-1)[px])
+    px, q = px[ok], q[ok]
+    d = xyz.reshape(-1, 3)[px] - p0[q]
+    with np.errstate(invalid="ignore"):
+        on = np.einsum("ij,ij->i", d, d) - np.einsum("ij,ij->i", d, u[q]) ** 2 <= tol_m**2
+    return px[on].astype(np.int64), q[on].astype(np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _crease_pixels_kernel(
+    pair: np.ndarray,
+    blk: np.ndarray,
+    nbc: int,
+    bh: int,
+    bw: int,
+    label: np.ndarray,
+    free: np.ndarray,
+    xyz: np.ndarray,
+    id_a: np.ndarray,
+    id_b: np.ndarray,
+    p0: np.ndarray,
+    u: np.ndarray,
+    tol2: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    H, W = label.shape
+    out_px = np.empty(pair.size * bh * bw, np.int64)
+    out_q = np.empty(pair.size * bh * bw, np.int64)
+    n = 0
+    for k in range(pair.size):
+        q = pair[k]
+        r0 = (blk[k] // nbc) * bh
+        c0 = (blk[k] % nbc) * bw
+        for r in range(r0, min(r0 + bh, H)):
+            for c in range(c0, min(c0 + bw, W)):
+                own = label[r, c]
+                if not (own == id_a[q] or own == id_b[q] or (own < 0 and free[r, c])):
+                    continue
+                dx = xyz[r, c, 0] - p0[q, 0]
+                dy = xyz[r, c, 1] - p0[q, 1]
+                dz = xyz[r, c, 2] - p0[q, 2]
+                along = dx * u[q, 0] + dy * u[q, 1] + dz * u[q, 2]
+                if dx * dx + dy * dy + dz * dz - along * along <= tol2:
+                    out_px[n] = r * W + c
+                    out_q[n] = q
+                    n += 1
+    return out_px[:n], out_q[:n]
+
+
+def crease_pixels(
+    pair: np.ndarray,
+    blk: np.ndarray,
+    n_block_cols: int,
+    block: tuple[int, int],
+    label: np.ndarray,
+    free: np.ndarray,
+    xyz: np.ndarray,
+    id_a: np.ndarray,
+    id_b: np.ndarray,
+    p0: np.ndarray,
+    u: np.ndarray,
+    tol_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels of candidate crease ``pair[k]`` in block ``blk[k]`` (flat index into a grid
+    of ``n_block_cols`` columns of ``block`` (rows, cols) pixels) that belong to either of its
+    surfaces (``label`` (H, W) int64 equal to ``id_a`` or ``id_b`` (C,) of the pair) or to
+    none while ``free`` (H, W) bool, and whose point ``xyz`` (H, W, 3) lies within ``tol_m``
+    of the pair's line (through ``p0`` (C, 3), unit direction ``u`` (C, 3)). Returns (flat
+    pixel (K,) int64, pair (K,) int64), in the order of the blocks given, row-major inside
+    each. One compiled pass; :func:`_crease_pixels_numpy` is its reference (same output)."""
+    return _crease_pixels_kernel(
+        np.ascontiguousarray(pair, dtype=np.int64),
+        np.ascontiguousarray(blk, dtype=np.int64),
+        int(n_block_cols),
+        int(block[0]),
+        int(block[1]),
+        np.ascontiguousarray(label, dtype=np.int64),
+        np.ascontiguousarray(free, dtype=np.bool_),
+        np.ascontiguousarray(xyz, dtype=np.float64),
+        np.ascontiguousarray(id_a, dtype=np.int64),
+        np.ascontiguousarray(id_b, dtype=np.int64),
+        np.ascontiguousarray(p0, dtype=np.float64),
+        np.ascontiguousarray(u, dtype=np.float64),
+        float(tol_m) ** 2,
+    )
 
 
 def find_creases(
     block_label: np.ndarray,
     block: tuple[int, int],
     label: np.ndarray,
+    free: np.ndarray,
     xyz: np.ndarray,
-    candidate: np.ndarray,
+    ids: np.ndarray,
     normal: np.ndarray,
     point: np.ndarray,
     config: SurfaceConfig | None = None,
+    compiled: bool = True,
 ) -> Creases:
-    """Creases between surfaces (module docstring).
+    """Creases between surfaces (module docstring), all pairs at once.
 
     block_label: (nbr, nbc) int64 surface index of each block of the patch grid, -1 none.
     block:       (rows, cols) pixels per block.
-    label:       (H, W) int64 surface index of each pixel, -1 none.
-    xyz:         (H, W, 3) points (m), in the frame of the planes.
-    candidate:   (H, W) bool pixels that may lie on a crease (a surface's, or owned by none).
+    label:       (H, W) int64 label of each pixel (an entity id, say), -1 none.
+    free:        (H, W) bool unlabelled pixels that may lie on a crease.
+    xyz:         (H, W, 3) points (m), in the frame of the planes (NaN where none).
+    ids:         (S,) int64 the label of each surface's pixels.
     normal, point: (S, 3) unit normal and a point of each surface's plane.
+    compiled:    the compiled passes (else their numpy references).
+
+    A crease's pixels lie in the blocks spanned by two close blocks of its surfaces (the
+    blocks themselves and any gap between them), belong to either surface (or to none, when
+    free), and lie within ``crease_tol_m`` of the line where the two planes meet.
     """
     cfg = config or SurfaceConfig()
     nbr, nbc = block_label.shape
-    H, W = label.shape
-    on = np.flatnonzero(block_label.reshape(-1) >= 0)
-    if on.size < 2:
+    g = cfg.crease_gap_blocks
+    i, j = (near_blocks if compiled else _near_blocks_numpy)(block_label, g)
+    if i.size == 0:
         return _no_creases()
-    lab = block_label.reshape(-1)[on]
-    rc = np.stack(np.divmod(on, nbc), axis=1)
-    a, b = _block_pairs(rc, lab, nbc, cfg.crease_gap_blocks)
+    flat = block_label.reshape(-1)
+    la, lb = flat[i], flat[j]
+    la, lb = np.minimum(la, lb), np.maximum(la, lb)
+    S = normal.shape[0]
+    key, inv = np.unique(la * S + lb, return_inverse=True)
+    a, b = np.divmod(key, S)
     cos = np.abs(np.einsum("ij,ij->i", normal[a], normal[b]))
     sharp = cos < math.cos(math.radians(cfg.crease_angle_deg))
-    a, b = a[sharp], b[sharp]
-    if a.size == 0:
+    if not sharp.any():
         return _no_creases()
-    g = cfg.crease_gap_blocks
-    all_rc = np.stack(np.divmod(np.arange(nbr * nbc), nbc), axis=1)
-    dr = np.abs(all_rc[:, None, 0] - rc[None, :, 0]) <= g  # (B, M) block near labelled block
-    dc = np.abs(all_rc[:, None, 1] - rc[None, :, 1])
-    near = dr & (np.minimum(dc, nbc - dc) <= g)
-    bh, bw = block
-    inner = (np.arange(bh)[:, None] * W + np.arange(bw)[None, :]).reshape(-1)
-    pixels, owner = [], []
-    for c, (sa, sb) in enumerate(zip(a.tolist(), b.tolist(), strict=True)):
-        region = np.flatnonzero(near[:, lab == sa].any(axis=1) & near[:, lab == sb].any(axis=1))
-        r0, c0 = all_rc[region, 0] * bh, all_rc[region, 1] * bw
-        px = ((r0 * W + c0)[:, None] + inner[None, :]).reshape(-1)
-        col = (c0[:, None] + inner[None, :] % W).reshape(-1)
-        px = px[(px < H * W) & (col < W)]
-        px = px[candidate.reshape(-1)[px]]
-        own = label.reshape(-1)[px]
-        px = px[(own < 0) | (own == sa) | (own == sb)]
-        u = np.cross(normal[sa], normal[sb])
-        u /= np.linalg.norm(u)
-        A = np.stack([normal[sa], normal[sb], u])
-        p0 = np.linalg.solve(A, [normal[sa] @ point[sa], normal[sb] @ point[sb], 0.0])
-        d = xyz.reshape(-1, 3)[px] - p0
-        dist = np.linalg.norm(d - np.outer(d @ u, u), axis=1)
-        px = px[dist <= cfg.crease_tol_m]
-        pixels.append(px)
-        owner.append(np.full(px.size, c, np.int64))
-    keep = np.array([p.size > 0 for p in pixels])
-    renum = np.cumsum(keep) - 1
-    return Creases(
-        a[keep],
-        b[keep],
-        np.concatenate(pixels).astype(np.int64),
-        renum[np.concatenate(owner)].astype(np.int64),
-    )
+    a, b = a[sharp], b[sharp]
+    keep = sharp[inv]
+    i, j, pair = i[keep], j[keep], (np.cumsum(sharp) - 1)[inv[keep]]
+    # the blocks spanned by each close block pair: its corner nearest the origin and its size
+    ri, ci = np.divmod(i, nbc)
+    rj, cj = np.divmod(j, nbc)
+    dc = (cj - ci + nbc // 2) % nbc - nbc // 2  # signed, round the wrap
+    r0, c0 = np.minimum(ri, rj), ci + np.minimum(dc, 0)
+    off_r, off_c = np.divmod(np.arange((g + 1) * (g + 1)), g + 1)
+    inside = (off_r <= np.abs(rj - ri)[:, None]) & (off_c <= np.abs(dc)[:, None])
+    k, o = np.nonzero(inside)
+    pb = np.unique(pair[k] * (nbr * nbc) + (r0[k] + off_r[o]) * nbc + (c0[k] + off_c[o]) % nbc)
+    pair_blk, blk = np.divmod(pb, nbr * nbc)
+    # the line where the two planes meet: direction u, through p0
+    na, nb = normal[a], normal[b]
+    u = np.cross(na, nb)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    rhs = np.stack([np.einsum("ij,ij->i", na, point[a]), np.einsum("ij,ij->i", nb, point[b])])
+    p0 = np.linalg.solve(np.stack([na, nb, u], axis=1), np.r_[rhs, [0.0 * a]].T[..., None])
+    args = (pair_blk, blk, nbc, block, label, free, xyz, ids[a], ids[b], p0[..., 0], u)
+    px, q = (crease_pixels if compiled else _crease_pixels_numpy)(*args, cfg.crease_tol_m)
+    used, crease = np.unique(q, return_inverse=True)
+    return Creases(a[used], b[used], px, crease.astype(np.int64))

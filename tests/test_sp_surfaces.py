@@ -22,11 +22,15 @@ from sp.surfaces import (
     SurfaceConfig,
     SurfaceObservations,
     SurfaceTracker,
+    _crease_pixels_numpy,
+    _near_blocks_numpy,
     components,
     components_scipy,
+    crease_pixels,
     find_creases,
     group_patches,
     measure,
+    near_blocks,
     plane_fit,
     predict,
     process_noise,
@@ -487,15 +491,59 @@ def test_find_creases_ignores_coplanar_and_distant_surfaces() -> None:
     g = np.random.default_rng(8)
     xyz = g.normal(0.0, 1.0, (*label.shape, 3))
     xyz[..., :2] *= 0.05  # near the z axis: the line where planes 0 and 2 (through 0) meet
-    cand = np.ones(label.shape, bool)
-    cr = find_creases(blocks, (bh, bw), label, xyz, cand, n, np.zeros((4, 3)), SurfaceConfig())
+    free = np.ones(label.shape, bool)
+    args = (label, free, xyz, np.arange(4), n, np.zeros((4, 3)))
+    cr = find_creases(blocks, (bh, bw), *args, SurfaceConfig())
     assert (cr.a.tolist(), cr.b.tolist()) == ([0], [2])
     # its pixels: those of 0, 2 or none, near both, within the tolerance of the line
     assert cr.pixel.size > 0 and np.all(cr.crease == 0)
     assert np.all(np.isin(label.reshape(-1)[cr.pixel], [0, 2, -1]))
     assert np.all(np.hypot(*xyz.reshape(-1, 3)[cr.pixel, :2].T) <= 0.25)
+    ref = find_creases(blocks, (bh, bw), *args, SurfaceConfig(), compiled=False)
+    np.testing.assert_array_equal(ref.pixel, cr.pixel)
     narrow = SurfaceConfig(crease_gap_blocks=1)
-    assert len(find_creases(blocks, (bh, bw), label, xyz, cand, n, np.zeros((4, 3)), narrow)) == 0
+    assert len(find_creases(blocks, (bh, bw), *args, narrow)) == 0
+
+
+def _random_blocks(g: np.random.Generator, shape: tuple[int, int], S: int) -> np.ndarray:
+    lab = g.integers(-1, S, shape)
+    return np.where(g.random(shape) < 0.4, -1, lab)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_crease_kernels_match_their_numpy_references(seed: int) -> None:
+    g = np.random.default_rng(seed)
+    nbr, nbc = int(g.integers(1, 6)), int(g.integers(1, 12))
+    S = int(g.integers(1, 6))
+    blocks = _random_blocks(g, (nbr, nbc), S)
+    if seed == 0:
+        blocks[:] = -1  # degenerate: no surface at all
+    for gap in (0, 1, 2, 3):
+        got = near_blocks(blocks, gap)
+        want = _near_blocks_numpy(blocks, gap)
+        assert sorted(zip(*got, strict=True)) == sorted(zip(*want, strict=True))
+    bh, bw = int(g.integers(1, 5)), int(g.integers(1, 6))
+    H, W = nbr * bh - int(g.integers(0, bh)), nbc * bw  # a last block row cut short
+    label = g.integers(-1, S + 2, (H, W))
+    free = g.random((H, W)) < 0.5
+    xyz = g.normal(0.0, 1.0, (H, W, 3))
+    xyz[g.random((H, W)) < 0.1] = np.nan  # no return
+    C = 3
+    pair = g.integers(0, C, 20)
+    blk = g.integers(0, nbr * nbc, 20)
+    u = g.normal(0.0, 1.0, (C, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    args = (pair, blk, nbc, (bh, bw), label, free, xyz, g.integers(0, S, C),
+            g.integers(0, S, C), g.normal(0.0, 1.0, (C, 3)), u, 0.8)  # fmt: skip
+    got, want = crease_pixels(*args), _crease_pixels_numpy(*args)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    n = g.normal(0.0, 1.0, (S, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    fa = (blocks, (bh, bw), label, free, xyz, np.arange(S), n, g.normal(0.0, 1.0, (S, 3)))
+    a, b = find_creases(*fa), find_creases(*fa, compiled=False)
+    for name in ("a", "b", "pixel", "crease"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
 def _in_boxes(p: np.ndarray, boxes, margin: float) -> np.ndarray:
