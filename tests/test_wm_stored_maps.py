@@ -186,6 +186,12 @@ def test_a_kd_missing_the_asked_level_or_the_vehicle_says_so(tmp_path: Path, cap
                  "--level", "primitive"]) == 2  # fmt: skip
     err = capsys.readouterr().err
     assert f"KD {path} holds no map tiles of level 'primitive'" in err and "subsystem" in err
+    assert main(["render", "--kd", str(path), str(tmp_path / "out")]) == 0  # what it has
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.png")) == [
+        "level3_subsystem_cost.png", "level3_subsystem_elevation.png"
+    ]  # fmt: skip
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note")]
+    assert len(notes) == 3 and "'primitive'; not drawn" in notes[0]
     with kd_store.open(tmp_path / "noself.duckdb") as kd:
         kd.put_tile("subsystem", 0, 0, {"elevation": np.zeros((64, 64), np.float32)})
     with (

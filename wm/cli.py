@@ -300,11 +300,16 @@ def cmd_render(args: argparse.Namespace) -> int:
                 f"render --kd {args.kd}: give one output folder (OUT_DIR or --out), no LOG; "
                 f"got {paths_in + ([args.out] if args.out else [])}"
             )
-        from wm.render import render_kd
+        from wm.render import render_maps
+        from wm.tiles import stored_maps
 
         out = Path(args.out or paths_in[0])
         with _open_stored_kd(args.kd) as kd:
-            paths = render_kd(kd, out)
+            maps = stored_maps(kd)
+            paths = render_maps(kd, maps.stack, maps.self_id, out, maps.levels)
+        for lvl in maps.stack.levels:
+            if lvl.name not in maps.levels:
+                print(f"note: {args.kd} holds no tiles of level {lvl.name!r}; not drawn")
     else:
         if args.out is None and len(paths_in) == 2:
             paths_in, args.out = paths_in[:1], paths_in[1]

@@ -2,9 +2,10 @@
 entities drawn on top (maps.pictures does the layers; this adds the entities).
 
 Two sources: a live node (:func:`render_run`, at the end of ``wm run``) or a KD file alone
-(:func:`render_kd`: the map the run stored as tiles, around the last self pose; reference 001,
-4.4.11, long-term memory holds the maps). Images are BGR uint8 PNGs, north up; an entity is
-a circle at its world position, green when confirmed, yellow when hypothesized.
+(:func:`render_maps` over :func:`wm.tiles.stored_maps`: the map the run stored as tiles, around
+the last self pose; reference 001, 4.4.11, long-term memory holds the maps). Images are BGR
+uint8 PNGs, north up; an entity is a circle at its world position, green when confirmed,
+yellow when hypothesized.
 """
 
 from __future__ import annotations
@@ -18,8 +19,7 @@ import kd_store
 from kd_store import Status
 from maps.level import MapLevel
 from maps.pictures import render_layer, save_png
-from maps.stack import MapStack, StackConfig
-from wm.tiles import stored_maps
+from maps.stack import MapStack
 
 CONFIRMED_BGR = (0, 220, 0)
 HYPOTHESIZED_BGR = (0, 220, 220)
@@ -82,12 +82,3 @@ def render_maps(
 def render_run(node, out_dir: Path) -> list[Path]:
     """Pictures of a live node's maps and KD (see :func:`render_maps`)."""
     return render_maps(node.kd, node.stack, node.self_id, out_dir)
-
-
-def render_kd(
-    kd: kd_store.KnowledgeDatabase, out_dir: Path, config: StackConfig | None = None
-) -> list[Path]:
-    """Pictures of the map stored in ``kd`` around its last self pose, of every level it
-    holds tiles of (:func:`wm.tiles.stored_maps`; raises its TileError without tiles)."""
-    maps = stored_maps(kd, config)
-    return render_maps(kd, maps.stack, maps.self_id, out_dir, maps.levels)
