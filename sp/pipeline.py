@@ -969,7 +969,7 @@ class SensoryProcessor:
             return
         cr = find_creases(
             blocks.reshape(grid.shape), grid.block, image3, free, xyz_g, ent, normal, point,
-            self.config.surfaces,
+            self.config.surfaces, az_step_rad=2 * math.pi / W,
         )  # fmt: skip
         if len(cr):
             pairs = zip(ent[cr.a].tolist(), ent[cr.b].tolist(), strict=True)

@@ -41,8 +41,9 @@ degenerate fits (one pixel, zero area, no normal).
 Creases (:func:`find_creases`, 4.5.6 "Level 3 Computation": boundary types include slope
 boundaries): two surfaces whose blocks lie within ``crease_gap_blocks`` of each other and
 whose normals differ by more than ``crease_angle_deg`` meet along the intersection line of
-their planes; the pixels near both surfaces whose points lie within ``crease_tol_m`` of that
-line are their crease, a level-2 ``slope_edge`` list belonging to both.
+their planes; the pixels near both surfaces whose points lie within ``crease_tol_m`` (or
+``crease_tol_px`` pixel footprints) of that line are their crease, a level-2 ``slope_edge``
+list of both.
 """
 
 from __future__ import annotations
@@ -101,7 +102,8 @@ class SurfaceConfig:
     # creases between surfaces
     crease_angle_deg: float = 30.0  # normals differ by more than this
     crease_gap_blocks: int = 2  # surfaces' blocks this close (grid steps) may meet
-    crease_tol_m: float = 0.25  # crease pixels lie this close to the planes' intersection
+    crease_tol_m: float = 0.1  # crease pixels lie this close to the planes' intersection,
+    crease_tol_px: float = 1.5  # or this many pixel footprints (range x azimuth step)
 
 
 @dataclass
@@ -628,6 +630,7 @@ def _crease_pixels_numpy(
     p0: np.ndarray,
     u: np.ndarray,
     tol_m: float,
+    tol_per_m: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reference of :func:`crease_pixels` (the candidate pixels expanded, then filtered)."""
     H, W = label.shape
@@ -641,9 +644,11 @@ def _crease_pixels_numpy(
     own = label.reshape(-1)[px]
     ok = (own == id_a[q]) | (own == id_b[q]) | ((own < 0) & free.reshape(-1)[px])
     px, q = px[ok], q[ok]
-    d = xyz.reshape(-1, 3)[px] - p0[q]
+    p = xyz.reshape(-1, 3)[px]
+    d = p - p0[q]
+    tol2 = np.maximum(tol_m**2, tol_per_m**2 * np.einsum("ij,ij->i", p, p))
     with np.errstate(invalid="ignore"):
-        on = np.einsum("ij,ij->i", d, d) - np.einsum("ij,ij->i", d, u[q]) ** 2 <= tol_m**2
+        on = np.einsum("ij,ij->i", d, d) - np.einsum("ij,ij->i", d, u[q]) ** 2 <= tol2
     return px[on].astype(np.int64), q[on].astype(np.int64)
 
 
@@ -662,6 +667,7 @@ def _crease_pixels_kernel(
     p0: np.ndarray,
     u: np.ndarray,
     tol2: float,
+    per2: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     H, W = label.shape
     out_px = np.empty(pair.size * bh * bw, np.int64)
@@ -680,7 +686,8 @@ def _crease_pixels_kernel(
                 dy = xyz[r, c, 1] - p0[q, 1]
                 dz = xyz[r, c, 2] - p0[q, 2]
                 along = dx * u[q, 0] + dy * u[q, 1] + dz * u[q, 2]
-                if dx * dx + dy * dy + dz * dz - along * along <= tol2:
+                rng2 = xyz[r, c, 0] ** 2 + xyz[r, c, 1] ** 2 + xyz[r, c, 2] ** 2
+                if dx * dx + dy * dy + dz * dz - along * along <= max(tol2, per2 * rng2):
                     out_px[n] = r * W + c
                     out_q[n] = q
                     n += 1
@@ -700,12 +707,14 @@ def crease_pixels(
     p0: np.ndarray,
     u: np.ndarray,
     tol_m: float,
+    tol_per_m: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The pixels of candidate crease ``pair[k]`` in block ``blk[k]`` (flat index into a grid
     of ``n_block_cols`` columns of ``block`` (rows, cols) pixels) that belong to either of its
     surfaces (``label`` (H, W) int64 equal to ``id_a`` or ``id_b`` (C,) of the pair) or to
     none while ``free`` (H, W) bool, and whose point ``xyz`` (H, W, 3) lies within ``tol_m``
-    of the pair's line (through ``p0`` (C, 3), unit direction ``u`` (C, 3)). Returns (flat
+    of the pair's line (through ``p0`` (C, 3), unit direction ``u`` (C, 3)), or within
+    ``tol_per_m`` times its range from the origin if that is more. Returns (flat
     pixel (K,) int64, pair (K,) int64), in the order of the blocks given, row-major inside
     each. One compiled pass; :func:`_crease_pixels_numpy` is its reference (same output)."""
     return _crease_pixels_kernel(
@@ -722,6 +731,7 @@ def crease_pixels(
         np.ascontiguousarray(p0, dtype=np.float64),
         np.ascontiguousarray(u, dtype=np.float64),
         float(tol_m) ** 2,
+        float(tol_per_m) ** 2,
     )
 
 
@@ -736,6 +746,7 @@ def find_creases(
     point: np.ndarray,
     config: SurfaceConfig | None = None,
     compiled: bool = True,
+    az_step_rad: float = 0.0,
 ) -> Creases:
     """Creases between surfaces (module docstring), all pairs at once.
 
@@ -747,6 +758,8 @@ def find_creases(
     ids:         (S,) int64 the label of each surface's pixels.
     normal, point: (S, 3) unit normal and a point of each surface's plane.
     compiled:    the compiled passes (else their numpy references).
+    az_step_rad: azimuth step of the image: the tolerance is at least ``crease_tol_px``
+                 pixel footprints at the pixel's range (points in a sensor-centred frame).
 
     A crease's pixels lie in the blocks spanned by two close blocks of its surfaces (the
     blocks themselves and any gap between them), belong to either surface (or to none, when
@@ -788,6 +801,7 @@ def find_creases(
     rhs = np.stack([np.einsum("ij,ij->i", na, point[a]), np.einsum("ij,ij->i", nb, point[b])])
     p0 = np.linalg.solve(np.stack([na, nb, u], axis=1), np.r_[rhs, [0.0 * a]].T[..., None])
     args = (pair_blk, blk, nbc, block, label, free, xyz, ids[a], ids[b], p0[..., 0], u)
-    px, q = (crease_pixels if compiled else _crease_pixels_numpy)(*args, cfg.crease_tol_m)
+    tol = (cfg.crease_tol_m, cfg.crease_tol_px * az_step_rad)
+    px, q = (crease_pixels if compiled else _crease_pixels_numpy)(*args, *tol)
     used, crease = np.unique(q, return_inverse=True)
     return Creases(a[used], b[used], px, crease.astype(np.int64))
