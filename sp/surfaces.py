@@ -43,7 +43,9 @@ boundaries): two surfaces whose blocks lie within ``crease_gap_blocks`` of each 
 whose normals differ by more than ``crease_angle_deg`` meet along the intersection line of
 their planes; the pixels near both surfaces whose points lie within ``crease_tol_m`` (or
 ``crease_tol_px`` pixel footprints) of that line are their crease, a level-2 ``slope_edge``
-list of both.
+list of both. Its two passes, :func:`near_blocks` and :func:`crease_pixels`, are compiled
+(numba; on first call, cached on disk); ``_near_blocks_numpy`` and ``_crease_pixels_numpy``
+are their references, compared in the tests.
 """
 
 from __future__ import annotations
