@@ -199,3 +199,20 @@ def test_a_kd_missing_the_asked_level_or_the_vehicle_says_so(tmp_path: Path, cap
         pytest.raises(TileError, match=r"noself\.duckdb: no self entity"),
     ):
         stored_maps(kd)
+
+
+def test_run_node_over_a_kd_file_leaves_the_maps_the_kd_forms_read(ran, tmp_path: Path) -> None:
+    """`wm whatif LOG --kd FILE` runs the log through `run_node`: the file it leaves holds the
+    final map windows of every level, so the `--kd` forms can use it afterwards."""
+    log, _, _ = ran
+    kd_path = tmp_path / "node.duckdb"
+    node = wm.run.run_node(log, kd_path, NodeConfig(pose_source=PoseSource.TRUTH))
+    windows = {lvl.name: lvl.window("elevation") for lvl in node.stack.levels}
+    node.kd.close()
+    with kd_store.open(kd_path, read_only=True) as kd:
+        maps = stored_maps(kd)
+        assert maps.levels == ["primitive", "subsystem", "vehicle", "section"]
+        for lvl in maps.stack.levels:
+            got = lvl.window("elevation")
+            assert np.array_equal(got, windows[lvl.name], equal_nan=True), lvl.name
+            assert np.isfinite(got).sum() > 20, lvl.name  # 30 m section cells: about 50 seen

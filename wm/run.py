@@ -332,10 +332,13 @@ def run_node(
     seconds: float | None = None,
 ) -> WorldModelNode:
     """Feed a log (or its first ``seconds``) through a node and return it, its KD still open
-    (the caller closes ``node.kd``): for What If / render from the shell and for tests."""
+    (the caller closes ``node.kd``): for What If / render from the shell and for tests. A KD
+    file gets the map tiles and the final windows, as after :func:`run_log`."""
     source = open_log(Path(log_path))
     config = config or NodeConfig()
-    node = WorldModelNode(kd_store.open(kd_path), config)
+    kd = kd_store.open(kd_path)
+    stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
+    node = WorldModelNode(kd, config, stack)
     first_t = None
     with compute_threads(config.compute_threads):
         for frame in source.frames():
@@ -344,4 +347,7 @@ def run_node(
                 break
             node.feed(frame)
         node.finish()
+    if stack is not None:
+        keep_windows(stack)
+        kd.flush()
     return node
