@@ -9,6 +9,7 @@ LadarOdometry` would; estimates come back in sweep order.
 
 from __future__ import annotations
 
+import gc
 import multiprocessing as mp
 import queue
 import time
@@ -61,7 +62,14 @@ class OdometryWorker:
             daemon=True,
             name="wm-odometry",
         )
-        self._proc.start()
+        # the child must never finalise the parent's objects (a DuckDB connection, numba or
+        # BLAS state whose threads it lacks): what exists now is frozen out of its collector
+        gc.collect()
+        gc.freeze()
+        try:
+            self._proc.start()
+        finally:
+            gc.unfreeze()
         self._waiting: list[int] = []
 
     def add_wheel_odometry(self, frame: OdometryFrame) -> None:

@@ -142,10 +142,10 @@ def run_log(
     decode_process: bool = False,
 ) -> RunReport:
     """Run the node over a whole log (or its first ``seconds``); see the module docstring.
-    With ``decode_process`` the log is decoded ahead in a forked child process
+    With ``decode_process`` the log is decoded ahead in a child interpreter
     (:class:`~sp.logs.prefetch.FramePrefetcher`), which takes its few ms per sweep off the
-    node's process; off by default, since a fork of a process that has run other threaded
-    work can die (seen inside a test runner; the prefetcher then reads on in-process)."""
+    node's process (``wm run`` does this unless told ``--decode-in-process``); off here by
+    default, since a child's start-up (about 0.3 s) outweighs it on short logs."""
     config = config or NodeConfig()
     source = open_log(Path(log_path))
     info = source.info()
@@ -156,7 +156,6 @@ def run_log(
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
     t_start, cpu_start = time.perf_counter(), time.process_time()
     read_cpu_s = [0.0]
-    # the decoding process forks before the KD opens (DuckDB runs threads)
     with (
         compute_threads(config.compute_threads),
         _reader(source, decode_process) as (frames_in, reader),

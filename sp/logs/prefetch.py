@@ -2,27 +2,37 @@
 
 Decoding ROS messages (CDR deserialisation in Python, chunk decompression, CRCs) costs a few
 milliseconds of the reading process's CPU per LADAR sweep. :class:`FramePrefetcher` runs
-``source.frames()`` in a forked child and hands the frames over in batches through a pipe
-(pickled numpy arrays cost a copy, far less than decoding), so the process that
+``source.frames()`` in a child interpreter and hands the frames over in batches through a
+pipe (pickled numpy arrays cost a copy, far less than decoding), so the process that
 consumes them only unpickles. The frames and their order are exactly those of
 ``source.frames()``; the child's read statistics replace ``source.stats`` at the end.
+
+The child is a fresh interpreter (``python -c``), not a fork: a fork of a process that has run
+threads (DuckDB, numba, BLAS, a test runner) inherits their objects without their threads,
+and a garbage collection in the child that finalises one of them can crash it (seen: SIGSEGV
+while collecting inside rosbags' type compiler). A fresh interpreter also never re-runs the
+caller's ``__main__``. It opens the log anew as ``type(source)(source.path,
+skip_corrupt=source.skip_corrupt)``, as :func:`~sp.logs.source.open_log` does.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing as mp
 import os
 import pickle
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 from sp.logs.source import LogSource
 from sp.logs.types import Frame
 
 _HEADER = struct.Struct("<Q")  # byte length of the pickled message that follows
+_CHILD = "from sp.logs.prefetch import _child_main; _child_main()"
 
 
 class PrefetchError(RuntimeError):
@@ -56,9 +66,8 @@ def _read_exact(fd: int, n: int) -> bytes | None:
     return b"".join(chunks)
 
 
-def _serve(source: LogSource, read_fd: int, fd: int, batch_frames: int, kwargs: dict) -> None:
+def _serve(source: LogSource, fd: int, batch_frames: int, kwargs: dict) -> None:
     """The child: decode, send batches, then ("end", stats, cpu_s) or ("error", exception)."""
-    os.close(read_fd)
     batch: list[Frame] = []
     try:
         for frame in source.frames(**kwargs):
@@ -71,13 +80,24 @@ def _serve(source: LogSource, read_fd: int, fd: int, batch_frames: int, kwargs: 
         _send(fd, ("end", source.stats, time.process_time()))
     except Exception as e:  # sent back: the consumer raises it where it reads
         _send(fd, ("error", e))
-    os.close(fd)
+
+
+def _child_main() -> None:
+    """The child interpreter's entry: the request (source type, path, skip_corrupt, batch
+    size, frame filters) comes pickled on stdin; messages go out on the original stdout, and
+    anything else printed goes to stderr so it cannot corrupt the stream."""
+    source_type, path, skip_corrupt, batch_frames, kwargs = pickle.load(sys.stdin.buffer)
+    fd = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        _serve(source_type(path, skip_corrupt=skip_corrupt), fd, batch_frames, kwargs)
+    finally:
+        os.close(fd)
 
 
 class FramePrefetcher:
     """Iterate ``source.frames(**kwargs)`` decoded by a child process, in batches of
     ``batch_frames`` frames through a pipe (the child runs ahead until the pipe is full).
-    It forks: start it before anything in the process runs threads (a KD, a thread pool).
     Use as a context manager, or :meth:`close` it: leaving early stops the child. If the
     child dies (the pipe's end tells, no waiting), the rest of the log is decoded in this
     process, from the frame after the last one handed over, and ``source.stats`` says so.
@@ -91,17 +111,20 @@ class FramePrefetcher:
         self.source = source
         self.decode_cpu_s = 0.0
         self._kwargs = kwargs
-        self._fd, write_fd = os.pipe()
-        # fork: the child reads with the source as it is (no re-import, no re-opening)
-        ctx = mp.get_context("fork")
-        self._proc = ctx.Process(
-            target=_serve,
-            args=(source, self._fd, write_fd, batch_frames, kwargs),
-            daemon=True,
-            name="log-decode",
+        request = (type(source), source.path, source.skip_corrupt, batch_frames, kwargs)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", _CHILD],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=_child_env(),
         )
-        self._proc.start()
-        os.close(write_fd)  # only the child writes: its exit ends the pipe
+        assert self._proc.stdin is not None and self._proc.stdout is not None
+        try:
+            pickle.dump(request, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self._proc.stdin.close()
+        except BrokenPipeError:
+            pass  # the child is gone already: the pipe's end tells __iter__
+        self._fd = self._proc.stdout.fileno()
         self._done = False
 
     def __iter__(self) -> Iterator[Frame]:
@@ -110,10 +133,10 @@ class FramePrefetcher:
             message = _receive(self._fd)
             if message is None:  # the child died: decode the rest here
                 self._done = True
-                self._proc.join(timeout=5)
+                code = self._wait()
                 self.source.stats.note(
                     f"{self.source.path.name}: the decoding process stopped (exit code "
-                    f"{self._proc.exitcode}) after {n_yielded} frames; read on in this process"
+                    f"{code}) after {n_yielded} frames; read on in this process"
                 )
                 for i, frame in enumerate(self.source.frames(**self._kwargs)):
                     if i >= n_yielded:
@@ -136,15 +159,33 @@ class FramePrefetcher:
     def close(self) -> None:
         """Stop the child (if it still runs) and close the pipe."""
         self._done = True
-        if self._proc.is_alive():
+        if self._proc.poll() is None:
             self._proc.terminate()
-        self._proc.join(timeout=5)
+        self._wait()
         if self._fd >= 0:
-            os.close(self._fd)
+            assert self._proc.stdout is not None
+            self._proc.stdout.close()
             self._fd = -1
+
+    def _wait(self) -> int | None:
+        """The child's exit code (negative: the signal that ended it), killing a child that
+        does not end within 5 s of being asked to."""
+        try:
+            return self._proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            return self._proc.wait()
 
     def __enter__(self) -> FramePrefetcher:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _child_env() -> dict[str, str]:
+    """This environment, with the folder holding the ``sp`` package first on the child's
+    path (so a source checkout that is not installed works too)."""
+    root = str(Path(__file__).resolve().parents[2])
+    path = os.environ.get("PYTHONPATH")
+    return dict(os.environ, PYTHONPATH=root if not path else os.pathsep.join((root, path)))
