@@ -78,6 +78,13 @@ class OdometryConfig:
                     and the final drift went 0.49 -> 0.42 % fused with wheel odometry,
                     2.3 -> 1.9 % by registration alone.
     max_threads:    KISS-ICP's threads (0: as many as cores).
+    convergence:    KISS-ICP's registration stops when an iteration's pose update (its se(3)
+                    vector: metres and radians) is smaller than this. Its default, 1e-4,
+                    polishes a 1 m voxel map to a tenth of a millimetre; 3e-3 stops at 3 mm:
+                    on the default scenario registration CPU 41.7 -> 24.6 ms per sweep, final
+                    drift 0.423 -> 0.427 % fused (1.88 -> 1.89 % by registration alone),
+                    7-Scenes ATE 0.046 -> 0.050 m.
+    max_iterations: its bound on Gauss-Newton iterations per sweep.
     """
 
     max_range_m: float = 100.0
@@ -95,6 +102,8 @@ class OdometryConfig:
     gate_sigma: float = 3.0
     max_points_per_voxel: int = 5
     max_threads: int = 0
+    convergence: float = 3e-3
+    max_iterations: int = 500
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_range_m < self.max_range_m:
@@ -207,6 +216,8 @@ class LadarOdometry:
         kiss.mapping.voxel_size = cfg.voxel_m
         kiss.mapping.max_points_per_voxel = cfg.max_points_per_voxel
         kiss.registration.max_num_threads = cfg.max_threads
+        kiss.registration.convergence_criterion = cfg.convergence
+        kiss.registration.max_num_iterations = cfg.max_iterations
         self.kiss = KissICP(kiss)
         self.T_body_sensor = np.eye(4) if T_body_sensor is None else check_pose(T_body_sensor)
         self.T_sensor_body = se3_inverse(self.T_body_sensor)
