@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -320,9 +321,8 @@ class MapLevel:
         t = self.config.tile_cells
         n_put = 0
         for tx, ty, ix_lo, ix_hi, iy_lo, iy_hi in self._tiles_over(rx, ry):
-            srow = np.arange(iy_lo, iy_hi) % self.size
-            scol = np.arange(ix_lo, ix_hi) % self.size
-            blocks = {n: a[np.ix_(srow, scol)] for n, a in self._data.items()}
+            cells = self._storage_box(ix_lo, ix_hi, iy_lo, iy_hi)
+            blocks = {n: a[cells] for n, a in self._data.items()}  # views, copied below
             key = (self.name, tx, ty)
             tile = self.store.get(key)
             if tile is None:
@@ -345,13 +345,22 @@ class MapLevel:
             tile = self.store.get((self.name, tx, ty))
             if tile is None:
                 continue
-            srow = np.arange(iy_lo, iy_hi) % self.size
-            scol = np.arange(ix_lo, ix_hi) % self.size
+            cells = self._storage_box(ix_lo, ix_hi, iy_lo, iy_hi)
             r0, c0 = iy_lo - ty * t, ix_lo - tx * t
             for n, a in self._data.items():
                 if n in tile:
-                    block = tile[n][r0 : r0 + len(srow), c0 : c0 + len(scol)]
-                    a[np.ix_(srow, scol)] = block
+                    a[cells] = tile[n][r0 : r0 + iy_hi - iy_lo, c0 : c0 + ix_hi - ix_lo]
+
+    def _storage_box(self, ix_lo: int, ix_hi: int, iy_lo: int, iy_hi: int) -> Any:
+        """Index of the storage cells of global box ``[ix_lo, ix_hi) x [iy_lo, iy_hi)``
+        (inside the window): plain slices (views, no gather) unless the box wraps round the
+        storage edge, which a tile never does when its edge divides the level's size."""
+        size = self.size
+        r0, c0 = iy_lo % size, ix_lo % size
+        r1, c1 = r0 + iy_hi - iy_lo, c0 + ix_hi - ix_lo
+        if r1 <= size and c1 <= size:
+            return slice(r0, r1), slice(c0, c1)
+        return np.ix_(np.arange(iy_lo, iy_hi) % size, np.arange(ix_lo, ix_hi) % size)
 
     # --- helpers ---------------------------------------------------------------------------
 
