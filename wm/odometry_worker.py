@@ -20,6 +20,7 @@ import numpy as np
 from sp.logs.types import LadarScan, OdometryFrame
 
 RESULT_TIMEOUT_S = 120.0
+_NO_INTENSITY = np.zeros(0, dtype=np.float32)  # registration never reads intensities
 
 
 class OdometryWorkerError(RuntimeError):
@@ -28,9 +29,13 @@ class OdometryWorkerError(RuntimeError):
 
 def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0) -> None:
     """The child's loop: feed wheel odometry, register sweeps, answer each sweep in order."""
-    from sp.odometry import LadarOdometry
+    from sp.odometry import LadarOdometry, OdometryConfig
 
-    odo = LadarOdometry(T_body_sensor=T_body_sensor, T_world_body0=T_world_body0)
+    # one registration thread: this process has the core the node's process leaves, and a
+    # second thread would take turns with the node on its own core
+    odo = LadarOdometry(
+        OdometryConfig(max_threads=1), T_body_sensor=T_body_sensor, T_world_body0=T_world_body0
+    )
     while True:
         kind, item = requests.get()
         if kind == "stop":
@@ -76,7 +81,9 @@ class OdometryWorker:
         self._requests.put(("wheel", frame))
 
     def submit(self, scan: LadarScan) -> None:
-        self._requests.put(("scan", scan))
+        # only what registration reads: the pickled copy is made in this process
+        slim = LadarScan(scan.t_ns, scan.frame_id, scan.points_xyz, _NO_INTENSITY, scan.t_offset_ns)
+        self._requests.put(("scan", slim))
         self._waiting.append(int(scan.t_ns))
 
     def result(self) -> tuple[Any, float]:
