@@ -79,6 +79,7 @@ from sp.surfaces import (
     group_patches,
     plane_fit,
 )
+from sp.sweep_points import sweep_points
 from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
 from sp.windowing import WindowConfig, window_mask
 
@@ -196,17 +197,6 @@ class _Clock:
         self.t = now
 
 
-def _row_elevations(img: EgosphereImage) -> np.ndarray:
-    """(H,) mean elevation of each row's returns (rad), NaN for empty rows."""
-    xyz = img.xyz[..., 0, :].astype(np.float64)
-    el = np.arctan2(xyz[..., 2], np.hypot(xyz[..., 0], xyz[..., 1]))
-    v = img.valid_first
-    n = v.sum(axis=1)
-    s = np.where(v, el, 0.0).sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, s / np.maximum(n, 1), np.nan)
-
-
 def _row_step(row_el: np.ndarray) -> float:
     ok = np.flatnonzero(np.isfinite(row_el))
     if ok.size < 2:
@@ -316,12 +306,9 @@ class SensoryProcessor:
         img = to_egosphere(scan, cfg.egosphere)
         valid = img.valid_first
         H, W = valid.shape
-        xyz_s = np.where(valid[..., None], img.xyz[..., 0, :], 0.0).astype(np.float64)
-        R = T_world_ladar[:3, :3]
-        xyz_g = xyz_s @ R.T
-        xyz_w = self._deskew(xyz_s, img, t_ns, T_world_ladar, pose_t_ns)
+        T_cols = self._column_poses(img, t_ns, T_world_ladar, pose_t_ns)
+        xyz_s, xyz_g, xyz_w, row_el = sweep_points(img, T_world_ladar[:3, :3], T_cols)
         rng = np.where(valid, img.range_first, np.inf)
-        row_el = _row_elevations(img)
         clock.lap("egosphere")
 
         # level 3: the ground
@@ -450,24 +437,16 @@ class SensoryProcessor:
             self._observe_appearance(self.track_camera, int(oid), float(inten))
             self.kd.update_entity(int(oid), attributes=attrs)
 
-    def _deskew(
-        self,
-        xyz_s: np.ndarray,
-        img: EgosphereImage,
-        t_ns: int,
-        T_world_ladar: np.ndarray,
-        pose_t_ns: int,
+    def _column_poses(
+        self, img: EgosphereImage, t_ns: int, T_world_ladar: np.ndarray, pose_t_ns: int
     ) -> np.ndarray:
-        """(H, W, 3) world points, each column moved with the pose at its firing time."""
+        """(W, 4, 4) sensor pose at each column's firing time, through the last sweep's pose
+        and this one; (1, 4, 4) this pose alone for the first sweep or after a gap."""
         last, self._last_pose = self._last_pose, (pose_t_ns, T_world_ladar)
         gap_ns = pose_t_ns - last[0] if last is not None else 0
         if last is None or not 0 < gap_ns <= self.config.deskew_max_gap_s * 1e9:
-            return xyz_s @ T_world_ladar[:3, :3].T + T_world_ladar[:3, 3]
-        T_cols = column_poses(img, t_ns, last[1], last[0], T_world_ladar, pose_t_ns)
-        # one small matmul per column: (W, H, 3) @ (W, 3, 3)'
-        p_w = np.matmul(xyz_s.transpose(1, 0, 2), T_cols[:, :3, :3].transpose(0, 2, 1))
-        p_w += T_cols[:, None, :3, 3]
-        return p_w.transpose(1, 0, 2)
+            return T_world_ladar[None]
+        return column_poses(img, t_ns, last[1], last[0], T_world_ladar, pose_t_ns)
 
     # ------------------------------------------------------------------ windowing
 

@@ -219,3 +219,57 @@ def test_psd_kernel_refuses_a_wrong_shape():
 
     with pytest.raises(KDError, match=r"\(4, 6\)"):
         psd_mask(np.zeros((4, 6)))
+
+
+def _random_sweep(seed: int, p_invalid: float):
+    """A random 16 x 64 sweep (some beams empty, NaN where no return) as an egosphere image,
+    with a random sensor pose and per-column poses."""
+    from maps.frames import interpolate_pose, rotvec_to_matrix, se3
+    from sp.egosphere import EgosphereConfig, to_egosphere
+    from sp.logs.types import LadarScan
+
+    rng = np.random.default_rng(seed)
+    n = 16 * 64
+    az = rng.uniform(-np.pi, np.pi, n)
+    el = np.radians(rng.uniform(-14.0, 14.0, n))
+    r = rng.uniform(1.0, 80.0, n)
+    xyz = np.column_stack(
+        [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
+    )
+    keep = rng.random(n) >= p_invalid
+    scan = LadarScan(
+        1_000_000_000, "ladar", xyz[keep].astype(np.float32), np.ones(int(keep.sum()), np.float32),
+        rng.integers(0, 100_000_000, int(keep.sum())).astype(np.int64),
+    )  # fmt: skip
+    img = to_egosphere(scan, EgosphereConfig(n_rows=16, n_cols=64))
+    rot = rng.normal(0, 0.3, 3)
+    T = se3(rotvec_to_matrix(rot), rng.normal(0, 50, 3))
+    T_prev = se3(rotvec_to_matrix(rot + rng.normal(0, 0.05, 3)), T[:3, 3] - rng.normal(0, 1, 3))
+    T_cols = interpolate_pose(T_prev, T, rng.uniform(0.5, 1.5, img.valid_first.shape[1]))
+    return img, T, T_cols
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("p_invalid", [0.0, 0.4, 1.0])
+@pytest.mark.parametrize("per_column", [False, True])
+def test_sweep_points_kernel_gives_the_reference_points(seed, p_invalid, per_column):
+    from sp.sweep_points import sweep_points, sweep_points_reference
+
+    img, T, T_cols = _random_sweep(seed, p_invalid)
+    poses = T_cols if per_column else T[None]
+    got = sweep_points(img, T[:3, :3], poses)
+    want = sweep_points_reference(img, T[:3, :3], poses)
+    for name, g, w in zip(("xyz_s", "xyz_g", "xyz_w", "row_el"), got, want, strict=True):
+        assert g.shape == w.shape, name
+        np.testing.assert_allclose(g, w, rtol=1e-12, atol=1e-9, err_msg=name)
+        assert np.array_equal(np.isnan(g), np.isnan(w)), name
+    if p_invalid == 1.0:
+        assert np.isnan(got[3]).all() and not got[0].any()
+
+
+def test_sweep_points_refuses_poses_of_the_wrong_shape():
+    from sp.sweep_points import sweep_points
+
+    img, T, _ = _random_sweep(0, 0.2)
+    with pytest.raises(ValueError, match=r"T_world_cols has shape \(3, 4, 4\)"):
+        sweep_points(img, T[:3, :3], np.stack([T] * 3))

@@ -1,0 +1,102 @@
+"""A sweep's egosphere points in the sensor, gravity-aligned and world frames, and the mean
+elevation of each image row: the level-1 geometry every later SP level reads.
+
+Each column of the egosphere image is moved to the world with the sensor pose at its own
+firing time (``T_world_cols``, see :func:`sp.pipeline.column_poses`), so a static object does
+not smear over a moving vehicle's sweep (reference 001, 4.5.6 level 1: "range images ...
+transformed into ... world coordinates"). The gravity-aligned frame is the sensor frame turned
+by the sweep's orientation (no translation): heights above the sensor, for the ground.
+
+:func:`sweep_points` is one compiled pass over the pixels (numba);
+:func:`sweep_points_reference` is the numpy form it is tested against.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from sp.egosphere import EgosphereImage
+
+
+def sweep_points(
+    img: EgosphereImage, R_world_ladar: np.ndarray, T_world_cols: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The first return of every pixel in three frames, and each row's mean elevation.
+
+    img:            the sweep's egosphere image (H, W pixels).
+    R_world_ladar:  (3, 3) the sensor's orientation at the sweep's reference time.
+    T_world_cols:   (W, 4, 4) the sensor pose at each column's firing time, or (1, 4, 4) one
+                    pose for every column.
+
+    Returns ``xyz_s, xyz_g, xyz_w`` (H, W, 3) float64 metres (sensor, gravity-aligned, world;
+    zero in the sensor and gravity-aligned frames where a pixel has no return) and
+    ``row_el`` (H,) float64 radians, the mean elevation of each row's returns (NaN for a row
+    without returns).
+    """
+    valid = img.valid_first
+    H, W = valid.shape
+    T = np.ascontiguousarray(T_world_cols, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or T.shape[0] not in (1, W):
+        raise ValueError(f"T_world_cols has shape {T.shape}, not (1, 4, 4) or ({W}, 4, 4)")
+    out = [np.empty((H, W, 3)) for _ in range(3)]
+    row_el = np.empty(H)
+    _sweep_points_kernel(
+        img.xyz, valid, np.ascontiguousarray(R_world_ladar, dtype=np.float64), T, *out, row_el
+    )
+    return out[0], out[1], out[2], row_el
+
+
+def sweep_points_reference(
+    img: EgosphereImage, R_world_ladar: np.ndarray, T_world_cols: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The numpy form of :func:`sweep_points` (same arguments and results)."""
+    valid = img.valid_first
+    xyz_s = np.where(valid[..., None], img.xyz[..., 0, :], 0.0).astype(np.float64)
+    xyz_g = xyz_s @ R_world_ladar.T
+    T = T_world_cols
+    if T.shape[0] == 1:
+        xyz_w = xyz_s @ T[0, :3, :3].T + T[0, :3, 3]
+    else:  # one small matmul per column: (W, H, 3) @ (W, 3, 3)'
+        p_w = np.matmul(xyz_s.transpose(1, 0, 2), T[:, :3, :3].transpose(0, 2, 1))
+        p_w += T[:, None, :3, 3]
+        xyz_w = p_w.transpose(1, 0, 2)
+    first = img.xyz[..., 0, :].astype(np.float64)
+    el = np.arctan2(first[..., 2], np.hypot(first[..., 0], first[..., 1]))
+    n = valid.sum(axis=1)
+    s = np.where(valid, el, 0.0).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        row_el = np.where(n > 0, s / np.maximum(n, 1), np.nan)
+    return xyz_s, xyz_g, xyz_w, row_el
+
+
+@numba.njit(cache=True, nogil=True)
+def _sweep_points_kernel(xyz, valid, R, T, xyz_s, xyz_g, xyz_w, row_el):  # pragma: no cover
+    """xyz (H, W, K, 3) float32 returns; valid (H, W) bool (first return); R (3, 3); T (1 or
+    W, 4, 4); outputs as :func:`sweep_points`."""
+    H, W = valid.shape
+    one = T.shape[0] == 1
+    for i in range(H):
+        s = 0.0
+        n = 0
+        for j in range(W):
+            c = 0 if one else j
+            if valid[i, j]:
+                x = np.float64(xyz[i, j, 0, 0])
+                y = np.float64(xyz[i, j, 0, 1])
+                z = np.float64(xyz[i, j, 0, 2])
+                s += math.atan2(z, math.hypot(x, y))
+                n += 1
+            else:
+                x = 0.0
+                y = 0.0
+                z = 0.0
+            xyz_s[i, j, 0] = x
+            xyz_s[i, j, 1] = y
+            xyz_s[i, j, 2] = z
+            for k in range(3):
+                xyz_g[i, j, k] = R[k, 0] * x + R[k, 1] * y + R[k, 2] * z
+                xyz_w[i, j, k] = T[c, k, 0] * x + T[c, k, 1] * y + T[c, k, 2] * z + T[c, k, 3]
+        row_el[i] = s / n if n > 0 else np.nan
