@@ -87,3 +87,21 @@ def test_a_child_that_dies_is_noted_and_the_rest_read_here(log) -> None:
 def test_bad_batch_sizes_are_refused(log) -> None:
     with pytest.raises(PrefetchError, match="batch_frames 0"):
         FramePrefetcher(open_log(log), batch_frames=0)
+    with pytest.raises(PrefetchError, match="ahead_batches 0"):
+        FramePrefetcher(open_log(log), ahead_batches=0)
+
+
+def test_the_child_runs_ahead_while_nothing_reads(log) -> None:
+    """The pipe is drained into the queue, so the child decodes the whole log (far more than a
+    pipe holds) and ends while this process reads nothing."""
+    import time
+
+    direct = list(open_log(log).frames())
+    assert log.stat().st_size > 2 * 65536  # more than a full pipe (64 KiB)
+    with FramePrefetcher(open_log(log), batch_frames=1, ahead_batches=len(direct) + 1) as pf:
+        deadline = time.monotonic() + 30
+        while pf._proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pf._proc.returncode == 0  # finished on its own, nothing read yet
+        got = list(pf)
+    assert [f.t_ns for f in got] == [f.t_ns for f in direct]

@@ -20,9 +20,11 @@ from __future__ import annotations
 import dataclasses
 import os
 import pickle
+import queue
 import struct
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -46,13 +48,12 @@ def _send(fd: int, message: object) -> None:
         view = view[os.write(fd, view) :]
 
 
-def _receive(fd: int) -> object | None:
-    """One message, or None at the end of the pipe (the child closed it, or died)."""
+def _receive_bytes(fd: int) -> bytes | None:
+    """One pickled message, or None at the end of the pipe (the child closed it, or died)."""
     head = _read_exact(fd, _HEADER.size)
     if head is None:
         return None
-    body = _read_exact(fd, _HEADER.unpack(head)[0])
-    return None if body is None else pickle.loads(body)
+    return _read_exact(fd, _HEADER.unpack(head)[0])
 
 
 def _read_exact(fd: int, n: int) -> bytes | None:
@@ -97,7 +98,9 @@ def _child_main() -> None:
 
 class FramePrefetcher:
     """Iterate ``source.frames(**kwargs)`` decoded by a child process, in batches of
-    ``batch_frames`` frames through a pipe (the child runs ahead until the pipe is full).
+    ``batch_frames`` frames through a pipe. A thread of this process drains the pipe into a
+    queue of ``ahead_batches`` batches (reading releases the interpreter lock), so the child
+    runs that far ahead instead of waiting on a full pipe whenever this process is busy.
     Use as a context manager, or :meth:`close` it: leaving early stops the child. If the
     child dies (the pipe's end tells, no waiting), the rest of the log is decoded in this
     process, from the frame after the last one handed over, and ``source.stats`` says so.
@@ -105,9 +108,13 @@ class FramePrefetcher:
     ``decode_cpu_s`` is the child's CPU time once the log has been read to its end.
     """
 
-    def __init__(self, source: LogSource, batch_frames: int = 16, **kwargs: Any) -> None:
+    def __init__(
+        self, source: LogSource, batch_frames: int = 16, ahead_batches: int = 8, **kwargs: Any
+    ) -> None:
         if batch_frames < 1:
             raise PrefetchError(f"{source.path}: batch_frames {batch_frames} must be >= 1")
+        if ahead_batches < 1:
+            raise PrefetchError(f"{source.path}: ahead_batches {ahead_batches} must be >= 1")
         self.source = source
         self.decode_cpu_s = 0.0
         self._kwargs = kwargs
@@ -126,12 +133,30 @@ class FramePrefetcher:
             pass  # the child is gone already: the pipe's end tells __iter__
         self._fd = self._proc.stdout.fileno()
         self._done = False
+        self._stop = threading.Event()
+        self._bodies: queue.Queue[bytes | None] = queue.Queue(maxsize=ahead_batches)
+        self._drain = threading.Thread(target=self._drain_pipe, name="log-decode-pipe")
+        self._drain.daemon = True
+        self._drain.start()
+
+    def _drain_pipe(self) -> None:
+        """The reading thread: pipe messages into the queue, then None at the pipe's end."""
+        while True:
+            body = _receive_bytes(self._fd)
+            while not self._stop.is_set():
+                try:
+                    self._bodies.put(body, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+            if body is None or self._stop.is_set():
+                return
 
     def __iter__(self) -> Iterator[Frame]:
         n_yielded = 0
         while not self._done:
-            message = _receive(self._fd)
-            if message is None:  # the child died: decode the rest here
+            body = self._bodies.get()
+            if body is None:  # the child died: decode the rest here
                 self._done = True
                 code = self._wait()
                 self.source.stats.note(
@@ -142,7 +167,7 @@ class FramePrefetcher:
                     if i >= n_yielded:
                         yield frame
                 return
-            kind, *payload = message  # type: ignore[misc]
+            kind, *payload = pickle.loads(body)
             if kind == "frames":
                 for frame in payload[0]:
                     n_yielded += 1
@@ -159,9 +184,11 @@ class FramePrefetcher:
     def close(self) -> None:
         """Stop the child (if it still runs) and close the pipe."""
         self._done = True
+        self._stop.set()
         if self._proc.poll() is None:
             self._proc.terminate()
         self._wait()
+        self._drain.join(timeout=5)  # the child is gone: its pipe has ended
         if self._fd >= 0:
             assert self._proc.stdout is not None
             self._proc.stdout.close()
