@@ -17,7 +17,9 @@ def test_whole_default_scenario_against_truth(tmp_path) -> None:
     from fixtures.simulate import simulate_to_log
 
     log = simulate_to_log("default", tmp_path / "default.mcap", progress=False)
-    rep = run_log(log, tmp_path / "kd.duckdb", config=NodeConfig(), progress=False)
+    # as `wm run` runs it: the log decoded ahead in a child process, a KD file with map tiles
+    rep = run_log(log, tmp_path / "kd.duckdb", config=NodeConfig(), progress=False,
+                  decode_process=True)  # fmt: skip
     m = rep.metrics
     odo = m["odometry"]
     record("wm_default_odometry_ate_m", odo["ate_rmse_m"], "m", target="under 1% of the path",
