@@ -84,6 +84,7 @@ class MapStack:
         self.levels = [MapLevel(c, self.store) for c in cfgs]
         self.raster: ElevationRaster | None = None
         self.T_world_body: np.ndarray | None = None
+        self.t_last_fused_ns: int = -1  # time (int64 ns) of the last fused sweep; -1: none yet
 
     def keep_windows(self) -> int:
         """Put every level's current window into the tile store (at the end of a run, so a
@@ -154,6 +155,7 @@ class MapStack:
             stats = self._fuse_compiled(points_world, t_ns, variance_m2, sensor_xyz)
         else:
             stats = self._fuse_numpy(points_world, t_ns, variance_m2, sensor_xyz)
+        self.t_last_fused_ns = int(t_ns)
         if ray_origin_xyz is not None:
             names = [lvl.name for lvl in self.levels]
             unknown = sorted(set(self.config.raycast_levels) - set(names))

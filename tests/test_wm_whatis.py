@@ -1,4 +1,5 @@
-"""What Is on a hand-built KD: analytic states, memory tiers and bad queries."""
+"""What Is on a hand-built KD and a small map stack: analytic states, memory tiers, the time
+and frame every answer carries, and bad queries."""
 
 from __future__ import annotations
 
@@ -8,7 +9,10 @@ import pytest
 import kd_store
 from kd_store import Level, State, Status
 from maps.frames import NS_PER_S
-from wm.whatis import WhatIs, WhatIsError
+from maps.fusion import FusionConfig
+from maps.level import LevelConfig
+from maps.stack import MapStack, StackConfig
+from wm.whatis import RegionAnswer, WhatIs, WhatIsError
 
 
 def _kd_with_track():
@@ -37,6 +41,7 @@ def test_older_than_short_term_memory_falls_back_to_long_term() -> None:
     assert kd.history(i)[0].t_ns >= 5 * NS_PER_S
     a = WhatIs(kd).entity(i, 2 * NS_PER_S)
     assert a.source == "long_term" and a.t_ns == 2 * NS_PER_S
+    assert "before short-term memory" in a.note
     np.testing.assert_allclose(a.position, (2.0, 0.0, 0.0))
 
 
@@ -58,3 +63,77 @@ def test_region_filters_and_events_interval() -> None:
     with pytest.raises(WhatIsError, match="ends before it starts"):
         wi.events(6, 5)
     assert wi.sql("SELECT count(*) AS n FROM entities").column("n")[0].as_py() == 1
+
+
+def test_a_future_time_says_so_and_holds_the_newest_state() -> None:
+    kd, i = _kd_with_track()  # cycle at 0 s, newest state at 10 s
+    wi = WhatIs(kd, self_id=i)
+    now = wi.entity(i, 10 * NS_PER_S)
+    assert now.source == "current" and now.note == ""
+    a = wi.entity(i, 12 * NS_PER_S)
+    assert a.source == "future" and a.t_ns == 10 * NS_PER_S
+    assert str(12 * NS_PER_S) in a.note and str(10 * NS_PER_S) in a.note
+    np.testing.assert_allclose(a.position, (10.0, 0.0, 0.0))  # held, not extrapolated
+    assert wi.self_state(12 * NS_PER_S).source == "future"
+    # up to the KD's cycle time the newest state is the state as of then, not a future one
+    kd.begin_cycle(12 * NS_PER_S)
+    assert wi.entity(i, 12 * NS_PER_S).source == "current"
+    assert wi.entity(i, 13 * NS_PER_S).source == "future"
+    assert "(12000000000)" in wi.entity(i, 13 * NS_PER_S).note
+
+
+def test_region_answer_carries_time_frame_and_reads_as_ids() -> None:
+    kd, wall = _kd_with_track()  # confirmed, confidence 0.9, at (10, 0) since 10 s
+    box = kd.add_entity("box", Level.SURFACE, generic_classes=("wall",),
+                        status=Status.HYPOTHESIZED, confidence=0.5)  # fmt: skip
+    kd.observe(box.id, State(8 * NS_PER_S, "world", (10.5, 0.0, 0.0)))
+    wi = WhatIs(kd)
+    near = kd_store.Circle("world", (10.0, 0.0), 1.0)
+    a = wi.region(near)
+    assert isinstance(a, RegionAnswer)
+    assert a.frame == "world" and a.t_ns == 10 * NS_PER_S  # the newest state found
+    assert a.ids.dtype == np.int64 and a.ids.tolist() == sorted([wall, box.id])
+    assert a.t_state_ns.tolist() == [10 * NS_PER_S if j == wall else 8 * NS_PER_S for j in a.ids]
+    # still reads as the bare id array callers used
+    assert a.tolist() == list(a) == np.asarray(a).tolist() and len(a) == a.size == 2
+    assert wall in a and a[0] == a.ids[0]
+    # status and confidence filters
+    assert wi.region(near, statuses=[Status.CONFIRMED]).tolist() == [wall]
+    assert wi.region(near, statuses=["hypothesized"]).tolist() == [box.id]
+    assert wi.region(near, statuses=[Status.DENIED]).size == 0
+    assert wi.region(near, min_confidence=0.6).tolist() == [wall]
+    assert wi.region(near, min_confidence=0.5).tolist() == sorted([wall, box.id])
+    only_box = wi.region(near, statuses=["hypothesized"], min_confidence=0.6)
+    assert only_box.size == 0 and only_box.t_state_ns.size == 0
+    assert only_box.t_ns == 0  # no state found: the KD's cycle time (begin_cycle(0))
+    # the KD's cycle time when it is later; the frame is the region's
+    kd.begin_cycle(11 * NS_PER_S)
+    assert wi.region(near).t_ns == 11 * NS_PER_S
+    odom = wi.region(kd_store.Circle("odom", (10.0, 0.0), 1.0))
+    assert odom.frame == "odom" and odom.size == 0 and odom.t_ns == 11 * NS_PER_S
+
+
+def test_map_window_carries_the_last_fused_sweep_time_and_world_geometry() -> None:
+    cfg = StackConfig(
+        levels=(LevelConfig("fine", 0.5, size=32), LevelConfig("coarse", 2.0, size=32)),
+        fusion=FusionConfig(compiled=False),
+    )
+    stack = MapStack(cfg)
+    stack.move_to(np.array([3.0, -2.0]))
+    wi = WhatIs(kd_store.open(), stack)
+    assert wi.map_window("fine").t_ns == -1  # nothing fused yet
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-2, 8, 400), rng.uniform(-7, 3, 400), np.zeros(400)])
+    stack.fuse(pts, t_ns=3 * NS_PER_S, variance_m2=0.01)
+    stack.fuse(pts + np.array([0.0, 0.0, 0.1]), t_ns=3 * NS_PER_S + 100_000_000, variance_m2=0.01)
+    for name in ("fine", "coarse"):
+        a = wi.map_window(name, ("elevation", "last_seen_ns"), size=16)
+        assert a.level == name and a.frame == "world"
+        assert isinstance(a.t_ns, int) and a.t_ns == 3 * NS_PER_S + 100_000_000
+        assert a.layers["last_seen_ns"].max() == a.t_ns  # the window's newest cell agrees
+        lvl = stack.level(name)
+        np.testing.assert_allclose(a.xy_min, (np.floor(lvl.center_xy / lvl.resolution_m) - 8)
+                                   * lvl.resolution_m)  # fmt: skip
+    # the time moves with every fused sweep
+    stack.fuse(pts, t_ns=4 * NS_PER_S, variance_m2=0.01)
+    assert wi.map_window("coarse").t_ns == 4 * NS_PER_S

@@ -12,11 +12,16 @@ spherical coordinates: azimuth rad, elevation rad, range m, as ``position``); ``
 (window column, row of the level's current window, float cells, and world z). Velocities are
 rotated into the frame (frames are treated as momentarily still).
 A time older than short-term memory is answered from long-term memory where it can
-(``source`` says which) and refused with :class:`WhatIsError` where it cannot.
+(``source`` says which) and refused with :class:`WhatIsError` where it cannot. A time after
+the newest the WM knows (the KD's cycle time and the entity's newest state) is answered with
+the newest state, flagged ``source="future"`` with a ``note``: What Is does not predict.
+Region answers are as of the KD's present (its cycle time, or the newest state found if
+later) in the region's frame; map answers are as of the stack's last fused sweep.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,8 +39,11 @@ class WhatIsError(ValueError):
 
 @dataclass(frozen=True)
 class EntityAnswer:
-    """An entity's state at ``t_ns`` in ``frame``: position (3,), velocity (3,), and
-    ``source`` ("current", "short_term" or "long_term")."""
+    """An entity's state at ``t_ns`` (the state's own time, int64 ns) in ``frame``: position
+    (3,), velocity (3,), and ``source``: "current" (its newest state), "short_term",
+    "long_term" (older than short-term memory), or "future" (the asked time is after the
+    newest the WM knows; this is the newest state, held, not a prediction). ``note`` says why
+    for "long_term" and "future" ("" otherwise)."""
 
     entity_id: int
     t_ns: int
@@ -46,12 +54,50 @@ class EntityAnswer:
     confidence: float
     class_name: str | None
     source: str
+    note: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class RegionAnswer:
+    """Entities in a region as of ``t_ns`` (int64 ns; -1 if the KD knows no time), the
+    region given in ``frame``: ``ids`` (K,) sorted int64 and ``t_state_ns`` (K,) int64, the
+    time of each one's current state. Reads as ``ids`` (``len``, iteration, indexing, ``in``,
+    ``np.asarray``, ``tolist``, ``size``), as the bare id array it replaces did."""
+
+    ids: np.ndarray
+    t_ns: int
+    frame: str
+    t_state_ns: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __iter__(self) -> Iterator[np.int64]:
+        return iter(self.ids)
+
+    def __getitem__(self, k: int | slice | np.ndarray) -> np.int64 | np.ndarray:
+        return self.ids[k]
+
+    def __contains__(self, entity_id: object) -> bool:
+        return entity_id in self.ids
+
+    def __array__(self, dtype: np.dtype | None = None, copy: bool | None = None) -> np.ndarray:
+        a = np.asarray(self.ids, dtype=dtype)
+        return a.copy() if copy else a
+
+    @property
+    def size(self) -> int:
+        return int(self.ids.size)
+
+    def tolist(self) -> list[int]:
+        return self.ids.tolist()
 
 
 @dataclass(frozen=True)
 class MapAnswer:
     """A window of layers of one level: arrays (rows, cols) in window order (row 0 south),
-    ``xy_min`` world corner of cell [0, 0] (m), ``resolution_m``; time of the last fusion."""
+    ``xy_min`` world corner of cell [0, 0] (m, so ``frame`` is "world"), ``resolution_m``;
+    ``t_ns`` the time (int64 ns) of the stack's last fused sweep, -1 if none was fused yet."""
 
     level: str
     t_ns: int
@@ -73,17 +119,18 @@ class WhatIs:
     ) -> None:
         self.kd, self.stack, self.self_id = kd, stack, self_id
         self.T_body_ladar = np.eye(4) if T_body_ladar is None else np.asarray(T_body_ladar)
-        self.t_map_ns = -1
 
     # --- states ----------------------------------------------------------------------------
 
     def state_at(self, entity_id: int, t_ns: int | None = None) -> tuple[State, str]:
-        """The entity's world state at ``t_ns`` (None: latest) and where it came from."""
+        """The entity's state at ``t_ns`` (None: latest) and where it came from (the
+        ``source`` of :class:`EntityAnswer`)."""
         f = self.kd.get(entity_id)
         if f.state is None:
             raise WhatIsError(f"entity {entity_id} ({f.name!r}) has no state yet")
         if t_ns is None or t_ns >= f.state.t_ns:
-            return f.state, "current"
+            future = t_ns is not None and t_ns > self.newest_known_ns(f.state.t_ns)
+            return f.state, "future" if future else "current"
         hist = self.kd.history(entity_id)
         if hist and hist[0].t_ns <= t_ns:
             return _latest_before(hist, t_ns), "short_term"
@@ -95,6 +142,12 @@ class WhatIs:
             f"entity {entity_id}: t_ns={t_ns} is before short-term memory (oldest {oldest}) "
             f"and long-term memory holds no state that old"
         )
+
+    def newest_known_ns(self, t_state_ns: int = -1) -> int:
+        """The newest time (int64 ns) the WM knows: the KD's cycle time (``begin_cycle``) or
+        ``t_state_ns`` (a state's time) if later; -1 if neither is known."""
+        t_cycle = self.kd.immediate.t_ns
+        return max(-1 if t_cycle is None else int(t_cycle), int(t_state_ns))
 
     def self_state(self, t_ns: int | None = None) -> EntityAnswer:
         """The vehicle's own state (world frame)."""
@@ -116,8 +169,16 @@ class WhatIs:
             raise WhatIsError(f"entity {entity_id}: state held in {s.frame!r}, not 'world'")
         f = self.kd.get(entity_id)
         p, v = self._to_frame(s.position_xyz, s.velocity_xyz, frame, s.t_ns)
+        note = ""
+        if source == "future":
+            note = (
+                f"t_ns={t_ns} is after the newest time known ({self.newest_known_ns(s.t_ns)}):"
+                f" this is the newest state (t_ns={s.t_ns}), held, not a prediction"
+            )
+        elif source == "long_term":
+            note = f"t_ns={t_ns} is before short-term memory: answered from long-term memory"
         return EntityAnswer(entity_id, s.t_ns, frame, p, v, f.status.value, f.confidence,
-                            f.most_specific_class, source)  # fmt: skip
+                            f.most_specific_class, source, note)  # fmt: skip
 
     def _to_frame(self, p_w: np.ndarray, v_w: np.ndarray, frame: str, t_ns: int):
         if frame == "world":
@@ -152,9 +213,14 @@ class WhatIs:
         statuses: list[Status | str] | None = None,
         min_confidence: float = 0.0,
         levels: list[int] | None = None,
-    ) -> np.ndarray:
-        """Ids (sorted int64) of entities in ``region`` passing the filters (KD.region)."""
-        return self.kd.region(region, classes, statuses, levels, min_confidence)
+    ) -> RegionAnswer:
+        """Entities whose current position lies in ``region`` (held in ``region.frame``) and
+        which pass the filters (``KD.region``), as of the KD's present (:meth:`newest_known_ns`
+        over the cycle time and the states found)."""
+        ids = self.kd.region(region, classes, statuses, levels, min_confidence)
+        t_state = np.array([self.kd.get(int(i)).state.t_ns for i in ids], dtype=np.int64)
+        t_ns = self.newest_known_ns(int(t_state.max()) if len(t_state) else -1)
+        return RegionAnswer(ids, t_ns, region.frame, t_state)
 
     def map_window(
         self,
@@ -183,7 +249,7 @@ class WhatIs:
                 a[rs - r0 : re - r0, cs - c0 : ce - c0] = lvl.storage(name)[np.ix_(sr, sc)]
             out[name] = a
         xy_min = cell0.astype(np.float64) * lvl.resolution_m
-        return MapAnswer(level, self.t_map_ns, "world", xy_min, lvl.resolution_m, out)
+        return MapAnswer(level, self.stack.t_last_fused_ns, "world", xy_min, lvl.resolution_m, out)
 
     def events(self, t_from_ns: int, t_to_ns: int, class_name: str | None = None) -> list:
         """Event frames overlapping ``[t_from_ns, t_to_ns]`` (start-time order)."""
