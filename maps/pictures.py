@@ -173,7 +173,7 @@ def _draw_scale_bar(img: np.ndarray, m_per_px: float) -> None:
     length_m = max(m for m in (1.0, 2.0, 5.0) if m * 10**k <= target_m) * 10**k
     n = max(1, round(length_m / m_per_px))
     y = img.shape[0] - 8
-    cv2.rectangle(img, (8, y - 3), (8 + n, y), TEXT_BGR, thickness=-1)
+    cv2.rectangle(img, (8, y - 3), (8 + n - 1, y), TEXT_BGR, thickness=-1)  # corners inclusive
     cv2.putText(img, f"{length_m:g} m", (8, y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, TEXT_BGR, 1)
 
 

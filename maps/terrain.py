@@ -57,6 +57,7 @@ def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None
     gx = (pad[1:-1, 2:] - pad[1:-1, :-2]) / (2.0 * res)
     gy = (pad[2:, 1:-1] - pad[:-2, 1:-1]) / (2.0 * res)
     slope = np.arctan(np.hypot(gx, gy))
+    slope[~np.isfinite(e)] = np.nan  # the differences skip the cell itself: an unknown stays NaN
     step = step_heights(e)
     rough = level.window("roughness").astype(np.float64)
     badness = np.fmax(
