@@ -3,7 +3,9 @@ traversability (reference 001, 4.4.7: map pixels may hold "terrain roughness, sl
 traversability").
 
 Computed in window order (so the toroidal seam never makes two far cells neighbours) and
-written back. Cells with no elevation, or whose neighbours have none, stay NaN.
+written back. Cells with no elevation, or whose neighbours have none, stay NaN. Slope is the
+angle of the height gradient, from central differences, one-sided beside an unknown cell or
+the window's edge (so a steep cell next to a hole still counts as steep).
 """
 
 from __future__ import annotations
@@ -47,6 +49,16 @@ def step_heights(elevation: np.ndarray) -> np.ndarray:
     return step
 
 
+def _gradient(prev: np.ndarray, centre: np.ndarray, nxt: np.ndarray, res: float) -> np.ndarray:
+    """Height gradient (m/m) along one axis: the central difference where both neighbours are
+    known, else the one-sided difference with the known one; NaN where both neighbours are
+    unknown (the caller masks unknown cells)."""
+    with np.errstate(invalid="ignore"):
+        g = (nxt - prev) / (2.0 * res)
+        g = np.where(np.isfinite(g), g, (nxt - centre) / res)
+        return np.where(np.isfinite(g), g, (centre - prev) / res)
+
+
 def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None:
     """Recompute slope, step_height and traversability over the whole window of ``level``."""
     config = config or TerrainConfig()
@@ -54,10 +66,13 @@ def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None
     e = level.window("elevation").astype(np.float64)
     res = level.resolution_m
     pad = np.pad(e, 1, constant_values=np.nan)
-    gx = (pad[1:-1, 2:] - pad[1:-1, :-2]) / (2.0 * res)
-    gy = (pad[2:, 1:-1] - pad[:-2, 1:-1]) / (2.0 * res)
-    slope = np.arctan(np.hypot(gx, gy))
-    slope[~np.isfinite(e)] = np.nan  # the differences skip the cell itself: an unknown stays NaN
+    gx = _gradient(pad[1:-1, :-2], e, pad[1:-1, 2:], res)
+    gy = _gradient(pad[:-2, 1:-1], e, pad[2:, 1:-1], res)
+    # a slope known along one axis only is a lower bound, better than none: a steep cell next
+    # to a hole must not look passable
+    known = np.isfinite(gx) | np.isfinite(gy)
+    known &= np.isfinite(e)  # the central difference skips the cell: an unknown stays NaN
+    slope = np.where(known, np.arctan(np.hypot(np.nan_to_num(gx), np.nan_to_num(gy))), np.nan)
     step = step_heights(e)
     rough = level.window("roughness").astype(np.float64)
     badness = np.fmax(
