@@ -82,8 +82,10 @@ class VehicleConfig:
 class VJConfig:
     """Value judgment weights (reference 001, 4.3). Costs and risks are dimensionless.
 
-    cost layer: w_traversability * (1 - traversability) + w_unknown * unknown
-                + w_uncertainty * min(1, sqrt(elevation_var) / sigma_ref_m) + class cost.
+    cost layer: w_traversability * (1 - traversability)
+                + w_uncertainty * min(1, sqrt(elevation_var) / sigma_ref_m), w_unknown where the
+                elevation is unknown; plus a labelled entity's cost (its class value's) times the
+                confidence in it (wm.vj.confidence).
     plan evaluation: cost = sum over steps of (map cost + w_time) * dt; risk = collision_risk on a
     collision, else max over steps of entity risk * exp(-clearance / clearance_scale_m);
     benefit = w_progress * progress towards the goal (m).
@@ -110,13 +112,40 @@ class VJConfig:
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    """The behavior-generation consumer at one level (reference 001, 4.1)."""
+    """The behavior-generation consumer at one level (reference 001, 4.1).
+
+    replan_period_s: a new plan every this many seconds (4.1.7: about a tenth of the horizon).
+    speeds_mps, curvatures_1pm: the fan of tentative plans, every (speed m/s, curvature 1/m)
+                     pair held over the horizon, hypothesized slowest first (so the slowest
+                     plans, the fallback when nothing is safe, are in the first batch).
+    min_clearance_m: plans passing closer than this (m) to an entity count as unsafe.
+    batch_size:      tentative plans simulated per What If call.
+    budget_s:        the planning period's time budget (s, wall clock): after it no further
+                     batch is hypothesized and the best plan so far is kept (the first batch
+                     always runs). 100 plans take about 15 ms on the default maps.
+    """
 
     level: str = "subsystem"
     replan_period_s: float = 0.5
     speeds_mps: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0)
     curvatures_1pm: tuple[float, ...] = (-0.15, -0.1, -0.06, -0.03, 0.0, 0.03, 0.06, 0.1, 0.15)
     min_clearance_m: float = 0.5
+    batch_size: int = 18
+    budget_s: float = 0.2
+
+    def __post_init__(self) -> None:
+        b = self.budget_s
+        if not (isinstance(b, int | float) and 0 < b < float("inf")):  # NaN fails too
+            raise ValueError(f"PlannerConfig.budget_s must be a finite time > 0 s, got {b!r}")
+        if not (isinstance(self.batch_size, int) and self.batch_size >= 1):
+            raise ValueError(
+                f"PlannerConfig.batch_size must be an int >= 1, got {self.batch_size!r}"
+            )
+        if not self.speeds_mps or not self.curvatures_1pm:
+            raise ValueError(
+                f"PlannerConfig needs at least one speed and one curvature, got speeds_mps="
+                f"{self.speeds_mps!r}, curvatures_1pm={self.curvatures_1pm!r}"
+            )
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,8 @@ current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
 4. SP levels 2..5 (sp.pipeline) write entity and event frames into the KD and
    their labels into the map layers; attention comes from last cycle's prediction surprises;
 5. each map level's slow work at its own period: terrain (slope, traversability), the
-   value-judgment cost layer and the level's entities-of-attention list (4.3, 4.4.11);
+   value-judgment cost layer and the level's entities-of-attention list (4.3, 4.4.11), which
+   weighs relevance to the controller's current plan when told it (:meth:`set_plan`);
 6. predictions for the next cycle (4.2 item 2): expected entity states and, every few
    sweeps, a predicted range image compared with the next observed one.
 
@@ -126,6 +127,7 @@ class WorldModelNode:
         self.last_t_ns: int | None = None
         self.level_due_ns = {lvl.name: -(2**62) for lvl in self.stack.levels}
         self.attention_world_xyz: np.ndarray | None = None
+        self.plan_xy: np.ndarray | None = None  # the controller's current plan (set_plan)
         self.prediction: predict.RangePrediction | None = None
         self.surprises = predict.SurpriseEvents()
         self.self_id = kd.add_entity(
@@ -173,6 +175,23 @@ class WorldModelNode:
     def whatis(self) -> WhatIs:
         """What Is over this node's KD and maps, knowing the self entity and the LADAR mount."""
         return WhatIs(self.kd, self.stack, self.self_id, self.T_body_ladar)
+
+    def set_plan(self, xy_world: np.ndarray | None) -> None:
+        """Tell the node the controller's current plan: its path (S, 2) in world metres, or
+        None when there is none. Until the next call, each level's attention step ranks
+        entities near it higher (4.3: relevance to the current plan; ``VJConfig.w_relevance``
+        within ``relevance_radius_m``). ``wm.bg.Planner(on_select=node.set_plan)`` keeps it
+        current."""
+        if xy_world is None:
+            self.plan_xy = None
+            return
+        xy = np.asarray(xy_world, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] < 2 or len(xy) == 0:
+            raise NodeError(f"set_plan: the plan must be an (S, 2) path in world m, got {xy.shape}")
+        if not np.all(np.isfinite(xy[:, :2])):
+            k = int(np.flatnonzero(~np.isfinite(xy[:, :2]).all(axis=1))[0])
+            raise NodeError(f"set_plan: plan point {k} is not finite: {xy[k, :2].tolist()}")
+        self.plan_xy = xy[:, :2].copy()
 
     def close(self) -> None:
         """Stop the odometry process, if one runs (the node can still answer queries)."""
@@ -351,11 +370,13 @@ class WorldModelNode:
             self._attention(lvl)
 
     def _attention(self, lvl) -> None:
-        """The level's entities of attention, proximity judged on the level's own scale."""
+        """The level's entities of attention, proximity judged on the level's own scale,
+        relevance against the current plan (:meth:`set_plan`)."""
         if self.stack.T_world_body is None:
             return
         cfg = dataclasses.replace(self.config.vj, proximity_scale_m=25.0 * lvl.resolution_m)
-        att = vj.attention(self.kd, self.stack.T_world_body[:2, 3], cfg, skip=self.self_id)
+        xy = self.stack.T_world_body[:2, 3]
+        att = vj.attention(self.kd, xy, cfg, plan_xy=self.plan_xy, skip=self.self_id)
         try:
             self.kd.set_attention(lvl.name, att.ids.tolist())
         except kd_store.KDError:

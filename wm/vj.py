@@ -43,8 +43,9 @@ def entity_value(kd: kd_store.KnowledgeDatabase, f: EntityFrame) -> Value:
 
 
 def confidence(f: EntityFrame) -> float:
-    """Confidence in a KD item (4.3, reliability of information): its filter confidence,
-    halved for unconfirmed hypotheses and zero when denied or gone."""
+    """Confidence (0..1) in a KD item (4.3, reliability of information): its filter
+    confidence, halved for unconfirmed hypotheses and zero when denied or gone. The cost layer
+    weighs an entity's class cost by it (:func:`cost_window`)."""
     scale = {Status.CONFIRMED: 1.0, Status.HYPOTHESIZED: 0.5}.get(f.status, 0.0)
     return float(f.confidence) * scale
 
@@ -53,7 +54,12 @@ def confidence(f: EntityFrame) -> float:
 
 
 def cost_window(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) -> np.ndarray:
-    """The traversal cost (size, size) float32 of a level in window order (see VJConfig)."""
+    """The traversal cost (size, size) float32 (dimensionless) of a level in window order.
+
+    Per cell: ``w_traversability * (1 - traversability)`` plus ``w_uncertainty *
+    min(1, sqrt(elevation_var) / sigma_ref_m)``; ``w_unknown`` where the elevation is unknown;
+    plus, where SP labelled the cell with an entity, that entity's cost (its own value, else its
+    class value) times :func:`confidence` in it, so denied or gone entities add nothing."""
     elev = level.window("elevation")
     unknown = ~np.isfinite(elev)
     trav = np.nan_to_num(level.window("traversability"), nan=0.0)
@@ -72,10 +78,12 @@ def cost_window(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) 
 
 
 def _entity_cost(kd: kd_store.KnowledgeDatabase, entity_id: int) -> float:
+    """An entity's expected cost in a cell it labels: its cost times the confidence in it."""
     try:
-        return entity_value(kd, kd.get(entity_id)).cost
+        f = kd.get(entity_id)
     except kd_store.KDError:  # forgotten since SP wrote it
         return 0.0
+    return entity_value(kd, f).cost * confidence(f)
 
 
 def write_cost_layer(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) -> None:
@@ -104,7 +112,14 @@ def attention(
 ) -> Attention:
     """Rank world-frame entities by proximity, danger (class risk), novelty (not yet
     confirmed) and relevance to the plan (within ``relevance_radius_m`` of ``plan_xy`` (S, 2));
-    keep the top ``attention_size`` (4.3; 4.4.11: the entities-of-attention list)."""
+    keep the top ``attention_size`` (4.3; 4.4.11: the entities-of-attention list).
+    ``position_xy`` and ``plan_xy`` are world metres; ``plan_xy`` None or empty: no plan."""
+    if plan_xy is not None:
+        plan_xy = np.asarray(plan_xy, dtype=np.float64)
+        shaped = plan_xy.ndim == 2 and plan_xy.shape[1] >= 2
+        if not shaped or not np.all(np.isfinite(plan_xy[:, :2])):
+            bad = "non-finite values" if shaped else f"shape {plan_xy.shape}"
+            raise VJError(f"attention: plan_xy must be a finite (S, 2) array of world m, got {bad}")
     frames = [
         f
         for f in kd.entities()
@@ -119,7 +134,7 @@ def attention(
     novel = np.array([f.status != Status.CONFIRMED for f in frames], dtype=np.float64)
     near_plan = np.zeros(len(frames))
     if plan_xy is not None and len(plan_xy):
-        dp = np.linalg.norm(xy[:, None, :] - np.asarray(plan_xy)[None, :, :2], axis=2).min(1)
+        dp = np.linalg.norm(xy[:, None, :] - plan_xy[None, :, :2], axis=2).min(1)
         near_plan = (dp <= cfg.relevance_radius_m).astype(np.float64)
     pr = (
         cfg.w_proximity / (1.0 + d / cfg.proximity_scale_m)
