@@ -39,7 +39,7 @@ def expect_entities(
 ) -> list[int]:
     """Write expectation queues (``steps_s`` seconds after each state) for the object and
     group entities confirmed, observed this cycle with at least ``min_confidence`` and moving
-    (a static entity's expectation is its state);
+    (a static entity's expectation is its state, so one that stops loses its queue);
     returns their ids. The KD drops expectations a later observation overtakes."""
     out = []
     for eid in kd.observed_this_cycle().tolist():
@@ -55,8 +55,11 @@ def expect_entities(
             or f.level < Level.OBJECT
             or f.status != Status.CONFIRMED
             or f.confidence < min_confidence
-            or float(np.linalg.norm(s.velocity_xyz)) < min_speed_mps
         ):
+            continue
+        if float(np.linalg.norm(s.velocity_xyz)) < min_speed_mps:
+            if f.expectations:  # it stopped: last cycle's queue came from an old velocity
+                kd.expect(f.id, [])
             continue
         kd.expect(f.id, [propagate(s, dt) for dt in steps_s])
         out.append(f.id)

@@ -180,7 +180,8 @@ def footprint_distance(
 
 @dataclass
 class DetectionScore:
-    """Confirmed object entities vs true boxes within ``range_m`` of the vehicle, at every
+    """Confirmed object entities vs true boxes within ``range_m`` of the vehicle (entity
+    positions; box footprints), at every
     scored time, matched greedily by the distance (m) from the entity's position to the true
     box's footprint (0 inside; at most ``match_m``): SP places an entity at the centre of the
     surfaces it saw, which for a large object lies well off the box centre."""
@@ -197,7 +198,12 @@ class DetectionScore:
     def add(
         self, kd: kd_store.KnowledgeDatabase, boxes: ObjectBoxes, xy: np.ndarray, skip: int
     ) -> None:
-        near = np.linalg.norm(boxes.centers[:, :2] - xy[:2], axis=1) <= self.range_m
+        # by footprint, as entities are by position: an entity on the near face of a building
+        # whose centre lies beyond range_m is a detection of it, not a false one
+        near = footprint_distance(
+            np.asarray(xy[:2], dtype=np.float64)[None], boxes.centers[:, :2],
+            boxes.sizes[:, :2], boxes.yaws,
+        )[:, 0] <= self.range_m  # fmt: skip
         t_c, t_id = boxes.centers[near, :2], boxes.ids[near]
         t_cls = [c for c, k in zip(boxes.classes, near, strict=True) if k]
         region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), self.range_m)

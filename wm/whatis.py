@@ -21,6 +21,7 @@ later) in the region's frame; map answers are as of the stack's last fused sweep
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -29,8 +30,12 @@ import pyarrow as pa
 
 import kd_store
 from kd_store import Box, Circle, State, Status
-from maps.frames import quat_to_matrix, se3, se3_inverse
+from maps.frames import interpolate_pose, quat_to_matrix, se3, se3_inverse
 from maps.stack import MapStack
+
+#: How far past the newest self state a body pose is continued at constant velocity (ns): an
+#: entity observed late in the current sweep is later than the sweep's self state.
+MAX_EXTRAPOLATE_NS = 200_000_000
 
 
 class WhatIsError(ValueError):
@@ -156,11 +161,35 @@ class WhatIs:
         return self.entity(self.self_id, t_ns)
 
     def T_world_body(self, t_ns: int | None = None) -> np.ndarray:
-        """The body pose (4x4) at ``t_ns`` from the self entity's history."""
+        """The body pose (4x4) at ``t_ns`` from the self entity's history, interpolated between
+        the states before and after it (linear in position, slerp in rotation) and continued
+        from the last two up to ``MAX_EXTRAPOLATE_NS`` past the newest: the KD holds one self
+        state a sweep, so the state before alone is up to a sweep stale (1 m at 10 m/s)."""
         if self.self_id is None:
             raise WhatIsError("body-relative frames need the self entity")
-        s, _ = self.state_at(self.self_id, t_ns)
-        return se3(quat_to_matrix(s.orientation_xyzw), s.position_xyz)
+        s, source = self.state_at(self.self_id, t_ns)
+        if t_ns is None:
+            return _pose_of(s)
+        hist = (
+            self.kd.long_term_history(self.self_id)
+            if source == "long_term"
+            else self.kd.history(self.self_id)
+        )
+        by_t = {h.t_ns: h for h in hist}
+        newest = self.kd.get(self.self_id).state
+        if newest is not None:
+            by_t[newest.t_ns] = newest
+        ts = sorted(by_t)
+        i = bisect.bisect_right(ts, t_ns) - 1
+        if i < 0 or ts[i] == t_ns:
+            return _pose_of(s)
+        if i + 1 < len(ts):
+            a, b = ts[i], ts[i + 1]
+        elif i >= 1 and t_ns - ts[i] <= MAX_EXTRAPOLATE_NS:
+            a, b = ts[i - 1], ts[i]
+        else:
+            return _pose_of(by_t[ts[i]])
+        return interpolate_pose(_pose_of(by_t[a]), _pose_of(by_t[b]), (t_ns - a) / (b - a))
 
     def entity(self, entity_id: int, t_ns: int | None = None, frame: str = "world") -> EntityAnswer:
         """Entity ``entity_id`` as of ``t_ns`` in ``frame`` (module docstring)."""
@@ -268,6 +297,10 @@ class WhatIs:
         if name not in names:
             raise WhatIsError(f"map level {name!r} does not exist; levels: {names}")
         return self.stack.level(name)
+
+
+def _pose_of(s: State) -> np.ndarray:
+    return se3(quat_to_matrix(s.orientation_xyzw), s.position_xyz)
 
 
 def _latest_before(states: list[State], t_ns: int) -> State:

@@ -1,0 +1,336 @@
+"""End to end against the simulator's ground truth: a simulated log through `wm run` and the
+world-model node, then the confirmed object entities, What Is over them and their predicted
+states compared with the true objects the log carries (/ground_truth/objects, /ground_truth/pose).
+
+One log, shared: the default scenario (seed 7) with three agents added near the start of the
+route: the default's own agents are 55-80 m away in its first seconds and none comes within
+45 m before t = 46 s (the detection score counts 40 m), so moving objects would go untested.
+Poses come from the truth (``PoseSource.TRUTH``), so perception is scored apart from odometry.
+The run stops 1 s before the log ends, so the log's truth covers the +0.5 s expectations of the
+last states.
+
+The truth contains static scenery (buildings, walls, trees, bushes, rocks, posts) as well as
+the agents, so confirmed objects are matched against all of it; none is skipped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+import kd_store
+from fixtures.scenario import AgentSpec, ObjectClass, Scenario, load_scenario
+from kd_store import Level, Status
+from maps.frames import se3_inverse, transform_points
+from sp.logs import open_log
+from sp.logs.types import GroundTruthPose, ObjectBoxes, TransformFrame
+from wm.config import NodeConfig, PoseSource, PredictionConfig
+from wm.poses import PoseTrack
+from wm.run import run_log, run_node
+from wm.truth import footprint_distance
+
+LOG_S = 6.0  # simulated seconds in the log
+RUN_S = 5.0  # seconds of it the node runs over (the rest is truth for the predictions)
+CONFIG = NodeConfig(pose_source=PoseSource.TRUTH)
+AHEAD_NS = 500_000_000  # the expectation checked against the truth: +0.5 s
+MOVING_MPS = 0.5  # a true object at least this fast counts as moving
+
+# Tolerances (measured values in the tests that use them)
+FOOTPRINT_M = 0.5  # an entity's xy from its true box's footprint (0 inside)
+CENTRE_SLACK_M = 0.25  # ... and from the box centre: at most half its diagonal plus this
+Z_SLACK_M = 0.5  # ... and its z within half the box's height of its centre plus this
+MOVER_CENTRE_M = 1.0  # a moving object's position from its true centre
+MOVER_SPEED_MPS = 0.5  # its velocity from the true one
+
+
+def _scenario() -> Scenario:
+    """The default scenario plus a vehicle coming the other way 12 m to the left, one going the
+    same way 11 m to the right, and a walker 7 m to the left, all along the route's first leg."""
+    base = load_scenario("default")
+    p0 = np.asarray(base.route.waypoints[0], float)
+    d = np.asarray(base.route.waypoints[1], float) - p0
+    d /= np.linalg.norm(d)
+    left = np.array([-d[1], d[0]])
+
+    def at(along_m: float, left_m: float) -> tuple[float, float]:
+        x, y = p0 + along_m * d + left_m * left
+        return (round(float(x), 1), round(float(y), 1))
+
+    extra = [
+        AgentSpec(cls=ObjectClass.VEHICLE, path=[at(55, 12), at(-40, 12)], speed_mps=5.0),
+        AgentSpec(cls=ObjectClass.VEHICLE, path=[at(15, -11), at(120, -11)], speed_mps=6.5),
+        AgentSpec(cls=ObjectClass.PERSON, path=[at(22, 7), at(40, 7)], speed_mps=1.4,
+                  size=(0.5, 0.6, 1.75)),
+    ]  # fmt: skip
+    return dataclasses.replace(base, name="default-near-agents", agents=[*base.agents, *extra])
+
+
+@dataclass
+class Truth:
+    """The log's ground truth: object boxes at every sweep start and the true body poses."""
+
+    boxes: list[ObjectBoxes]
+    t_ns: np.ndarray
+    poses: PoseTrack
+    T_body_ladar: np.ndarray
+
+    def at(self, t_ns: int) -> ObjectBoxes:
+        """The true boxes at ``t_ns``: centres and velocities interpolated linearly between the
+        two box frames around it (agents move at constant speed along straight legs)."""
+        i = int(np.searchsorted(self.t_ns, t_ns, side="right"))
+        assert 1 <= i < len(self.t_ns), f"t_ns={t_ns} outside the truth's span"
+        a, b = self.boxes[i - 1], self.boxes[i]
+        assert np.array_equal(a.ids, b.ids)
+        w = (t_ns - a.t_ns) / (b.t_ns - a.t_ns)
+        return dataclasses.replace(
+            a,
+            t_ns=int(t_ns),
+            centers=(1 - w) * a.centers + w * b.centers,
+            velocities=(1 - w) * a.velocities + w * b.velocities,
+        )
+
+
+@dataclass
+class Match:
+    """The true object nearest (by centre, xy) to an entity's position at the entity's time."""
+
+    k: int
+    true_id: int
+    true_class: str
+    centre_m: float  # xy distance to the true centre
+    footprint_m: float  # xy distance to the true footprint (0 inside)
+    half_diagonal_m: float  # of the true footprint
+    dz_m: float  # z minus the true centre's z
+    half_height_m: float
+    true_velocity: np.ndarray
+    true_centre: np.ndarray
+
+    @property
+    def moving(self) -> bool:
+        return float(np.linalg.norm(self.true_velocity)) >= MOVING_MPS
+
+    def assert_on_the_box(self, what: str) -> None:
+        assert self.footprint_m <= FOOTPRINT_M, f"{what}: {self.footprint_m:.2f} m off {self}"
+        assert self.centre_m <= self.half_diagonal_m + CENTRE_SLACK_M, f"{what}: {self}"
+        assert abs(self.dz_m) <= self.half_height_m + Z_SLACK_M, f"{what}: {self}"
+
+
+def _match(truth: Truth, t_ns: int, p: np.ndarray) -> Match:
+    b = truth.at(t_ns)
+    d = np.linalg.norm(b.centers[:, :2] - p[:2], axis=1)
+    k = int(np.argmin(d))
+    fp = footprint_distance(p[None, :2], b.centers[k : k + 1, :2], b.sizes[k : k + 1, :2],
+                            b.yaws[k : k + 1])[0, 0]  # fmt: skip
+    return Match(
+        k, int(b.ids[k]), b.classes[k], float(d[k]), float(fp),
+        float(np.linalg.norm(b.sizes[k, :2]) / 2), float(p[2] - b.centers[k, 2]),
+        float(b.sizes[k, 2] / 2), b.velocities[k].copy(), b.centers[k].copy(),
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory):
+    from fixtures.simulate import simulate_to_log
+
+    path = tmp_path_factory.mktemp("e2e") / "default_near_agents.mcap"
+    return simulate_to_log(_scenario(), path, seconds=LOG_S, seed=7, progress=False)
+
+
+@pytest.fixture(scope="module")
+def truth(log) -> Truth:
+    boxes, poses, mount = [], PoseTrack(), None
+    for f in open_log(log).frames():
+        if isinstance(f, ObjectBoxes):
+            assert f.frame_id == "world"
+            boxes.append(f)
+        elif isinstance(f, GroundTruthPose):
+            poses.add(f.t_ns, f.T_parent_child)
+        elif isinstance(f, TransformFrame) and f.child_frame_id == "ladar":
+            mount = f.T_parent_child
+    assert mount is not None and len(boxes) >= 50
+    return Truth(boxes, np.array([b.t_ns for b in boxes]), poses, mount)
+
+
+@pytest.fixture(scope="module")
+def run(log, tmp_path_factory):
+    """`wm run` into a DuckDB file: the report and the file's path."""
+    kd_path = tmp_path_factory.mktemp("e2e_kd") / "run.duckdb"
+    report = run_log(log, kd_path, config=CONFIG, progress=False, seconds=RUN_S)
+    return report, kd_path
+
+
+@pytest.fixture(scope="module")
+def stored(run):
+    """What the run's KD file holds: confirmed objects (entities view, latest states) and every
+    expectation (entity_expectations view), read back read-only."""
+    _, kd_path = run
+    with kd_store.open(kd_path, read_only=True) as kd:
+        objects = kd.sql(
+            f"SELECT id, name, class_name, generic_classes, confidence, t_ns, frame, "
+            f"x, y, z, vx, vy, vz FROM entities WHERE level = {int(Level.OBJECT)} "
+            f"AND status = '{Status.CONFIRMED.value}' AND name <> 'self' ORDER BY id"
+        ).to_pylist()
+        expectations = kd.sql(
+            "SELECT entity_id, t_ns, frame, x, y, z, vx, vy, vz FROM entity_expectations "
+            "ORDER BY entity_id, t_ns"
+        ).to_pylist()
+    return objects, expectations
+
+
+@pytest.fixture(scope="module")
+def node(log):
+    """The same run through a live node (run_node), for What Is: wm run keeps no node."""
+    n = run_node(log, ":memory:", CONFIG, seconds=RUN_S)
+    yield n
+    n.kd.close()
+
+
+def _xyz(row: dict, prefix: str = "") -> np.ndarray:
+    return np.array([row[f"{prefix}x"], row[f"{prefix}y"], row[f"{prefix}z"]], dtype=np.float64)
+
+
+def _confirmed_objects(node) -> list:
+    """The node's confirmed object entities (not the vehicle itself) with a state."""
+    return [
+        f
+        for f in node.kd.entities()
+        if f.id != node.self_id
+        and f.level == Level.OBJECT
+        and f.status == Status.CONFIRMED
+        and f.state is not None
+    ]
+
+
+def test_wm_run_confirmed_objects_match_the_true_objects(run, stored, truth) -> None:
+    report, _ = run
+    det = report.metrics["detection"]  # the log has truth and SP ran: the score must be there
+    # measured (this log, truth poses): precision 0.779, recall 0.958, classification 0.863,
+    # MOTA 0.667, 4 id switches. Precision is lowered by a moving vehicle's track splitting in
+    # two for about 1.6 s and a building fragmented into several confirmed objects.
+    assert det["precision"] >= 0.6
+    assert det["recall"] >= 0.85
+    assert det["classification_accuracy"] >= 0.75
+    assert det["mota"] >= 0.45
+    objects, _ = stored
+    # measured: 8 confirmed objects at the end, 3 of them on the true movers
+    assert len(objects) >= 6
+    movers = {}
+    for r in objects:
+        assert r["frame"] == "world"
+        m = _match(truth, r["t_ns"], _xyz(r))
+        # measured: every one inside its true footprint (0.00 m); centre distances at most
+        # 0.55 of the half diagonal (buildings 3.3-4.5 m, trees 1.3-1.6 m, a post 0.12 m);
+        # z within the box (|dz| <= 1.54 m against half heights of 0.8-4.3 m)
+        m.assert_on_the_box(f"entity {r['id']} ({r['class_name']})")
+        if m.moving:
+            # measured: 0.18-0.43 m from the true centre, velocity within 0.13 m/s
+            assert m.centre_m <= MOVER_CENTRE_M, f"entity {r['id']}: {m}"
+            v = _xyz(r, "v")
+            assert np.linalg.norm(v[:2] - m.true_velocity[:2]) <= MOVER_SPEED_MPS, m
+            assert m.true_class == r["class_name"] or m.true_class in r["generic_classes"]
+            assert m.true_id not in movers, f"true object {m.true_id} confirmed twice"
+            movers[m.true_id] = r["id"]
+    # the converse for the movers: every true moving object within 30 m of the vehicle at the
+    # end (measured: two vehicles at 4.8 m and 24.4 m, a walker at 21.4 m) is confirmed
+    t_end = max(r["t_ns"] for r in objects)
+    b = truth.at(t_end)
+    ego = truth.poses.at(t_end)[:2, 3]
+    near = np.linalg.norm(b.centers[:, :2] - ego, axis=1) <= 30.0
+    fast = np.linalg.norm(b.velocities, axis=1) >= MOVING_MPS
+    expected = {int(i) for i in b.ids[near & fast]}
+    assert len(expected) >= 3
+    assert expected <= set(movers), f"true movers {expected - set(movers)} not confirmed"
+
+
+def test_whatis_over_perceived_objects_matches_truth(node, stored, truth) -> None:
+    objects, _ = stored
+    by_id = {r["id"]: r for r in objects}
+    perceived = {f.id: f for f in _confirmed_objects(node)}
+    # the live node holds what `wm run` wrote: the file's confirmed objects are the node's, at
+    # the same states, and every one the KD is sure of (confidence >= 0.5, the promotion rule)
+    # reached the file. Measured: 13 confirmed in the node, 8 of them >= 0.5; the other five
+    # (0.00-0.24) are two far vehicles last seen 1.2-1.4 s earlier at 62-67 m and three
+    # fragments of a building.
+    assert set(by_id) <= set(perceived)
+    assert {i for i, f in perceived.items() if f.confidence >= 0.5} <= set(by_id)
+    wi = node.whatis()
+    n_moving = 0
+    for f in perceived.values():
+        a = wi.entity(f.id)
+        assert a.frame == "world" and a.source == "current" and a.status == "confirmed"
+        assert a.t_ns == f.state.t_ns and a.confidence == f.confidence
+        if f.id in by_id:
+            assert a.t_ns == by_id[f.id]["t_ns"]
+            np.testing.assert_allclose(a.position, _xyz(by_id[f.id]), atol=1e-9)
+        # measured: all 13 inside their true footprints at the answer's time
+        m = _match(truth, a.t_ns, a.position)
+        m.assert_on_the_box(f"What Is entity {f.id}")
+        # the LADAR frame is the body frame moved by the mount the log declares
+        b = wi.entity(f.id, frame="base_link")
+        s = wi.entity(f.id, frame="ladar")
+        assert (b.frame, s.frame) == ("base_link", "ladar") and b.t_ns == s.t_ns == a.t_ns
+        p_l = transform_points(se3_inverse(truth.T_body_ladar), b.position[None])[0]
+        np.testing.assert_allclose(s.position, p_l, atol=1e-9)
+        if not m.moving or f.confidence < 0.5:
+            continue
+        n_moving += 1
+        # measured: 0.18-0.43 m from the true centre, velocity within 0.13 m/s
+        assert m.centre_m <= MOVER_CENTRE_M, f"entity {f.id}: {m}"
+        assert np.linalg.norm(a.velocity[:2] - m.true_velocity[:2]) <= MOVER_SPEED_MPS, m
+        # half a second earlier, from short-term memory: the state then, against the truth then
+        # (measured: 0.21-0.40 m from the true centre, 2-96 ms before the time asked for)
+        past = wi.entity(f.id, a.t_ns - AHEAD_NS)
+        assert past.source == "short_term" and a.t_ns - AHEAD_NS - 250_000_000 <= past.t_ns
+        assert past.t_ns <= a.t_ns - AHEAD_NS
+        mp = _match(truth, past.t_ns, past.position)
+        assert mp.true_id == m.true_id and mp.centre_m <= MOVER_CENTRE_M, mp
+    assert n_moving >= 2  # measured: 3 (two vehicles, one walker)
+
+
+def test_whatis_body_frames_move_the_world_answer_by_the_true_pose(node, truth) -> None:
+    wi = node.whatis()
+    for f in _confirmed_objects(node):  # the body pose held a sweep stale: 0.20-1.11 m off
+        a = wi.entity(f.id)
+        T_world_body = truth.poses.at(a.t_ns)  # the true body pose at the answer's time
+        for frame, T in (("base_link", T_world_body),
+                         ("ladar", T_world_body @ truth.T_body_ladar)):  # fmt: skip
+            ans = wi.entity(f.id, frame=frame)
+            assert ans.frame == frame and ans.t_ns == a.t_ns
+            T_f_w = se3_inverse(T)
+            p = transform_points(T_f_w, a.position[None])[0]
+            np.testing.assert_allclose(ans.position, p, atol=0.05, err_msg=f"{frame} {f.id}")
+            np.testing.assert_allclose(ans.velocity, T_f_w[:3, :3] @ a.velocity, atol=0.05)
+
+
+def test_expectations_of_confirmed_movers_match_truth_half_a_second_on(stored, truth) -> None:
+    assert AHEAD_NS / 1e9 in PredictionConfig().expectation_steps_s
+    objects, expectations = stored
+    queues: dict[int, list[dict]] = {}
+    for e in expectations:
+        queues.setdefault(e["entity_id"], []).append(e)
+    n = 0
+    for r in objects:
+        m = _match(truth, r["t_ns"], _xyz(r))
+        if not m.moving:
+            continue
+        n += 1
+        q = queues.get(r["id"], [])
+        assert q, f"confirmed moving entity {r['id']} has no expectations"
+        ts = [e["t_ns"] for e in q]
+        assert ts[0] > r["t_ns"] and all(np.diff(ts) > 0) and all(e["frame"] == "world" for e in q)
+        # the queue was made from the latest state: its steps are that state's time + steps_s
+        steps = [round(s * 1e9) for s in PredictionConfig().expectation_steps_s]
+        assert ts == [r["t_ns"] + s for s in steps]
+        e = q[ts.index(r["t_ns"] + AHEAD_NS)]
+        later = _match(truth, e["t_ns"], _xyz(e))
+        assert later.true_id == m.true_id
+        # measured +0.5 s errors: 0.26 m and 0.43 m (vehicles at 6.5 and 5 m/s), 0.18 m
+        # (walker at 1.4 m/s); staying at the last state would be 3.29, 2.68, 0.57 m off
+        err = float(np.linalg.norm(_xyz(e)[:2] - later.true_centre[:2]))
+        still = float(np.linalg.norm(_xyz(r)[:2] - later.true_centre[:2]))
+        assert err <= MOVER_CENTRE_M, f"entity {r['id']} +0.5 s: {err:.2f} m off {later}"
+        assert err <= 0.6 * still, f"entity {r['id']}: prediction {err:.2f} m vs still {still:.2f}"
+    assert n >= 2  # measured: 3
