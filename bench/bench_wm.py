@@ -1,6 +1,7 @@
 """World-model benchmarks: the whole pipeline on the default scenario with a 64 x 1024 LADAR
-and a 256 x 256 camera at 10 Hz (real-time factor, time per stage), What If for 100 candidate 5 s plans, What Is entity lookup and a 64x64 map window.
-Medians; baselines run side by side in the same process."""
+and a 256 x 256 camera at 10 Hz (real-time factor, time per stage), What If for 100 candidate
+5 s plans, What Is entity lookup and a 64x64 map window. Medians; baselines run side by side
+in the same process."""
 
 from __future__ import annotations
 
