@@ -105,9 +105,12 @@ class EgosphereImage:
     def _gather(self, name: str, values: np.ndarray, empty: float | int) -> np.ndarray:
         if name not in self._cache:
             v = np.asarray(values)
-            out = np.full(self.point_index.shape + v.shape[1:], empty, dtype=v.dtype)
             at = self.valid
-            out[at] = v[self.point_index[at]]
+            if len(v):
+                out = np.take(v, np.where(at, self.point_index, 0), axis=0)  # one gather
+                out[~at] = empty
+            else:  # a scan without points: every pixel empty
+                out = np.full(self.point_index.shape + v.shape[1:], empty, dtype=v.dtype)
             self._cache[name] = out
         return self._cache[name]
 

@@ -283,3 +283,26 @@ def test_rays_pass_over_an_object_top_but_clear_a_cell_it_has_left() -> None:
     low = np.array([[10.25, 0.25, 0.6]])
     fuse_points(level, low, 1e-4, t_ns=2, config=cfg, ray_origin_xyz=[0.25, 0.25, 0.6])
     assert level.read("occupancy", cell)[0] == pytest.approx(occ0 + cfg.l_miss)
+
+
+def test_ray_max_beams_traces_every_kth_beam_of_a_dense_sweep() -> None:
+    """With ``ray_max_beams`` a sweep of N beams is traced at stride ceil(N / cap): the same
+    cells as that stride given explicitly, fewer than all beams would free; a sweep within the
+    cap is traced whole; a cap below 1 is refused by name."""
+    y, z = np.meshgrid(np.linspace(-3.0, 3.0, 121), np.linspace(0.1, 2.0, 20))
+    wall = np.column_stack([np.full(y.size, 10.1), y.ravel() + 0.2, z.ravel()])  # 2420 beams
+    sensor = np.array([0.2, 0.2, 1.5])
+
+    def occupancy(**cfg) -> np.ndarray:
+        level = MapLevel(LevelConfig("t", 0.4, 128))
+        config = FusionConfig(ray_free_height_m=100.0, **cfg)
+        fuse_points(level, wall, 1e-3, t_ns=0, config=config, ray_origin_xyz=sensor)
+        return level.window("occupancy")
+
+    capped = occupancy(ray_max_beams=len(wall) // 4 + 1)  # stride 4
+    assert np.array_equal(capped, occupancy(ray_stride=4, ray_max_beams=None))
+    full = occupancy(ray_max_beams=None)
+    assert (capped < 0).sum() < (full < 0).sum()
+    assert np.array_equal(occupancy(ray_max_beams=len(wall)), full)
+    with pytest.raises(FusionError, match="ray_max_beams must be >= 1"):
+        occupancy(ray_max_beams=0)
