@@ -13,7 +13,9 @@ reference the tests compare these kernels against (``FusionConfig(compiled=False
 * :func:`merge_child`: a finer level's per-cell sums into this level's rows;
 * :func:`apply_cells`: the per-cell Kalman update (001, 4.5.4 eq. 4.3), weighted moments,
   min / max, occupancy log-odds and last-seen; one pass over the touched cells;
-* :func:`cast_rays`: 2-D free-space traversal of each beam (Amanatides and Woo's grid walk).
+* :func:`cast_rays`: 2-D free-space traversal of each beam (Amanatides and Woo's grid walk);
+* :func:`terrain`: slope, step height and traversability of a window, one pass over its cells
+  (:func:`maps.terrain.terrain_layers` is its numpy form).
 
 Storage indices are flat toroidal indices ``(iy % size) * size + ix % size`` (see
 :mod:`maps.level`). Dense per-level scratch is never cleared: a cell's entry counts only when
@@ -476,3 +478,67 @@ def cast_rays(
             tag, sweep, ray_stamp, elevation, elevation_max, occupancy, l_miss, l_min,
         )  # fmt: skip
     return lowered
+
+
+@numba.njit(cache=True, nogil=True)
+def _grad(prev, centre, nxt, res):
+    """Gradient along one axis: central where both neighbours are known, else one-sided."""
+    g = (nxt - prev) / (2.0 * res)
+    if math.isfinite(g):
+        return g
+    g = (nxt - centre) / res
+    if math.isfinite(g):
+        return g
+    return (centre - prev) / res
+
+
+@numba.njit(cache=True, nogil=True)
+def terrain(
+    e, rough, occ, res, max_slope, max_step, max_rough, occupied, slope, step, trav
+):  # pragma: no cover
+    """Terrain layers of a window, exactly as :func:`maps.terrain.terrain_layers`: ``e``,
+    ``rough``, ``occ`` (H, W) float64 elevation (m, NaN unknown), roughness (m), occupancy
+    (log-odds); writes ``slope`` (rad), ``step`` (m), ``trav`` (0..1) (H, W) float32."""
+    H, W = e.shape
+    nan = np.nan
+    for r in range(H):
+        for c in range(W):
+            z = e[r, c]
+            if not math.isfinite(z):
+                slope[r, c] = nan
+                step[r, c] = nan
+                trav[r, c] = nan
+                continue
+            left = e[r, c - 1] if c > 0 else nan
+            right = e[r, c + 1] if c + 1 < W else nan
+            down = e[r - 1, c] if r > 0 else nan
+            up = e[r + 1, c] if r + 1 < H else nan
+            gx = _grad(left, z, right, res)
+            gy = _grad(down, z, up, res)
+            fx = math.isfinite(gx)
+            fy = math.isfinite(gy)
+            if fx or fy:
+                s = math.atan(math.hypot(gx if fx else 0.0, gy if fy else 0.0))
+            else:
+                s = nan
+            st = nan
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if (dr == 0 and dc == 0) or not (0 <= r + dr < H and 0 <= c + dc < W):
+                        continue
+                    d = abs(z - e[r + dr, c + dc])
+                    if d == d and not d <= st:  # fmax: NaN neither wins nor blocks
+                        st = d
+            bad = nan
+            for v in (s / max_slope, st / max_step, rough[r, c] / max_rough):
+                if v == v and not v <= bad:
+                    bad = v
+            if occ[r, c] >= occupied:
+                t = 0.0
+            elif bad == bad:
+                t = min(max(1.0 - bad, 0.0), 1.0)
+            else:
+                t = nan
+            slope[r, c] = s
+            step[r, c] = st
+            trav[r, c] = t

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from maps import kernels
 from maps.level import MapLevel
 
 TERRAIN_LAYERS = ("elevation", "roughness", "occupancy", "slope", "step_height", "traversability")
@@ -27,6 +28,7 @@ class TerrainConfig:
     max_step_m: float = 0.3
     max_roughness_m: float = 0.15
     occupied_log_odds: float = 1.0  # at or above this occupancy a cell is impassable
+    compiled: bool = True  # one compiled pass (maps.kernels.terrain); False: the numpy form
 
 
 def step_heights(elevation: np.ndarray) -> np.ndarray:
@@ -60,11 +62,35 @@ def _gradient(prev: np.ndarray, centre: np.ndarray, nxt: np.ndarray, res: float)
 
 
 def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None:
-    """Recompute slope, step_height and traversability over the whole window of ``level``."""
+    """Recompute slope, step_height and traversability over the whole window of ``level``
+    (one compiled pass, :func:`maps.kernels.terrain`; ``config.compiled`` False: the numpy
+    form, :func:`terrain_layers`, which the tests compare it with)."""
     config = config or TerrainConfig()
     level.require(*TERRAIN_LAYERS)
     e = level.window("elevation").astype(np.float64)
-    res = level.resolution_m
+    rough = level.window("roughness").astype(np.float64)
+    occ = level.window("occupancy").astype(np.float64)
+    if config.compiled:
+        out = [np.empty(e.shape, dtype=np.float32) for _ in range(3)]
+        kernels.terrain(
+            e, rough, occ, level.resolution_m, config.max_slope_rad, config.max_step_m,
+            config.max_roughness_m, config.occupied_log_odds, *out,
+        )  # fmt: skip
+        slope, step, trav = out
+    else:
+        slope, step, trav = (
+            a.astype(np.float32) for a in terrain_layers(e, rough, occ, level.resolution_m, config)
+        )
+    level.set_window("slope", slope)
+    level.set_window("step_height", step)
+    level.set_window("traversability", trav)
+
+
+def terrain_layers(
+    e: np.ndarray, rough: np.ndarray, occ: np.ndarray, res: float, config: TerrainConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slope (rad), step height (m) and traversability (0..1) (H, W) float64 of a window of
+    elevation ``e`` (m, NaN unknown), roughness (m) and occupancy (log-odds); cell ``res`` m."""
     pad = np.pad(e, 1, constant_values=np.nan)
     gx = _gradient(pad[1:-1, :-2], e, pad[1:-1, 2:], res)
     gy = _gradient(pad[:-2, 1:-1], e, pad[2:, 1:-1], res)
@@ -74,14 +100,11 @@ def update_terrain(level: MapLevel, config: TerrainConfig | None = None) -> None
     known &= np.isfinite(e)  # the central difference skips the cell: an unknown stays NaN
     slope = np.where(known, np.arctan(np.hypot(np.nan_to_num(gx), np.nan_to_num(gy))), np.nan)
     step = step_heights(e)
-    rough = level.window("roughness").astype(np.float64)
     badness = np.fmax(
         np.fmax(slope / config.max_slope_rad, step / config.max_step_m),
         rough / config.max_roughness_m,
     )
     trav = np.clip(1.0 - badness, 0.0, 1.0)
-    trav[level.window("occupancy") >= config.occupied_log_odds] = 0.0
+    trav[occ >= config.occupied_log_odds] = 0.0
     trav[~np.isfinite(e)] = np.nan
-    level.set_window("slope", slope.astype(np.float32))
-    level.set_window("step_height", step.astype(np.float32))
-    level.set_window("traversability", trav.astype(np.float32))
+    return slope, step, trav

@@ -254,3 +254,29 @@ def test_terrain_is_computed_across_the_toroidal_seam() -> None:
     np.testing.assert_allclose(level.window("step_height")[INNER], 0.4 * np.tan(theta), rtol=1e-4)
     # the raw storage differs from the window (it really wraps) yet holds the same values
     assert not np.array_equal(level.storage("elevation"), level.window("elevation"))
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("p_unknown", [0.0, 0.3, 0.9])
+def test_compiled_terrain_equals_the_numpy_form(seed: int, p_unknown: float) -> None:
+    """The one-pass kernel gives the layers of :func:`maps.terrain.terrain_layers` (rough
+    terrain with holes, rough and occupied cells, a window whose storage wraps)."""
+    out = {}
+    for compiled in (True, False):
+        level = _level()
+        level.move_to(np.array([3.3, -7.9]))  # storage wraps inside the window
+        rows, cols = np.indices((SIZE, SIZE))
+        xy = level.window_to_world(rows.ravel(), cols.ravel())
+        r = np.random.default_rng(seed)
+        z = np.cumsum(r.normal(0, 0.15, len(xy))).reshape(SIZE, SIZE) * 0.1
+        z[r.random((SIZE, SIZE)) < p_unknown] = np.nan
+        level.write("elevation", xy, z.ravel())
+        level.write("roughness", xy, r.uniform(0, 0.2, len(xy)))
+        level.write("occupancy", xy, r.normal(0, 1.5, len(xy)))
+        update_terrain(level, TerrainConfig(compiled=compiled))
+        out[compiled] = [level.window(n) for n in ("slope", "step_height", "traversability")]
+    for name, a, b in zip(("slope", "step", "trav"), out[True], out[False], strict=True):
+        assert np.array_equal(np.isnan(a), np.isnan(b)), name
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7, equal_nan=True, err_msg=name)
+    if p_unknown < 0.5:
+        assert np.isfinite(out[True][2]).mean() > 0.3 and (out[True][2] == 0).any()
