@@ -256,3 +256,70 @@ def segment_attributes(
         range_m=reduce(np.minimum, rng, np.inf),
         t_offset_ns=np.round(mean(t_off)).astype(np.int64),
     )
+
+
+def ground_plane(
+    xyz_w: np.ndarray, ground: np.ndarray, centre_xyz: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, float, int] | None:
+    """The plane ``z = a x + b y + c`` through the ground pixels ``ground`` (H, W) bool of
+    ``xyz_w`` (H, W, 3) world metres within ``radius_m`` (horizontal) of ``centre_xyz`` (3,),
+    in coordinates centred there (small numbers): least squares by its 3 x 3 normal equations
+    (the sums in one compiled pass over the pixels, :func:`ground_plane_reference` is the
+    numpy form). Returns ``((a, b, c), rms residual m, n points)``, or None under 10 points."""
+    c = np.asarray(centre_xyz, dtype=np.float64)
+    sums = np.zeros(10)
+    _plane_sums(np.ascontiguousarray(xyz_w, dtype=np.float64), ground, c, radius_m**2, sums)
+    n = int(sums[9])
+    if n < 10:
+        return None
+    xx, xy, yy, xz, yz, zz, sx, sy, sz = sums[:9]
+    AtA = np.array([[xx, xy, sx], [xy, yy, sy], [sx, sy, n]])
+    coef, *_ = np.linalg.lstsq(AtA, np.array([xz, yz, sz]), rcond=None)
+    a, b, k = coef
+    # sum of squared residuals from the same sums: (z - a x - b y - k)^2 expanded
+    ss = (
+        zz + a * a * xx + b * b * yy + k * k * n
+        - 2 * a * xz - 2 * b * yz - 2 * k * sz + 2 * a * b * xy + 2 * a * k * sx + 2 * b * k * sy
+    )  # fmt: skip
+    return coef, float(np.sqrt(max(ss, 0.0) / n)), n
+
+
+def ground_plane_reference(
+    xyz_w: np.ndarray, ground: np.ndarray, centre_xyz: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, float, int] | None:
+    """The numpy form of :func:`ground_plane` (residuals taken point by point)."""
+    d = xyz_w[ground] - np.asarray(centre_xyz, dtype=np.float64)
+    near = d[d[:, 0] ** 2 + d[:, 1] ** 2 < radius_m**2]
+    if near.shape[0] < 10:
+        return None
+    m = near.T @ near
+    s = near.sum(axis=0)
+    AtA = np.array([[m[0, 0], m[0, 1], s[0]], [m[0, 1], m[1, 1], s[1]], [s[0], s[1], len(near)]])
+    coef, *_ = np.linalg.lstsq(AtA, np.array([m[0, 2], m[1, 2], s[2]]), rcond=None)
+    resid = near[:, 2] - (coef[0] * near[:, 0] + coef[1] * near[:, 1] + coef[2])
+    return coef, float(np.sqrt(np.mean(resid**2))), int(near.shape[0])
+
+
+@numba.njit(cache=True, nogil=True)
+def _plane_sums(xyz, mask, c, r2, out):  # pragma: no cover
+    """out = (xx, xy, yy, xz, yz, zz, x, y, z, n) over masked points within r2 of c (x, y)."""
+    H, W = mask.shape
+    for i in range(H):
+        for j in range(W):
+            if not mask[i, j]:
+                continue
+            x = xyz[i, j, 0] - c[0]
+            y = xyz[i, j, 1] - c[1]
+            if not x * x + y * y < r2:
+                continue
+            z = xyz[i, j, 2] - c[2]
+            out[0] += x * x
+            out[1] += x * y
+            out[2] += y * y
+            out[3] += x * z
+            out[4] += y * z
+            out[5] += z * z
+            out[6] += x
+            out[7] += y
+            out[8] += z
+            out[9] += 1.0

@@ -50,7 +50,7 @@ from kd_store import Attribute, Level, StateBatch, Status
 from maps.frames import check_pose, interpolate_pose, matrix_to_quat, rot_z
 from sp.appearance import object_appearance
 from sp.classify import Classifier, ClassifyConfig
-from sp.computation import SegmentAttributes, ground_below, segment_attributes
+from sp.computation import SegmentAttributes, ground_below, ground_plane, segment_attributes
 from sp.egosphere import EgosphereConfig, EgosphereImage, to_egosphere
 from sp.events import EventClass, emit
 from sp.ground import GroundConfig, ground_mask
@@ -371,7 +371,7 @@ class SensoryProcessor:
         if denied.size:
             image4[np.isin(image4, denied)] = -1  # a denied hypothesis releases its pixels
         image3 = np.full((H, W), -1, dtype=np.int64)
-        image3[ground] = self._ground_entity(t_ns, xyz_w[ground], T_world_ladar)
+        image3[ground] = self._ground_entity(t_ns, xyz_w, ground, T_world_ladar)
         image3, contact = self._surfaces(t_ns, image3, labels, attrs, obj_ids, ground)
         in_object = self._confirmed_pixels(image4)
         surfaces: list[int] = []
@@ -691,7 +691,11 @@ class SensoryProcessor:
 
     # ------------------------------------------------------------------ level 3 and 2
 
-    def _ground_entity(self, t_ns: int, pts_w: np.ndarray, T_world_ladar: np.ndarray) -> int:
+    def _ground_entity(
+        self, t_ns: int, xyz_w: np.ndarray, ground: np.ndarray, T_world_ladar: np.ndarray
+    ) -> int:
+        """The ground's level-3 entity, its plane fitted to the ground pixels ``ground`` (H, W)
+        of ``xyz_w`` (H, W, 3) world points within 20 m of the sensor (:func:`ground_plane`)."""
         kd = self.kd
         if self.ground_id is None:
             self.ground_id = kd.add_entity(
@@ -704,31 +708,17 @@ class SensoryProcessor:
             ).id
             self._set_class(self.ground_id, "ground")
         gid = self.ground_id
-        # the plane z = a x + b y + c through the ground within 20 m, in coordinates centred
-        # on the sensor (small numbers), by its 3 x 3 normal equations: the least-squares
-        # solution without an SVD of the N x 3 design matrix
-        d = pts_w - T_world_ladar[:3, 3]
-        near = d[d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] < 400.0]
-        if near.shape[0] >= 10:
-            x, y, z = near[:, 0], near[:, 1], near[:, 2]
-            # sums of products by einsum, not BLAS: on a busy machine a threaded dot product
-            # waits on its threads far longer than the sum takes
-            m = np.einsum("ni,nj->ij", near, near)
-            s = near.sum(axis=0)
-            AtA = np.array(
-                [[m[0, 0], m[0, 1], s[0]], [m[0, 1], m[1, 1], s[1]], [s[0], s[1], len(near)]]
-            )
-            coef, *_ = np.linalg.lstsq(AtA, np.array([m[0, 2], m[1, 2], s[2]]), rcond=None)
-            resid = z - (coef[0] * x + coef[1] * y + coef[2])
+        fit = ground_plane(xyz_w, ground, T_world_ladar[:3, 3], 20.0)
+        if fit is not None:
+            coef, rough, n_near = fit
             slope = float(math.atan(math.hypot(coef[0], coef[1])))
-            rough = float(np.sqrt(np.mean(resid**2)))
             z0 = float(T_world_ladar[2, 3] + coef[2])  # the plane under the sensor
             kd.update_entity(
                 gid,
                 attributes={
                     "slope_rad": Attribute(observed=slope, observed_var=0.01),
                     "roughness_m": Attribute(observed=rough, observed_var=0.0001),
-                    "n_pixels": Attribute(observed=float(near.shape[0])),
+                    "n_pixels": Attribute(observed=float(n_near)),
                 },
             )
             last = kd.get(gid).state

@@ -273,3 +273,35 @@ def test_sweep_points_refuses_poses_of_the_wrong_shape():
     img, T, _ = _random_sweep(0, 0.2)
     with pytest.raises(ValueError, match=r"T_world_cols has shape \(3, 4, 4\)"):
         sweep_points(img, T[:3, :3], np.stack([T] * 3))
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("p_ground", [0.0005, 0.3, 1.0])
+def test_ground_plane_sums_give_the_reference_plane(seed, p_ground):
+    """The compiled sums of the ground plane fit give the reference's plane, roughness and
+    count (a tilted noisy plane 60 m wide, far from the origin), and None under 10 points."""
+    from sp.computation import ground_plane, ground_plane_reference
+
+    rng = np.random.default_rng(seed)
+    centre = np.array([1000.0, -2000.0, 51.9])
+    xy = centre[:2] + rng.uniform(-30, 30, (64, 128, 2))
+    z = (
+        50.0
+        + 0.05 * (xy[..., 0] - 1000)
+        - 0.02 * (xy[..., 1] + 2000)
+        + rng.normal(0, 0.03, xy.shape[:2])
+    )
+    xyz = np.dstack([xy, z])
+    ground = rng.random((64, 128)) < p_ground
+    got, want = (
+        ground_plane(xyz, ground, centre, 20.0),
+        ground_plane_reference(xyz, ground, centre, 20.0),
+    )
+    if want is None:
+        assert got is None
+        return
+    assert got is not None and got[2] == want[2] > 10
+    np.testing.assert_allclose(got[0], want[0], rtol=1e-9, atol=1e-12)
+    assert got[1] == pytest.approx(want[1], rel=1e-6)
+    np.testing.assert_allclose(got[0][:2], [0.05, -0.02], atol=0.01)  # the plane it is
+    assert got[1] == pytest.approx(0.03, rel=0.2)
