@@ -589,14 +589,18 @@ class SensoryProcessor:
         kd = self.kd
         tr = self.tracker.tracks
         events: list[int] = []
-        for k in np.flatnonzero(tr.id >= 0):
-            tid = int(tr.id[k])
+        ks = np.flatnonzero(tr.id >= 0)
+        rows = []
+        for k in ks:
             speed = evident_speed(tr.x[k], tr.P[k], self.config.speed_sigmas)
             l, w, h = (float(v) for v in tr.w[k, :3])
-            m = self.classifier.classify(
+            rows.append(
                 {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
-                | self._appearance_of(tid)
+                | self._appearance_of(int(tr.id[k]))
             )
+        # all at once (a class founded below takes part from the next sweep on)
+        for k, m in zip(ks, self.classifier.classify_many(rows), strict=True):
+            tid = int(tr.id[k])
             old, _ = self.track_class.get(tid, (None, -2.0))
             confirmed = tr.status[k] == TrackStatus.CONFIRMED
             if m.name is None:
