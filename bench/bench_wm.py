@@ -6,6 +6,9 @@ in the same process."""
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -84,14 +87,24 @@ def bench_pipeline() -> None:
     with tempfile.TemporaryDirectory() as d:
         log = simulate_to_log(scenario, Path(d) / "default_64.mcap", seconds=PIPELINE_SECONDS,
                               progress=False)  # fmt: skip
-        serial = run_log(log, ":memory:", config=NodeConfig(odometry_process=False),
-                         progress=False)  # fmt: skip
-        rep = run_log(log, ":memory:", config=NodeConfig(), progress=False, decode_process=True)
+        # in a fresh process, as `wm run` runs: this one holds what the other benchmarks
+        # left (a large heap the collector walks, warm caches of other work)
+        out = subprocess.run(
+            [sys.executable, "-m", "bench.bench_wm", "--pipeline", str(log)],
+            capture_output=True, text=True, check=True,
+            cwd=Path(__file__).resolve().parents[1],
+        )  # fmt: skip
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    serial = _Run(**res["serial"])
+    runs = [_Run(**r) for r in res["runs"]]
+    rep = sorted(runs, key=lambda r: r.real_time_factor)[len(runs) // 2]  # the median run
+    print("real-time factors:", [round(r.real_time_factor, 2) for r in runs])
     print("ms per sweep:", {k: round(v, 1) for k, v in rep.stage_ms_per_sweep.items()})
     print("CPU ms per sweep:", {k: round(v, 1) for k, v in rep.cpu_ms_per_sweep.items()})
     record("wm_pipeline_default_real_time_factor", rep.real_time_factor, "x real time",
            baseline="the same, odometry in-process", baseline_value=serial.real_time_factor,
-           target="at least 2x real time on 2 cores", command=CMD)  # fmt: skip
+           target=f"at least 2x real time on 2 cores (median of {len(runs)} runs in a fresh "
+           "process; 64 x 1024 LADAR)", command=CMD)  # fmt: skip
     # the main process's work per sweep (odometry runs beside it): 2x real time at 10 Hz
     # leaves it 50 ms
     record("wm_pipeline_default_main_ms_per_sweep", _main_ms(rep.stage_ms_per_sweep), "ms",
@@ -107,6 +120,28 @@ def bench_pipeline() -> None:
            command=CMD)  # fmt: skip
 
 
+@dataclasses.dataclass
+class _Run:
+    real_time_factor: float
+    stage_ms_per_sweep: dict[str, float]
+    cpu_ms_per_sweep: dict[str, float]
+
+
+def _pipeline_child(log: str, repeat: int = 3) -> None:
+    """``python -m bench.bench_wm --pipeline LOG``: the serial run, then ``repeat`` runs as
+    `wm run` makes them, as one JSON line."""
+
+    def one(config: NodeConfig, decode: bool) -> dict:
+        r = run_log(log, ":memory:", config=config, progress=False, decode_process=decode)
+        return dataclasses.asdict(
+            _Run(r.real_time_factor, r.stage_ms_per_sweep, r.cpu_ms_per_sweep)
+        )
+
+    serial = one(NodeConfig(odometry_process=False), False)
+    runs = [one(NodeConfig(), True) for _ in range(repeat)]
+    print(json.dumps({"serial": serial, "runs": runs}))
+
+
 def _main_ms(stage_ms: dict[str, float]) -> float:
     """The node's top-level stages (the ``sp.*`` entries are parts of ``sp``)."""
     return sum(v for k, v in stage_ms.items() if "." not in k)
@@ -119,4 +154,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    if len(sys.argv) == 3 and sys.argv[1] == "--pipeline":
+        _pipeline_child(sys.argv[2])
+    else:
+        main()

@@ -161,11 +161,20 @@ class NodeConfig:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     use_sp: bool = True  # run SP levels 2..5 (off: maps, odometry and predictions only)
     odometry_process: bool = True  # register sweeps in a child process, one sweep ahead
+    # sweeps the odometry process may have in hand: with two, a registration that runs late
+    # (the process shares its core with the log's decoder) does not stall the node, for one
+    # more sweep (0.1 s at 10 Hz) of latency
+    odometry_ahead: int = 2
     # BLAS and OpenMP threads in the node's process during a run (None: the libraries' own
     # choice). One: the node's array operations are small, and the libraries' idle threads
     # spin on the core the odometry process needs (10 s default on 2 cores: main-process CPU
     # 116 -> 45 ms per sweep, wall 20.7 -> 12.6 s on a busy machine)
     compute_threads: int | None = 1
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.odometry_ahead, int) and self.odometry_ahead >= 1):
+            raise ValueError(f"NodeConfig.odometry_ahead must be an int >= 1, got "
+                             f"{self.odometry_ahead!r}")  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,8 @@ current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
 
 1. pose: LADAR odometry fused with wheel odometry (sp.odometry), or the log's ground truth;
    the sweep is deskewed into the world with the pose at each slice's time. By default the
-   odometry runs in its own process (wm.odometry_worker), one sweep ahead of the rest;
+   odometry runs in its own process (wm.odometry_worker), ``NodeConfig.odometry_ahead`` sweeps
+   ahead of the rest;
 2. self state into the KD (entity ``self``, world frame);
 3. maps: every level scrolls to the new pose and fuses the points (maps.stack);
 4. SP levels 2..5 (sp.pipeline) write entity and event frames into the KD and
@@ -200,12 +201,14 @@ class WorldModelNode:
 
     def _start(self, scan: LadarScan) -> list[CycleResult]:
         """A sweep whose poses are in: run its cycle now, or, with the odometry process,
-        submit it and run the previous sweep's cycle while the process registers this one."""
+        submit it and run the oldest sweep's cycle once ``odometry_ahead`` are in hand there
+        (the process registers them meanwhile)."""
         if not (self._uses_odometry() and self.config.odometry_process):
             return [self.cycle(scan, self.camera)]
         self._odometry().submit(scan)
         self.inflight.append((scan, self.camera))
-        return [self.cycle(*self.inflight.popleft())] if len(self.inflight) > 1 else []
+        ahead = self.config.odometry_ahead
+        return [self.cycle(*self.inflight.popleft())] if len(self.inflight) > ahead else []
 
     def _ready(self, scan: LadarScan) -> bool:
         end = scan.t_ns + (int(scan.t_offset_ns.max()) if scan.n_points else 0)
