@@ -180,11 +180,11 @@ def footprint_distance(
 
 @dataclass
 class DetectionScore:
-    """Confirmed object entities vs true boxes within ``range_m`` of the vehicle (entity
-    positions; box footprints), at every
-    scored time, matched greedily by the distance (m) from the entity's position to the true
-    box's footprint (0 inside; at most ``match_m``): SP places an entity at the centre of the
-    surfaces it saw, which for a large object lies well off the box centre."""
+    """Confirmed object entities (by position) vs true boxes (by footprint) within ``range_m``
+    of the vehicle, at every scored time, matched greedily by the distance (m) from the
+    entity's position to the true box's footprint (0 inside; at most ``match_m``): SP places
+    an entity at the centre of the surfaces it saw, which for a large object lies well off the
+    box centre."""
 
     range_m: float = 40.0
     match_m: float = 1.0

@@ -30,12 +30,9 @@ import pyarrow as pa
 
 import kd_store
 from kd_store import Box, Circle, State, Status
-from maps.frames import interpolate_pose, quat_to_matrix, se3, se3_inverse
+from maps.frames import quat_to_matrix, se3, se3_inverse
 from maps.stack import MapStack
-
-#: How far past the newest self state a body pose is continued at constant velocity (ns): an
-#: entity observed late in the current sweep is later than the sweep's self state.
-MAX_EXTRAPOLATE_NS = 200_000_000
+from wm.poses import PoseError, PoseTrack
 
 
 class WhatIsError(ValueError):
@@ -161,35 +158,31 @@ class WhatIs:
         return self.entity(self.self_id, t_ns)
 
     def T_world_body(self, t_ns: int | None = None) -> np.ndarray:
-        """The body pose (4x4) at ``t_ns`` from the self entity's history, interpolated between
-        the states before and after it (linear in position, slerp in rotation) and continued
-        from the last two up to ``MAX_EXTRAPOLATE_NS`` past the newest: the KD holds one self
-        state a sweep, so the state before alone is up to a sweep stale (1 m at 10 m/s)."""
+        """The body pose (4x4) at ``t_ns`` from the self entity's history, by the rules of
+        :class:`~wm.poses.PoseTrack` over the states around it: interpolated between the one
+        before and the one after (the KD holds one a sweep, so the one before alone is up to
+        a sweep stale, 1 m at 10 m/s), continued from the last two a little past the newest,
+        and held at the nearest beyond that."""
         if self.self_id is None:
             raise WhatIsError("body-relative frames need the self entity")
         s, source = self.state_at(self.self_id, t_ns)
-        if t_ns is None:
+        newest = self.kd.get(self.self_id).state
+        if t_ns is None or newest is None:
             return _pose_of(s)
         hist = (
             self.kd.long_term_history(self.self_id)
             if source == "long_term"
             else self.kd.history(self.self_id)
         )
-        by_t = {h.t_ns: h for h in hist}
-        newest = self.kd.get(self.self_id).state
-        if newest is not None:
-            by_t[newest.t_ns] = newest
-        ts = sorted(by_t)
-        i = bisect.bisect_right(ts, t_ns) - 1
-        if i < 0 or ts[i] == t_ns:
-            return _pose_of(s)
-        if i + 1 < len(ts):
-            a, b = ts[i], ts[i + 1]
-        elif i >= 1 and t_ns - ts[i] <= MAX_EXTRAPOLATE_NS:
-            a, b = ts[i - 1], ts[i]
-        else:
-            return _pose_of(by_t[ts[i]])
-        return interpolate_pose(_pose_of(by_t[a]), _pose_of(by_t[b]), (t_ns - a) / (b - a))
+        states = [h for h in hist if h.t_ns < newest.t_ns] + [newest]  # time order
+        i = bisect.bisect_right([h.t_ns for h in states], t_ns)
+        track = PoseTrack()
+        for h in states[max(i - 2, 0) : i + 1]:
+            track.add(h.t_ns, _pose_of(h))
+        try:
+            return track.at(t_ns)
+        except PoseError:  # too far past the newest (or before the oldest) to continue
+            return _pose_of(states[min(max(i - 1, 0), len(states) - 1)])
 
     def entity(self, entity_id: int, t_ns: int | None = None, frame: str = "world") -> EntityAnswer:
         """Entity ``entity_id`` as of ``t_ns`` in ``frame`` (module docstring)."""
