@@ -396,12 +396,24 @@ def check_expectations(
 
 def check_attribute(a: Attribute, name: str, where: str) -> None:
     """Values may be NaN (not available) but not inf; variances NaN or >= 0."""
+    v = (a.observed, a.observed_var, a.estimated, a.estimated_var, a.predicted, a.predicted_var)
+    # the common case in one expression (floats, none inf, no variance below 0); NaN passes
+    # every comparison below as False, as it must
+    if (
+        all(type(x) is float for x in v)
+        and not any(x in _INF for x in v)
+        and not (v[1] < 0 or v[3] < 0 or v[5] < 0)
+    ):
+        return
     for k in ATTRIBUTE_FIELDS:
         v = getattr(a, k)
         if not isinstance(v, float | int) or math.isinf(v):
             raise KDError(f"{where}: attribute {name!r}.{k} = {v!r} is not a finite float or NaN")
         if k.endswith("_var") and v < 0:
             raise KDError(f"{where}: attribute {name!r}.{k} = {v!r} is a negative variance")
+
+
+_INF = (math.inf, -math.inf)
 
 
 def check_value(v: Value, where: str) -> None:
@@ -417,10 +429,12 @@ def check_entity(
     quat_tol: float = 1e-6,
     where: str | None = None,
     states: bool = True,
+    old: EntityFrame | None = None,
 ) -> None:
     """Refuse an entity frame with a field out of its domain; the message names the frame.
     ``states=False`` skips the state and expectations (for a change that keeps both, whose
-    states were checked when they came in: states are immutable)."""
+    states were checked when they came in: states are immutable). With ``old``, the frame it
+    replaces, attributes it kept (the same immutable objects) are not checked again."""
     where = where or f"entity {f.id} ({f.name!r})"
     if not isinstance(f.id, int | np.integer) or not (0 <= int(f.id) < 2**63):
         raise KDError(f"{where}: id {f.id!r} is not a non-negative int64")
@@ -431,7 +445,10 @@ def check_entity(
         raise KDError(f"{where}: {e}") from None
     _check_unit(f.confidence, "confidence", where)
     _check_unit(f.name_uncertainty, "name_uncertainty", where)
+    kept = old.attributes if old is not None else {}
     for name, a in f.attributes.items():
+        if kept.get(name) is a:
+            continue
         if not isinstance(a, Attribute):
             raise KDError(f"{where}: attribute {name!r} is {a!r}, not an Attribute")
         check_attribute(a, name, where)

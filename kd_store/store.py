@@ -269,7 +269,7 @@ class KnowledgeDatabase:
             raise KDError(f"{where}: {e}") from None
         # the state cannot change here and kept expectations were checked when they came in
         same = isinstance(old.expectations, tuple) and new.expectations is old.expectations
-        check_entity(new, **self._tols(), where=where, states=not same)
+        check_entity(new, **self._tols(), where=where, states=not same, old=old)
         new = _coerce(new)
         self._check_classes(new, where)
         slot = self._slot[entity_id]

@@ -305,3 +305,69 @@ def test_ground_plane_sums_give_the_reference_plane(seed, p_ground):
     assert got[1] == pytest.approx(want[1], rel=1e-6)
     np.testing.assert_allclose(got[0][:2], [0.05, -0.02], atol=0.01)  # the plane it is
     assert got[1] == pytest.approx(0.03, rel=0.2)
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("order", ["firing", "shuffled"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_deskew_kernel_gives_the_reference_points(seed, order, dtype):
+    """Sweep points moved to the world slice by slice: the compiled pass and the numpy form
+    agree (points in firing order or not, float32 or float64 input), and a point at the
+    start and one at the end of the sweep move with the first and last slice's pose."""
+    from maps.frames import interpolate_pose, rotvec_to_matrix, se3, transform_points
+    from wm.poses import PoseTrack, deskew_to_world, deskew_to_world_reference
+
+    rng = np.random.default_rng(seed)
+    track = PoseTrack()
+    T0 = se3(rotvec_to_matrix(rng.normal(0, 0.5, 3)), rng.normal(0, 100, 3))
+    T1 = T0 @ se3(rotvec_to_matrix([0, 0, 0.2]), [1.5, 0.1, 0.0])
+    track.add(0, T0)
+    track.add(100_000_000, T1)
+    T_body_sensor = se3(rotvec_to_matrix([0.0, 0.05, 0.0]), [0.3, 0.0, 1.9])
+    n = 5000
+    off = np.sort(rng.integers(0, 100_000_000, n))
+    off[0], off[-1] = 0, 99_999_999
+    if order == "shuffled":
+        off = rng.permutation(off)
+    pts = rng.uniform(-60, 60, (n, 3)).astype(dtype)
+    got = deskew_to_world(pts, off, 0, track, T_body_sensor, 8)
+    want = deskew_to_world_reference(pts, off, 0, track, T_body_sensor, 8)
+    assert got.dtype == np.float64 and got.shape == (n, 3)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    span = int(off.max())
+    for i, b in ((int(np.argmin(off)), 0), (int(np.argmax(off)), 7)):
+        T = interpolate_pose(T0, T1, (b + 0.5) / 8 * span / 100_000_000) @ T_body_sensor
+        np.testing.assert_allclose(got[i], transform_points(T, pts[i : i + 1].astype(float))[0])
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("voxel_m", [0.05, 0.5, 3.0])
+def test_voxel_thinning_gives_the_reference_points(seed, voxel_m):
+    """The first point of each voxel, found by the compiled hash, is the numpy reference's, and
+    it is KISS-ICP's down-sampling of the same points (the same set of points kept)."""
+    from kiss_icp.voxelization import voxel_down_sample
+
+    from sp.voxels import first_per_voxel, first_per_voxel_reference
+
+    rng = np.random.default_rng(seed)
+    pts = np.concatenate([rng.normal(0, 10, (4000, 3)), rng.uniform(-3, 3, (4000, 3))])
+    pts[::7] = pts[1::7][: len(pts[::7])]  # repeats: later copies are never kept
+    got = first_per_voxel(pts, voxel_m)
+    assert np.array_equal(got, first_per_voxel_reference(pts, voxel_m))
+    assert np.all(np.diff(got) > 0)
+    keys = np.floor(pts / voxel_m)
+    assert len(np.unique(keys[got], axis=0)) == len(got) == len(np.unique(keys, axis=0))
+    kiss = voxel_down_sample(pts, voxel_m)
+    assert {tuple(p) for p in np.asarray(kiss)} == {tuple(p) for p in pts[got]}
+
+
+def test_voxel_thinning_refuses_bad_input():
+    from sp.voxels import VoxelError, first_per_voxel
+
+    with pytest.raises(VoxelError, match="voxel_m must be positive, got 0"):
+        first_per_voxel(np.zeros((3, 3)), 0.0)
+    with pytest.raises(VoxelError, match=r"got shape \(3, 2\)"):
+        first_per_voxel(np.zeros((3, 2)), 1.0)
+    with pytest.raises(VoxelError, match="NaN or inf"):
+        first_per_voxel(np.array([[0.0, np.nan, 0.0]]), 1.0)
+    assert first_per_voxel(np.zeros((0, 3)), 1.0).shape == (0,)

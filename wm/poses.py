@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import bisect
 
+import numba
 import numpy as np
 
 from maps.frames import interpolate_pose, se3_inverse, transform_points
@@ -76,24 +77,58 @@ def deskew_to_world(
     bins: int,
 ) -> np.ndarray:
     """Sensor points (N, 3) of one sweep to world points (N, 3) float64, each slice of the
-    sweep moved with the body pose at the slice's middle time (``bins`` slices)."""
-    off = np.asarray(t_offset_ns)
+    sweep moved with the body pose at the slice's middle time (``bins`` slices of the span of
+    ``t_offset_ns`` (N,) ns after ``t_ns``). One compiled pass over the points
+    (:func:`deskew_to_world_reference` is its numpy form)."""
+    off = np.ascontiguousarray(t_offset_ns, dtype=np.int64)
     span = int(off.max()) if len(off) else 0
     if span <= 0 or bins <= 1:
-        return transform_points(track.at(t_ns) @ T_body_sensor, points_xyz)
-    which = np.minimum((off * bins) // (span + 1), bins - 1)
-    out = np.empty((len(points_xyz), 3), dtype=np.float64)
-    parts: list[tuple[int, slice | np.ndarray]]
-    if np.all(which[1:] >= which[:-1]):  # points in firing order (the usual): slices, no masks
-        lo = np.searchsorted(which, np.arange(bins + 1))
-        parts = [(b, slice(lo[b], lo[b + 1])) for b in range(bins) if lo[b] < lo[b + 1]]
-    else:
-        parts = [(b, which == b) for b in range(bins)]
-        parts = [(b, sel) for b, sel in parts if sel.any()]
-    for b, sel in parts:
-        t_mid = t_ns + round((b + 0.5) * span / bins)
-        out[sel] = transform_points(track.at(t_mid) @ T_body_sensor, points_xyz[sel])
+        return transform_points(track.at(t_ns) @ T_body_sensor, points_xyz).astype(np.float64)
+    T = np.stack(
+        [track.at(t_ns + round((b + 0.5) * span / bins)) @ T_body_sensor for b in range(bins)]
+    )
+    pts = np.asarray(points_xyz)
+    if pts.dtype not in (np.float32, np.float64):
+        pts = pts.astype(np.float64)
+    out = np.empty((len(pts), 3), dtype=np.float64)
+    _deskew_kernel(np.ascontiguousarray(pts), off, span, T, out)
     return out
+
+
+def deskew_to_world_reference(
+    points_xyz: np.ndarray,
+    t_offset_ns: np.ndarray,
+    t_ns: int,
+    track: PoseTrack,
+    T_body_sensor: np.ndarray,
+    bins: int,
+) -> np.ndarray:
+    """The numpy form of :func:`deskew_to_world` (same arguments, same result to rounding)."""
+    off = np.asarray(t_offset_ns, dtype=np.int64)
+    span = int(off.max()) if len(off) else 0
+    pts = np.asarray(points_xyz, dtype=np.float64)
+    if span <= 0 or bins <= 1:
+        return transform_points(track.at(t_ns) @ T_body_sensor, pts)
+    which = np.clip((off * bins) // (span + 1), 0, bins - 1)
+    out = np.empty((len(pts), 3), dtype=np.float64)
+    for b in range(bins):
+        sel = which == b
+        t_mid = t_ns + round((b + 0.5) * span / bins)
+        out[sel] = transform_points(track.at(t_mid) @ T_body_sensor, pts[sel])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _deskew_kernel(pts, off, span, T, out):  # pragma: no cover
+    """pts (N, 3) float; off (N,) int64 ns; T (bins, 4, 4) the slices' poses; out (N, 3)."""
+    bins = T.shape[0]
+    for i in range(pts.shape[0]):
+        b = min(max((off[i] * bins) // (span + 1), 0), bins - 1)
+        x = np.float64(pts[i, 0])
+        y = np.float64(pts[i, 1])
+        z = np.float64(pts[i, 2])
+        for k in range(3):
+            out[i, k] = T[b, k, 0] * x + T[b, k, 1] * y + T[b, k, 2] * z + T[b, k, 3]
 
 
 def relative(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
