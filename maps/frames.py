@@ -15,6 +15,8 @@ maps and the knowledge database can all stand on it.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 # Frame names used by the simulator, the log readers and the engine.
@@ -153,27 +155,35 @@ def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """3x3 rotation to a unit quaternion ``(x, y, z, w)`` with ``w >= 0`` (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)[:3, :3]
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    return np.array(_quat_of(R))
+
+
+def _quat_of(R: np.ndarray) -> tuple[float, float, float, float]:
+    """:func:`matrix_to_quat` in Python floats (one 3x3 is too small for numpy to pay off)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(R, dtype=np.float64)[
+        :3, :3
+    ].tolist()
+    tr = r00 + r11 + r22
     if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        w, x = 0.25 * s, (R[2, 1] - R[1, 2]) / s
-        y, z = (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        w, x = (R[2, 1] - R[1, 2]) / s, 0.25 * s
-        y, z = (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        w, x = (R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s
-        y, z = 0.25 * s, (R[1, 2] + R[2, 1]) / s
+        s = 2.0 * math.sqrt(tr + 1.0)
+        w, x = 0.25 * s, (r21 - r12) / s
+        y, z = (r02 - r20) / s, (r10 - r01) / s
+    elif r00 > r11 and r00 > r22:
+        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
+        w, x = (r21 - r12) / s, 0.25 * s
+        y, z = (r01 + r10) / s, (r02 + r20) / s
+    elif r11 > r22:
+        s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
+        w, x = (r02 - r20) / s, (r01 + r10) / s
+        y, z = 0.25 * s, (r12 + r21) / s
     else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        w, x = (R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s
-        y, z = (R[1, 2] + R[2, 1]) / s, 0.25 * s
-    q = np.array([x, y, z, w])
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+        s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
+        w, x = (r10 - r01) / s, (r02 + r20) / s
+        y, z = (r12 + r21) / s, 0.25 * s
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0:
+        n = -n
+    return x / n, y / n, z / n, w / n
 
 
 def pose_from_xyz_quat(xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
@@ -202,6 +212,8 @@ def interpolate_pose(T0: np.ndarray, T1: np.ndarray, alpha: float | np.ndarray) 
     ``alpha`` may be a scalar or an array (N,); the result is (4, 4) or (N, 4, 4).
     """
     a = np.asarray(alpha, dtype=np.float64)
+    if a.ndim == 0:
+        return _interpolate_one(T0, T1, float(a))
     q0, q1 = matrix_to_quat(T0), matrix_to_quat(T1)
     d = float(np.dot(q0, q1))
     if d < 0:
@@ -227,4 +239,33 @@ def interpolate_pose(T0: np.ndarray, T1: np.ndarray, alpha: float | np.ndarray) 
     out[:, 2, 2] = 1 - 2 * (x * x + y * y)
     out[:, :3, 3] = T0[:3, 3][None] + a.reshape(-1, 1) * (T1[:3, 3] - T0[:3, 3])[None]
     out[:, 3, 3] = 1.0
-    return out[0] if a.ndim == 0 else out
+    return out
+
+
+def _interpolate_one(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
+    """:func:`interpolate_pose` at one ``alpha``, the same arithmetic in Python floats."""
+    x0, y0, z0, w0 = _quat_of(T0)
+    x1, y1, z1, w1 = _quat_of(T1)
+    d = x0 * x1 + y0 * y1 + z0 * z1 + w0 * w1
+    if d < 0:
+        x1, y1, z1, w1, d = -x1, -y1, -z1, -w1, -d
+    if d > 0.9995:
+        x, y, z, w = (x0 + a * (x1 - x0), y0 + a * (y1 - y0), z0 + a * (z1 - z0),
+                      w0 + a * (w1 - w0))  # fmt: skip
+    else:
+        th = math.acos(d)
+        c0 = math.sin((1 - a) * th) / math.sin(th)
+        c1 = math.sin(a * th) / math.sin(th)
+        x, y, z, w = c0 * x0 + c1 * x1, c0 * y0 + c1 * y1, c0 * z0 + c1 * z1, c0 * w0 + c1 * w1
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    t0, t1 = np.asarray(T0, dtype=np.float64)[:3, 3], np.asarray(T1, dtype=np.float64)[:3, 3]
+    t = t0 + a * (t1 - t0)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), t[0]],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), t[1]],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), t[2]],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )

@@ -125,6 +125,15 @@ class EgosphereImage:
         return self._gather("intensity", self._scan.intensity.astype(np.float32), np.nan)
 
     @property
+    def scan_points(self) -> np.ndarray:
+        """(N, 3) float32 C-order: the sweep's points in the sensor frame, as
+        ``point_index`` numbers them."""
+        if "scan_points" not in self._cache:
+            pts = np.ascontiguousarray(self._scan.points_xyz, dtype=np.float32)
+            self._cache["scan_points"] = pts.reshape(-1, 3)
+        return self._cache["scan_points"]
+
+    @property
     def xyz(self) -> np.ndarray:
         return self._gather("xyz", self._scan.points_xyz.astype(np.float32), np.nan)
 

@@ -43,9 +43,11 @@ def sweep_points(
         raise ValueError(f"T_world_cols has shape {T.shape}, not (1, 4, 4) or ({W}, 4, 4)")
     out = [np.empty((H, W, 3)) for _ in range(3)]
     row_el = np.empty(H)
-    _sweep_points_kernel(
-        img.xyz, valid, np.ascontiguousarray(R_world_ladar, dtype=np.float64), T, *out, row_el
-    )
+    # the first return of a pixel read from the sweep's points through its index (no
+    # gathered (H, W, K, 3) copy of them)
+    first = np.ascontiguousarray(img.point_index[..., 0])
+    R = np.ascontiguousarray(R_world_ladar, dtype=np.float64)
+    _sweep_points_kernel(img.scan_points, first, R, T, *out, row_el)
     return out[0], out[1], out[2], row_el
 
 
@@ -73,20 +75,21 @@ def sweep_points_reference(
 
 
 @numba.njit(cache=True, nogil=True)
-def _sweep_points_kernel(xyz, valid, R, T, xyz_s, xyz_g, xyz_w, row_el):  # pragma: no cover
-    """xyz (H, W, K, 3) float32 returns; valid (H, W) bool (first return); R (3, 3); T (1 or
-    W, 4, 4); outputs as :func:`sweep_points`."""
-    H, W = valid.shape
+def _sweep_points_kernel(pts, first, R, T, xyz_s, xyz_g, xyz_w, row_el):  # pragma: no cover
+    """pts (N, 3) float32 the sweep's points; first (H, W) int32 each pixel's first return
+    (-1: none); R (3, 3); T (1 or W, 4, 4); outputs as :func:`sweep_points`."""
+    H, W = first.shape
     one = T.shape[0] == 1
     for i in range(H):
         s = 0.0
         n = 0
         for j in range(W):
             c = 0 if one else j
-            if valid[i, j]:
-                x = np.float64(xyz[i, j, 0, 0])
-                y = np.float64(xyz[i, j, 0, 1])
-                z = np.float64(xyz[i, j, 0, 2])
+            p = first[i, j]
+            if p >= 0:
+                x = np.float64(pts[p, 0])
+                y = np.float64(pts[p, 1])
+                z = np.float64(pts[p, 2])
                 s += math.atan2(z, math.hypot(x, y))
                 n += 1
             else:
