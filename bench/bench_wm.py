@@ -24,7 +24,9 @@ from wm.whatif import ControlPlan, Start, WhatIf
 from wm.whatis import WhatIs
 
 CMD = "make bench (python -m bench wm)"
-PIPELINE_SECONDS = 10.0
+# the whole default scenario (60 s, 450 m): a short log would weigh the node's start-up (the
+# decoding process, the odometry process, the kernels' first calls: about 1 s) as a tenth of it
+PIPELINE_SECONDS: float | None = None
 
 
 def _kd_with_entities(n: int = 50) -> tuple[kd_store.KnowledgeDatabase, list[int]]:
@@ -103,8 +105,8 @@ def bench_pipeline() -> None:
     print("CPU ms per sweep:", {k: round(v, 1) for k, v in rep.cpu_ms_per_sweep.items()})
     record("wm_pipeline_default_real_time_factor", rep.real_time_factor, "x real time",
            baseline="the same, odometry in-process", baseline_value=serial.real_time_factor,
-           target=f"at least 2x real time on 2 cores (median of {len(runs)} runs in a fresh "
-           "process; 64 x 1024 LADAR)", command=CMD)  # fmt: skip
+           target=f"at least 2x real time on 2 cores (the whole default scenario, median of "
+           f"{len(runs)} runs in a fresh process; 64 x 1024 LADAR)", command=CMD)  # fmt: skip
     # the main process's work per sweep (odometry runs beside it): 2x real time at 10 Hz
     # leaves it 50 ms
     record("wm_pipeline_default_main_ms_per_sweep", _main_ms(rep.stage_ms_per_sweep), "ms",
