@@ -44,11 +44,21 @@ class StateHistory:
 
     def drop(self, entity_ids: np.ndarray) -> None:
         """Forget every row of ``entity_ids``."""
-        self.chunks = [c.take(~np.isin(c.entity_id, entity_ids)) for c in self.chunks]
-        self.chunks = [c for c in self.chunks if len(c)]
+        if len(entity_ids) == 0:
+            return
+        kept = []
+        for c in self.chunks:
+            gone = np.isin(c.entity_id, entity_ids)
+            if gone.any():  # a chunk without them stays as it is (no copy)
+                c = c.take(~gone)
+            if len(c):
+                kept.append(c)
+        self.chunks = kept
 
     def rows_of(self, entity_ids: np.ndarray) -> list[StateColumns]:
         """The rows of ``entity_ids`` (any order), one list entry per non-empty chunk."""
+        if len(entity_ids) == 0:
+            return []
         out = []
         for c in self.chunks:
             m = np.isin(c.entity_id, entity_ids)

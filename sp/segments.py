@@ -24,12 +24,17 @@ the wall is not a piece of it).
 
 Edges (level 2): pixels whose range jumps by more than ``edge_jump_m`` (plus a fraction of the
 range) to a neighbour, each labelled by the object or the ground it lies on.
+
+:func:`label_objects` tests the links and joins the pixels in one compiled pass (numba, a
+union-find); :func:`label_objects_reference` is the numpy and scipy form it is tested against
+(the same labels).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -112,6 +117,327 @@ def label_objects(
     xyz: (H, W, 3) float points (any frame, metres); range_m: (H, W) range from the sensor
     (non-finite or <= 0 where there is no return); mask: (H, W) bool pixels to group (valid,
     non-ground); row_step_rad, col_step_rad: the angular spacing of rows and columns.
+
+    The links and the union-find over them are one compiled pass (:func:`_components_kernel`),
+    with the same arithmetic in the same dtypes as :func:`label_objects_reference` and the
+    components numbered as scipy's ``connected_components`` numbers them (by first
+    appearance in flat pixel order), so the labels are the reference's. Inputs the kernel is
+    not built for (xyz or range_m not float32 / float64, a non-bool mask, xyz not (H, W, 3))
+    take the reference path.
+    """
+    cfg = config or SegmentConfig()
+    H, W = mask.shape
+    if xyz.shape[:2] != (H, W) or range_m.shape != (H, W):
+        raise SegmentError(f"xyz {xyz.shape} / range {range_m.shape} do not match mask {(H, W)}")
+    floats = (np.dtype(np.float32), np.dtype(np.float64))
+    if (
+        xyz.ndim != 3
+        or xyz.shape[2] != 3
+        or xyz.dtype not in floats
+        or range_m.dtype not in floats
+        or mask.dtype != np.bool_
+    ):
+        return label_objects_reference(xyz, range_m, mask, row_step_rad, col_step_rad, cfg)
+    pts = np.ascontiguousarray(xyz)
+    rng = np.ascontiguousarray(range_m)
+    m = np.ascontiguousarray(mask)
+    R = rng.dtype
+    # the step scalars exactly as the reference forms them (Python or numpy floats), each cast
+    # to the dtype numpy computes its expression in, so the kernel's float32 / float64 scalar
+    # arithmetic is the reference's array arithmetic (a float32 range times a Python float is
+    # a float32 product; the range step's own tests are float64)
+    s01 = col_step_rad * cfg.join_per_rad
+    s02 = 2 * col_step_rad * cfg.join_per_rad
+    downs = [k * row_step_rad * cfg.join_per_rad_row for k in range(1, cfg.row_gap + 2)]
+    P01, P02, Pd = np.result_type(R, s01), np.result_type(R, s02), np.result_type(R, downs[0])
+    S1 = np.result_type(cfg.step_frac, R)
+    idx, comp, counts = _components_kernel(
+        pts,
+        rng,
+        m,
+        P01.type(s01),
+        P02.type(s02),
+        np.array(downs, dtype=Pd),
+        _cast(cfg.join_m, P01),
+        _cast(cfg.join_m, P02),
+        _cast(cfg.join_m, Pd),
+        bool(cfg.step_m > 0),
+        S1.type(cfg.step_frac),
+        _cast(cfg.step_m, S1),
+        float(cfg.step_frac),
+        float(cfg.step_m),
+        int(cfg.row_gap),
+    )
+    group, n_groups = np.arange(counts.size, dtype=np.int64), counts.size
+    if cfg.near_pixels > 0 and cfg.near_m > 0 and counts.size > 1:
+        group, n_groups = _near_groups(comp, counts, idx, pts.reshape(-1, 3), rng.reshape(-1), cfg)
+    return _keep_kernel(idx, comp, group, n_groups, cfg.min_pixels, H * W).reshape(H, W)
+
+
+def _cast(value: float, dtype: np.dtype) -> np.generic:
+    """``value`` in the dtype numpy computes ``value op x`` in for an array x of ``dtype``."""
+    return np.result_type(value, dtype).type(value)
+
+
+def _near_groups(
+    comp: np.ndarray,
+    counts: np.ndarray,
+    idx: np.ndarray,
+    points: np.ndarray,
+    range_m: np.ndarray,
+    cfg: SegmentConfig,
+) -> tuple[np.ndarray, int]:
+    """:func:`_join_near_pieces` for :func:`label_objects`: (K,) int64 group of each of the K
+    components and the number of groups, numbered by each group's smallest component (as
+    ``connected_components`` numbers them).
+
+    comp: (n,) int64 component of each grouped pixel; counts: (K,) their sizes; idx: (n,)
+    int64 the pixels' flat indices (flat order); points: (H * W, 3) float points (m);
+    range_m: (H * W,) ranges (m). The small far pixels are chosen by the reference's own
+    numpy expressions and handed to the same ``cKDTree`` in the same order, so the pairs are
+    the reference's pairs; only the graph over the components is a union-find, not scipy's.
+    """
+    from scipy.spatial import cKDTree
+
+    K = counts.size
+    small = np.flatnonzero((counts[comp] < cfg.near_pixels) & (range_m[idx] > cfg.near_min_range_m))
+    if small.size >= 2:
+        pairs = cKDTree(points[idx[small]]).query_pairs(cfg.near_m, output_type="ndarray")
+        if pairs.size:
+            return _merge_kernel(comp[small[pairs[:, 0]]], comp[small[pairs[:, 1]]], K)
+    return np.arange(K, dtype=np.int64), K
+
+
+@numba.njit(cache=True, nogil=True)
+def _find(parent, x):  # pragma: no cover
+    """Root of x, halving the path on the way (parent: (n,) int32 / int64, modified)."""
+    while parent[x] != x:
+        parent[x] = parent[parent[x]]
+        x = parent[x]
+    return x
+
+
+@numba.njit(cache=True, nogil=True)
+def _union(parent, ra, b):  # pragma: no cover
+    """Join the set of root ``ra`` and that of b; returns the joined set's root, the smaller
+    of the two (so the first pixel of a component in flat order is its root, which numbers
+    the components by first appearance)."""
+    rb = _find(parent, b)
+    if ra < rb:
+        parent[rb] = ra
+        return ra
+    parent[ra] = rb
+    return rb
+
+
+@numba.njit(cache=True, nogil=True)
+def _minimum(a, b):  # pragma: no cover
+    """np.minimum of two scalars: NaN when either is NaN."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a <= b else b
+
+
+@numba.njit(cache=True, nogil=True)
+def _maximum(a, b):  # pragma: no cover
+    """np.maximum of two scalars: NaN when either is NaN."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+@numba.njit(cache=True, nogil=True)
+def _wrap(j, W):  # pragma: no cover
+    """j mod W for a column index at most a few columns outside 0..W-1."""
+    while j >= W:
+        j -= W
+    while j < 0:
+        j += W
+    return j
+
+
+@numba.njit(cache=True, nogil=True)
+def _r64(x):  # pragma: no cover
+    """:func:`_ranges` of one range: float64, NaN where there is no return."""
+    v = np.float64(x)
+    return v if (v > 0.0 and v < np.inf) else np.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def _step_cut(rng, ia, ja, ib, jb, di, dj, sf64, sm64):  # pragma: no cover
+    """:func:`_range_step` of the one link (ia, ja) -> (ib, jb) = (ia + di, (ja + dj) mod W):
+    the same float64 differences, NaN where a side has no return or lies off the image."""
+    H, W = rng.shape
+    r_a = _r64(rng[ia, ja])
+    r_b = _r64(rng[ib, jb])
+    ip = ia - di
+    iq = ib + di
+    r_p = _r64(rng[ip, _wrap(ja - dj, W)]) if ip >= 0 else np.nan
+    r_q = _r64(rng[iq, _wrap(jb + dj, W)]) if iq < H else np.nan
+    s = r_b - r_a
+    before = r_a - r_p
+    after = r_q - r_b
+    thr = sm64 + sf64 * _minimum(r_a, r_b)
+    disc = _minimum(abs(s - before) - abs(before), abs(s - after) - abs(after))
+    cut = abs(s) > thr and disc > thr
+    if di > 0:
+        cut = cut and s < 0
+    return cut
+
+
+# inlined into the kernel: a call per link, with two arrays to pass, cost a third of its time
+@numba.njit(cache=True, nogil=True, inline="always")
+def _joined(
+    xyz, rng, ia, ja, ib, jb, di, dj, step, join_m, step_on, sf, sm, sf64, sm64
+):  # pragma: no cover
+    """The reference's link test for one pixel pair: closer than ``max(join_m, r * step)``
+    (r the nearer range) and not across a range step. The distance is formed in xyz's dtype
+    and summed x, y, z in that order (as ``np.linalg.norm`` sums), the limit in the dtypes of
+    ``step`` / ``join_m``; NaN compares false as in numpy."""
+    dx = xyz[ia, ja, 0] - xyz[ib, jb, 0]
+    dy = xyz[ia, ja, 1] - xyz[ib, jb, 1]
+    dz = xyz[ia, ja, 2] - xyz[ib, jb, 2]
+    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+    ra = rng[ia, ja]
+    rb = rng[ib, jb]
+    r = _minimum(ra, rb)
+    if not d <= _maximum(join_m, r * step):
+        return False
+    # only a link whose ranges differ by more than the step threshold can cross a step
+    if not step_on or not abs(ra - rb) > sm + sf * r:
+        return True
+    return not _step_cut(rng, ia, ja, ib, jb, di, dj, sf64, sm64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _components_kernel(
+    xyz, rng, mask, s01, s02, downs, jm01, jm02, jmd, step_on, sf, sm, sf64, sm64, row_gap
+):  # pragma: no cover
+    """The links of :func:`label_objects_reference` and their connected components.
+
+    xyz (H, W, 3), rng (H, W) float32 or float64; mask (H, W) bool; s01, s02: the row-link
+    steps (next, next-but-one pixel); downs (row_gap + 1,): the column-link steps k = 1..
+    rows down; jm*: join_m for each; step_on, sf, sm: the range-step prefilter (``step_m > 0``,
+    step_frac, step_m in the range's dtype); sf64, sm64: the same in float64 for
+    :func:`_step_cut`. Returns idx (n,) int64 the flat indices of the n mask pixels in flat
+    order, comp (n,) int64 the component of each (0..K-1 by first appearance in flat order,
+    as ``connected_components`` numbers the reference's compacted graph) and counts (K,)
+    int64 their sizes.
+    """
+    H, W = mask.shape
+    # the union-find runs on the compacted mask pixels (pos: flat index -> compact index),
+    # a small array that stays in cache, not on every pixel of the image
+    pos = np.empty(H * W, dtype=np.int32)
+    idx = np.empty(H * W, dtype=np.int64)
+    n = 0
+    for i in range(H):
+        for j in range(W):
+            if mask[i, j]:
+                pos[i * W + j] = n
+                idx[n] = i * W + j
+                n += 1
+    parent = np.arange(n, dtype=np.int32)
+    for i in range(H):
+        for j in range(W):
+            if not mask[i, j]:
+                continue
+            # the root of this pixel's set, kept through its unions (one find per link)
+            root = _find(parent, pos[i * W + j])
+            # azimuth wraps (a subtraction, not an integer division per pixel)
+            j1 = _wrap(j + 1, W)
+            if mask[i, j1] and _joined(
+                xyz, rng, i, j, i, j1, 0, 1, s01, jm01, step_on, sf, sm, sf64, sm64
+            ):
+                root = _union(parent, root, pos[i * W + j1])
+            j2 = _wrap(j + 2, W)
+            if mask[i, j2] and _joined(
+                xyz, rng, i, j, i, j2, 0, 2, s02, jm02, step_on, sf, sm, sf64, sm64
+            ):
+                root = _union(parent, root, pos[i * W + j2])
+            # down the column: the next row, then the rows after it while those between
+            # hold no return (the reference's ``empty``: no finite range > 0)
+            for k in range(1, row_gap + 2):
+                ib = i + k
+                if ib >= H:
+                    break
+                if k >= 2:
+                    r_mid = rng[ib - 1, j]
+                    if r_mid > 0 and r_mid < np.inf:
+                        break
+                if mask[ib, j] and _joined(
+                    xyz, rng, i, j, ib, j, k, 0, downs[k - 1], jmd, step_on, sf, sm, sf64, sm64
+                ):
+                    root = _union(parent, root, pos[ib * W + j])
+    comp = np.empty(n, dtype=np.int64)
+    counts = np.zeros(n, dtype=np.int64)
+    K = 0
+    for p in range(n):
+        r = _find(parent, p)
+        # a component's root is its first pixel in flat order, numbered when it is met
+        if r == p:
+            comp[p] = K
+            K += 1
+        else:
+            comp[p] = comp[r]
+        counts[comp[p]] += 1
+    return idx[:n], comp, counts[:K]
+
+
+@numba.njit(cache=True, nogil=True)
+def _merge_kernel(ca, cb, K):  # pragma: no cover
+    """Components ca[k] and cb[k] ((m,) int64) are one: (K,) int64 group of each component,
+    numbered by its smallest component (as ``connected_components`` numbers a graph's
+    components), and the number of groups."""
+    parent = np.arange(K)
+    for k in range(ca.size):
+        _union(parent, _find(parent, ca[k]), cb[k])
+    group = np.empty(K, dtype=np.int64)
+    n = 0
+    for c in range(K):
+        r = _find(parent, c)
+        if r == c:
+            group[c] = n
+            n += 1
+        else:
+            group[c] = group[r]
+    return group, n
+
+
+@numba.njit(cache=True, nogil=True)
+def _keep_kernel(idx, comp, group, n_groups, min_pixels, size):  # pragma: no cover
+    """(size,) int64 labels: the groups of at least ``min_pixels`` pixels numbered 0..K-1 in
+    group order, -1 elsewhere. idx (n,) int64 flat index and comp (n,) int64 component of
+    each grouped pixel; group (K,) int64 the group of each component."""
+    counts = np.zeros(n_groups, dtype=np.int64)
+    for p in range(comp.size):
+        counts[group[comp[p]]] += 1
+    new_id = np.full(n_groups, -1, dtype=np.int64)
+    k = 0
+    for g in range(n_groups):
+        if counts[g] >= min_pixels:
+            new_id[g] = k
+            k += 1
+    labels = np.full(size, -1, dtype=np.int64)
+    for p in range(comp.size):
+        labels[idx[p]] = new_id[group[comp[p]]]
+    return labels
+
+
+def label_objects_reference(
+    xyz: np.ndarray,
+    range_m: np.ndarray,
+    mask: np.ndarray,
+    row_step_rad: float,
+    col_step_rad: float,
+    config: SegmentConfig | None = None,
+) -> np.ndarray:
+    """:func:`label_objects` in numpy and scipy (the reference the compiled kernel is tested
+    against; same arguments, same labels): the links of each kind in arrays, the components
+    by ``scipy.sparse.csgraph.connected_components``.
     """
     cfg = config or SegmentConfig()
     H, W = mask.shape

@@ -19,6 +19,7 @@ import open3d as o3d  # ray casting; imported with the module, not inside the fi
 
 import kd_store
 from kd_store import Level, State, Status
+from kd_store.covariance import FLAT_UP
 from maps.frames import se3_inverse, transform_points
 from maps.level import MapLevel
 from sp.logs.types import LadarScan
@@ -61,27 +62,39 @@ def expect_entities(
             if f.expectations:  # it stopped: last cycle's queue came from an old velocity
                 kd.expect(f.id, [])
             continue
-        kd.expect(f.id, [propagate(s, dt) for dt in steps_s])
+        kd.expect(f.id, propagate_many(s, steps_s))
         out.append(f.id)
     return out
 
 
+_Q_DIAG = np.array([Q_POS_M2_PER_S] * 3 + [Q_VEL_M2S2_PER_S] * 3)
+
+
 def propagate(s: State, dt_s: float) -> State:
     """The state ``dt_s`` seconds on at constant velocity, covariance grown (module docstring)."""
-    F = np.eye(6)
-    F[:3, 3:] = np.eye(3) * dt_s
-    Q = np.diag([Q_POS_M2_PER_S] * 3 + [Q_VEL_M2S2_PER_S] * 3) * abs(dt_s)
-    P = F @ s.covariance @ F.T + Q
-    P = 0.5 * (P + P.T)
-    return State(
-        s.t_ns + round(dt_s * 1e9),
-        s.frame,
-        s.position_xyz + dt_s * s.velocity_xyz,
-        s.orientation_xyzw,
-        s.velocity_xyz,
-        P,
-        s.orientation_var_rpy,
-    )
+    return propagate_many(s, (dt_s,))[0]
+
+
+def propagate_many(s: State, steps_s: tuple[float, ...] | list[float]) -> list[State]:
+    """:func:`propagate` to each of ``steps_s`` (s) at once: ``x* = F x``, ``P* = F P F^T +
+    Q |dt|`` for every step in one batch of (K, 6, 6) products."""
+    dt = np.asarray(steps_s, dtype=np.float64).reshape(-1)
+    F = np.broadcast_to(np.eye(6), (dt.size, 6, 6)).copy()
+    F[:, 0, 3] = F[:, 1, 4] = F[:, 2, 5] = dt
+    P = F @ s.covariance @ F.transpose(0, 2, 1)
+    P[:, np.arange(6), np.arange(6)] += _Q_DIAG * np.abs(dt)[:, None]
+    P = 0.5 * (P + P.transpose(0, 2, 1))
+    # each state's (34,) vector as State lays it out (position, quaternion, velocity, packed
+    # covariance, var_rpy): P is symmetric by construction, and the KD checks the queue
+    V = np.empty((dt.size, 34))
+    V[:, 0:3] = s.position_xyz + dt[:, None] * s.velocity_xyz
+    V[:, 3:7] = s.orientation_xyzw
+    V[:, 7:10] = s.velocity_xyz
+    V[:, 10:31] = P.reshape(dt.size, 36)[:, FLAT_UP]
+    V[:, 31:34] = s.orientation_var_rpy
+    return [
+        State.from_vector(s.t_ns + round(float(d) * 1e9), s.frame, V[k]) for k, d in enumerate(dt)
+    ]
 
 
 # --- predicted range image ---------------------------------------------------------------------

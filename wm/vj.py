@@ -60,15 +60,22 @@ def cost_window(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) 
     min(1, sqrt(elevation_var) / sigma_ref_m)``; ``w_unknown`` where the elevation is unknown;
     plus, where SP labelled the cell with an entity, that entity's cost (its own value, else its
     class value) times :func:`confidence` in it, so denied or gone entities add nothing."""
-    elev = level.window("elevation")
+    cost = _cost(level, kd, cfg)
+    shift = (-int(level.origin_cell[1] % level.size), -int(level.origin_cell[0] % level.size))
+    return np.roll(cost, shift, axis=(0, 1))
+
+
+def _cost(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) -> np.ndarray:
+    """:func:`cost_window` in the level's storage order (per cell, so no window is unrolled)."""
+    elev = level.storage("elevation")
     unknown = ~np.isfinite(elev)
-    trav = np.nan_to_num(level.window("traversability"), nan=0.0)
-    sigma = np.sqrt(np.nan_to_num(level.window("elevation_var"), nan=cfg.sigma_ref_m**2))
+    trav = np.nan_to_num(level.storage("traversability"), nan=0.0)
+    sigma = np.sqrt(np.nan_to_num(level.storage("elevation_var"), nan=cfg.sigma_ref_m**2))
     cost = cfg.w_traversability * (1.0 - trav) + cfg.w_uncertainty * np.minimum(
         1.0, sigma / cfg.sigma_ref_m
     )
     cost[unknown] = cfg.w_unknown
-    ids = level.window("entity_id")
+    ids = level.storage("entity_id")
     labelled = ids >= 0
     if labelled.any():
         u, inv = np.unique(ids[labelled], return_inverse=True)
@@ -88,7 +95,7 @@ def _entity_cost(kd: kd_store.KnowledgeDatabase, entity_id: int) -> float:
 
 def write_cost_layer(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) -> None:
     """Write :func:`cost_window` into the level's ``cost`` layer."""
-    level.set_window("cost", cost_window(level, kd, cfg))
+    level.storage("cost")[...] = _cost(level, kd, cfg)
 
 
 # --- attention ---------------------------------------------------------------------------------
