@@ -747,10 +747,15 @@ def fuse_labels(
     if class_id is not None and np.shape(class_id) != ent.shape:
         raise FusionError(f"class_id shape {np.shape(class_id)} differs from {ent.shape}")
     keep = np.isfinite(pts).all(axis=1) & (ent >= 0)
-    level.write("entity_id", pts[keep], ent[keep])
+    # the points' cells once for both layers (MapLevel.write's own steps)
+    rows, cols, inside = level.world_to_window(pts[keep, :2])
+    srow, scol = level.window_to_storage(rows[inside], cols[inside])
+    layer = level.storage("entity_id")
+    layer[srow, scol] = ent[keep][inside].astype(layer.dtype, copy=False)
     if class_id is not None:
-        level.write("class_id", pts[keep], np.asarray(class_id)[keep])
-    return int(np.count_nonzero(keep & level.contains(pts)))
+        layer = level.storage("class_id")
+        layer[srow, scol] = np.asarray(class_id)[keep][inside].astype(layer.dtype, copy=False)
+    return int(np.count_nonzero(inside))
 
 
 def labels_from_entity_image(
