@@ -14,10 +14,18 @@ lowest ground of its cell and its neighbours is not ground; a return close to it
 
 Heights are in a gravity-aligned frame centred on the sensor (``R_world_sensor`` rotates the
 sensor frame's points; z up, metres).
+
+:func:`ground_mask` runs on every sweep: one compiled call gathers the valid pixels (their
+coordinates, horizontal ranges, each column's lowest return), takes the sensor height and walks
+the columns; numpy gives the azimuths (its arctan2, to the bit); a second compiled call refines.
+Only the valid pixels are read and stored (no image-sized float copies).
+:func:`ground_mask_reference` is the numpy form it is tested against (the same mask and the
+same height, bit for bit).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numba
@@ -71,15 +79,23 @@ def estimate_sensor_height(z_m: np.ndarray, valid: np.ndarray, config: GroundCon
     """Height of the sensor above the ground (m) from the lowest return of every column:
     their median, kept within ``height_search_m`` of the prior. z_m, valid: (H, W)."""
     has = valid.any(axis=0)
-    if not has.any():
+    if not has.any():  # also spares argmax an image without rows
         return config.sensor_height_m
     lowest_row = valid.shape[0] - 1 - np.argmax(valid[::-1], axis=0)
     cols = np.flatnonzero(has)
-    z_low = z_m[lowest_row[cols], cols]
+    return _height_from_lowest(z_m[lowest_row[cols], cols], config)
+
+
+def _height_from_lowest(z_low: np.ndarray, config: GroundConfig) -> float:
+    """:func:`estimate_sensor_height` from ``z_low`` (C,) float64 m, the lowest return's
+    height of every column that has one (any order: only their median counts). The numpy
+    form of :func:`_median_height`."""
+    if z_low.size == 0:
+        return config.sensor_height_m
     h = -float(np.median(z_low))
     lo, hi = (
         config.sensor_height_m - config.height_search_m,
-        config.sensor_height_m + (config.height_search_m),
+        config.sensor_height_m + config.height_search_m,
     )
     return float(np.clip(h, lo, hi))
 
@@ -91,13 +107,24 @@ def column_walk(
 
     r_m: (H, W) horizontal range from the sensor, z_m: (H, W) height relative to the sensor
     (gravity-aligned), valid: (H, W) bool; row 0 is the highest elevation. One compiled pass
-    (:func:`_column_walk_kernel`); :func:`column_walk_reference` is the same rule in numpy.
+    over the valid pixels (:func:`_column_walk_kernel`); :func:`column_walk_reference` is the
+    same rule in numpy.
     """
-    return _column_walk_kernel(
-        np.ascontiguousarray(r_m, dtype=np.float64),
-        np.ascontiguousarray(z_m, dtype=np.float64),
-        np.ascontiguousarray(valid, dtype=np.bool_),
+    ok = np.ascontiguousarray(valid, dtype=np.bool_)
+    ground_v = _column_walk_kernel(
+        np.asarray(r_m, dtype=np.float64)[ok],
+        np.asarray(z_m, dtype=np.float64)[ok],
+        ok,
         float(height_m),
+        *_walk_params(config),
+    )
+    return _to_image(ok, ground_v)
+
+
+def _walk_params(config: GroundConfig) -> tuple[float, float, float, float, float, float]:
+    """The scalars of :func:`_column_walk_kernel` after ``height_m``: tangents of the slopes,
+    tolerances and gaps (m)."""
+    return (
         float(np.tan(np.deg2rad(config.max_slope_deg))),
         float(np.tan(np.deg2rad(config.resume_slope_deg))),
         float(config.start_tol_m),
@@ -108,21 +135,67 @@ def column_walk(
 
 
 @numba.njit(cache=True, nogil=True)
-def _column_walk_kernel(r_m, z_m, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m):
+def _to_image(valid, values):  # pragma: no cover
+    """(H, W) bool image of ``values`` (N,) bool, one per valid pixel in row-major order
+    (``valid`` (H, W) bool C-contiguous with N true pixels); False elsewhere."""
+    H, W = valid.shape
+    out = np.zeros((H, W), dtype=np.bool_)
+    n = values.shape[0]
+    if n == 0:
+        return out
+    out_f = out.reshape(-1)
+    valid_f = valid.reshape(-1)
+    # no branch on the pixel: write every one, step k at the valid ones (clamped, so the
+    # pixels after the last valid one read a value they then mask off)
+    k = 0
+    for p in range(H * W):
+        v = valid_f[p]
+        out_f[p] = v & values[min(k, n - 1)]
+        k += v
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_starts(valid):  # pragma: no cover
+    """(H + 1,) int64: where each row's valid pixels start among all valid pixels in row-major
+    order (the last entry their number). valid: (H, W) bool."""
+    H, W = valid.shape
+    start = np.empty(H + 1, dtype=np.int64)
+    n = 0
+    for i in range(H):
+        start[i] = n
+        for j in range(W):
+            n += valid[i, j]
+    start[H] = n
+    return start
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_walk_kernel(  # pragma: no cover
+    r_valid, z_valid, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m
+):
     """:func:`column_walk_reference` row by row, every column's walk state in scalars of
-    arrays (W,): the same comparisons on the same float64 values, so the same mask."""
-    H, W = r_m.shape
-    ground = np.zeros((H, W), dtype=np.bool_)
+    arrays (W,): the same comparisons on the same float64 values, so the same mask.
+
+    r_valid, z_valid: (N,) float64 m, the valid pixels' range and height in row-major order
+    (only they are read, so the image-sized arrays need not exist); valid: (H, W) bool
+    C-contiguous. Returns the mask at the valid pixels, (N,) bool in their order (what
+    :func:`_refine_kernel` reads; :func:`_to_image` makes the image of it).
+    """
+    H, W = valid.shape
+    row_start = _row_starts(valid)
+    ground_valid = np.empty(r_valid.shape[0], dtype=np.bool_)
     last_r = np.zeros(W)
     last_z = np.full(W, -height_m)
     have = np.zeros(W, dtype=np.bool_)
     prev_r = np.zeros(W)
     prev_ground = np.ones(W, dtype=np.bool_)
     for i in range(H - 1, -1, -1):
+        k = row_start[i]
         for j in range(W):
             if not valid[i, j]:
                 continue
-            r, z = r_m[i, j], z_m[i, j]
+            r, z = r_valid[k], z_valid[k]
             if not have[j]:
                 g = abs(z + height_m) <= start_tol + tan_s * r
             else:
@@ -140,13 +213,14 @@ def _column_walk_kernel(r_m, z_m, valid, height_m, tan_s, tan_r, start_tol, step
                         )
                     )
                 )
-            ground[i, j] = g
+            ground_valid[k] = g
+            k += 1
             if g:
                 last_r[j], last_z[j] = r, z
                 have[j] = True
             prev_r[j] = r
             prev_ground[j] = g
-    return ground
+    return ground_valid
 
 
 def column_walk_reference(
@@ -199,18 +273,30 @@ def refine(
 ) -> np.ndarray:
     """Second pass on a polar grid: the lowest ground return of each cell and its 8
     neighbours is the local ground height; returns far above it are not ground, returns close
-    to it are. Inputs (H, W) float64 in the gravity-aligned sensor-centred frame (``r_m`` the
-    horizontal range, if the caller has it); returns (H, W) bool. Ranges and azimuths by
-    numpy, the rest in one compiled kernel (:func:`_refine_kernel`); the same mask as
-    :func:`refine_reference`."""
+    to it are. Inputs (H, W) float in the gravity-aligned sensor-centred frame (m; ``r_m`` the
+    horizontal range, if the caller has it); returns (H, W) bool. Ranges and the valid pixels'
+    azimuths by numpy, the rest in one compiled kernel (:func:`_refine_kernel`); the same mask
+    as :func:`refine_reference`."""
+    ok = np.ascontiguousarray(valid, dtype=np.bool_)
     r = np.hypot(x_m, y_m) if r_m is None else r_m
-    azimuth = np.arctan2(y_m, x_m)
+    # only the valid pixels take part (an invalid pixel's cell is never used); numpy's
+    # arctan2, as the reference: a compiled atan2 differs from it in the last bit
+    r_v = np.asarray(r, dtype=np.float64)[ok]
     return _refine_kernel(
-        np.ascontiguousarray(r, dtype=np.float64),
-        np.ascontiguousarray(azimuth, dtype=np.float64),
-        np.ascontiguousarray(z_m, dtype=np.float64),
-        np.ascontiguousarray(valid, dtype=np.bool_),
-        np.ascontiguousarray(ground, dtype=np.bool_),
+        r_v,
+        np.arctan2(y_m[ok], x_m[ok]).astype(np.float64),
+        np.asarray(z_m, dtype=np.float64)[ok],
+        np.asarray(ground, dtype=np.bool_)[ok],
+        ok,
+        np.empty(r_v.size, dtype=np.int64),
+        *_refine_params(config),
+    )
+
+
+def _refine_params(config: GroundConfig) -> tuple[float, int, float, float, float]:
+    """The scalars of :func:`_refine_kernel`: cell length (m), sectors, the limits above the
+    local and the cell's own lowest ground, and the band around it (m)."""
+    return (
         float(config.cell_m),
         int(config.n_sectors),
         float(config.refine_above_m + config.cell_m * np.tan(0.25)),
@@ -220,7 +306,7 @@ def refine(
 
 
 @numba.njit(cache=True, nogil=True)
-def _nan_min(a, b):
+def _nan_min(a, b):  # pragma: no cover
     """``np.minimum`` of two floats: NaN if either is."""
     if a != a or b != b:
         return np.nan
@@ -228,48 +314,82 @@ def _nan_min(a, b):
 
 
 @numba.njit(cache=True, nogil=True)
-def _refine_kernel(r_m, azimuth, z_m, valid, ground, cell_m, n_sectors, above_local_m,
-                   above_own_m, within_m):  # fmt: skip
+def _refine_kernel(  # pragma: no cover
+    r_valid, az_valid, z_valid, ground_valid, valid, cell, cell_m, n_sectors, above_local_m,
+    above_own_m, within_m,
+):  # fmt: skip
     """:func:`refine_reference` with its cell indices, lowest-ground scatter, 3x3 minimum
-    (azimuth wraps) and tests in loops over the pixels and cells."""
-    H, W = r_m.shape
-    cell = np.zeros((H, W), dtype=np.int64)
+    (azimuth wraps) and tests in loops over the valid pixels and the cells.
+
+    r_valid, az_valid, z_valid: (N,) float64, the valid pixels' range (m), azimuth (rad) and
+    height (m) in row-major order; ground_valid: (N,) bool, their ground mask; valid: (H, W)
+    bool C-contiguous with N true pixels; cell: (N,) int64 scratch (overwritten: the caller
+    may lend a buffer it no longer needs). Returns (H, W) bool.
+
+    The minima are taken in another order than the reference's, so a zero may differ in sign;
+    none of the tests below tells -0.0 from 0.0, so the mask is the same.
+    """
+    n = r_valid.shape[0]
+    # the cells, by the expressions of refine_reference (so the same integers)
     n_ring = 1
-    for i in range(H):
-        for j in range(W):
-            ring = min(np.int64(r_m[i, j] / cell_m), 4095)
-            sector = np.int64((azimuth[i, j] + np.pi) * (n_sectors / (2 * np.pi)))
-            sector = min(max(sector, 0), n_sectors - 1)
-            cell[i, j] = ring * n_sectors + sector
-            if valid[i, j] and ring + 1 > n_ring:
-                n_ring = ring + 1
-    low = np.full(n_ring * n_sectors, np.inf)
-    for i in range(H):
-        for j in range(W):
-            if valid[i, j] and ground[i, j]:
-                c = cell[i, j]
-                low[c] = _nan_min(low[c], z_m[i, j])
-    local = np.full(n_ring * n_sectors, np.inf)
+    for k in range(n):
+        ring = min(np.int64(r_valid[k] / cell_m), 4095)
+        sector = np.int64((az_valid[k] + np.pi) * (n_sectors / (2 * np.pi)))
+        cell[k] = ring * n_sectors + min(max(sector, 0), n_sectors - 1)
+        n_ring = max(n_ring, ring + 1)
+    n_cells = n_ring * n_sectors
+    # lowest ground per cell; neighbouring pixels mostly share a cell, so a run's minimum is
+    # kept in a register and stored when the cell changes (no load waiting on a store)
+    low = np.full(n_cells, np.inf)
+    run_c = -1
+    run = np.inf
+    for k in range(n):
+        if ground_valid[k]:
+            c = cell[k]
+            if c != run_c:
+                if run_c >= 0:
+                    low[run_c] = _nan_min(low[run_c], run)
+                run_c, run = c, z_valid[k]
+            else:
+                run = _nan_min(run, z_valid[k])
+    if run_c >= 0:
+        low[run_c] = _nan_min(low[run_c], run)
+    # the 3x3 minimum as a 3-sector minimum (wrapping) then a 3-ring one: the same values
+    # (NaN if any of the nine is), a third of the comparisons; the ring pass in place, the
+    # previous ring's sector minima kept aside
+    local = np.empty(n_cells)
     for a in range(n_ring):
+        base = a * n_sectors
         for b in range(n_sectors):
-            m = np.inf
-            for da in range(a - 1, a + 2):
-                if 0 <= da < n_ring:
-                    for db in (b - 1, b, b + 1):
-                        m = _nan_min(m, low[da * n_sectors + db % n_sectors])
-            local[a * n_sectors + b] = m
-    out = np.zeros((H, W), dtype=np.bool_)
-    for i in range(H):
-        for j in range(W):
-            if not valid[i, j]:
-                continue
-            c = cell[i, j]
-            own = low[c] if np.isfinite(low[c]) else local[c]
-            z = z_m[i, j]
-            keep = ground[i, j] and not (z - local[c] > above_local_m)
-            keep = keep and not (z - own > above_own_m)
-            out[i, j] = keep or (abs(z - own) <= within_m and np.isfinite(own))
-    return out
+            bl = b - 1 if b > 0 else n_sectors - 1
+            br = b + 1 if b < n_sectors - 1 else 0
+            local[base + b] = _nan_min(_nan_min(low[base + bl], low[base + b]), low[base + br])
+    prev = np.empty(n_sectors)
+    cur = np.empty(n_sectors)
+    for a in range(n_ring):
+        base = a * n_sectors
+        cur[:] = local[base : base + n_sectors]
+        for b in range(n_sectors):
+            m = cur[b]
+            if a > 0:
+                m = _nan_min(m, prev[b])
+            if a + 1 < n_ring:
+                m = _nan_min(m, local[base + n_sectors + b])
+            local[base + b] = m
+        prev, cur = cur, prev
+    # from here ``low`` holds each cell's own lowest where it has one, else the local one
+    for c in range(n_cells):
+        if not np.isfinite(low[c]):
+            low[c] = local[c]
+    # the tests with bitwise & and | (no branches on the data)
+    res = np.empty(n, dtype=np.bool_)
+    for k in range(n):
+        c = cell[k]
+        z = z_valid[k]
+        o = low[c]
+        keep = ground_valid[k] & (not (z - local[c] > above_local_m)) & (not (z - o > above_own_m))
+        res[k] = keep | ((abs(z - o) <= within_m) & np.isfinite(o))
+    return _to_image(valid, res)
 
 
 def refine_reference(
@@ -315,9 +435,128 @@ def ground_mask(
 ) -> tuple[np.ndarray, float]:
     """Ground pixels of an egosphere image and the sensor height used.
 
-    xyz_g: (H, W, 3) float points in the gravity-aligned frame centred on the sensor (NaN where
-    empty); valid: (H, W) bool. Returns ((H, W) bool ground mask, sensor height m).
+    xyz_g: (H, W, 3) float points in the gravity-aligned frame centred on the sensor (m; NaN
+    or anything where empty, as only valid pixels are read); valid: (H, W) bool. Returns
+    ((H, W) bool ground mask, sensor height m): those of :func:`ground_mask_reference`.
     """
+    cfg = config or GroundConfig()
+    if xyz_g.ndim != 3 or xyz_g.shape[2] != 3 or xyz_g.shape[:2] != valid.shape:
+        raise GroundError(f"xyz_g shape {xyz_g.shape} does not match valid {valid.shape}")
+    # no-ops for the pipeline's images (C-contiguous float64 and bool)
+    xyz = np.ascontiguousarray(xyz_g, dtype=np.float64)
+    ok = np.ascontiguousarray(valid, dtype=np.bool_)
+    # one compiled call up to the walk (each return from a nogil kernel waits for the GIL,
+    # which the pipeline's log-decoding thread may hold)
+    x_v, y_v, z_v, r_v, ground_v, h = _prepare_walk_kernel(
+        xyz,
+        ok,
+        float(cfg.sensor_height_m),
+        float(cfg.sensor_height_m - cfg.height_search_m),
+        float(cfg.sensor_height_m + cfg.height_search_m),
+        *_walk_params(cfg),
+    )
+    if not (cfg.refine and r_v.size):
+        return _to_image(ok, ground_v), h
+    # numpy's arctan2, as the reference (on AVX-512 a SIMD routine that libm's atan2, the
+    # compiled one, differs from in the last bit), on contiguous (N,) arrays. Fresh memory
+    # costs page faults on every sweep, so the azimuths go into x's buffer and the cells
+    # into y's, neither needed any more
+    azimuth = np.arctan2(y_v, x_v, out=x_v)
+    cells = y_v.view(np.int64)
+    return _refine_kernel(r_v, azimuth, z_v, ground_v, ok, cells, *_refine_params(cfg)), h
+
+
+@numba.njit(cache=True, nogil=True)
+def _prepare_walk_kernel(  # pragma: no cover
+    xyz, valid, prior_m, lo_m, hi_m, tan_s, tan_r, start_tol, step, gap, gap_per_m
+):
+    """:func:`_prepare_kernel`, the sensor height (:func:`_median_height`) and the column walk
+    (:func:`_column_walk_kernel`) in one call. Returns ``x_v, y_v, z_v, r_v`` as
+    :func:`_prepare_kernel`, the ground mask of the valid pixels (N,) bool and the height m."""
+    x_v, y_v, z_v, r_v, z_low = _prepare_kernel(xyz, valid)
+    h = _median_height(z_low, prior_m, lo_m, hi_m)
+    ground_v = _column_walk_kernel(
+        r_v, z_v, valid, h, tan_s, tan_r, start_tol, step, gap, gap_per_m
+    )
+    return x_v, y_v, z_v, r_v, ground_v, h
+
+
+@numba.njit(cache=True, nogil=True)
+def _median_height(z_low, prior_m, lo_m, hi_m):  # pragma: no cover
+    """:func:`_height_from_lowest` compiled, to the bit: minus the median of ``z_low`` (C,)
+    float64 m, clipped to [lo_m, hi_m]; ``prior_m`` when C is 0.
+
+    numpy's median is the mean of the middle one or two order statistics, a sum that starts
+    from +0.0 (so ``(0.0 + a) + b``, never -0.0) divided by their count; its clip keeps the
+    value on a tie with a bound. Both written out here (numba's own median gives -0.0 for
+    a median of -0.0, numpy's +0.0).
+    """
+    n = z_low.size
+    if n == 0:
+        return prior_m
+    for z in z_low:
+        if np.isnan(z):  # numpy's median is NaN then
+            return np.nan
+    part = np.partition(z_low, n // 2)
+    upper = part[n // 2]
+    if n % 2:
+        median = (0.0 + upper) / 1.0
+    else:  # the next lower order statistic: the largest left of the partition point
+        lower = part[: n // 2].max()
+        median = ((0.0 + lower) + upper) / 2.0
+    h = -median
+    h = lo_m if lo_m > h else h
+    return hi_m if hi_m < h else h
+
+
+@numba.njit(cache=True, nogil=True)
+def _prepare_kernel(xyz, valid):  # pragma: no cover
+    """The inputs of the ground kernels in one pass over the image.
+
+    xyz: (H, W, 3) float64 C-contiguous, m; valid: (H, W) bool C-contiguous. Returns ``x_v,
+    y_v, z_v, r_v`` (N,) float64 m, the valid pixels' coordinates and horizontal range
+    ``hypot(x, y)`` in row-major order (only they are ever read: no image-sized copies), and
+    ``z_low`` (C,) float64 m, the height of the lowest valid return (largest row) of every
+    column that has one, in column order.
+    """
+    H, W = valid.shape
+    n = _row_starts(valid)[H]
+    x_v = np.empty(n)
+    y_v = np.empty(n)
+    z_v = np.empty(n)
+    r_v = np.empty(n)
+    z_col = np.empty(W)
+    has = np.zeros(W, dtype=np.bool_)
+    k = 0
+    for i in range(H):
+        for j in range(W):
+            if not valid[i, j]:
+                continue
+            x, y, z = xyz[i, j, 0], xyz[i, j, 1], xyz[i, j, 2]
+            x_v[k] = x
+            y_v[k] = y
+            z_v[k] = z
+            # libm's hypot, which numpy's is too (bit for bit)
+            r_v[k] = math.hypot(x, y)
+            k += 1
+            # rows run downwards in elevation: a column's last valid row is its lowest
+            z_col[j] = z
+            has[j] = True
+    z_low = np.empty(W)
+    m = 0
+    for j in range(W):
+        if has[j]:
+            z_low[m] = z_col[j]
+            m += 1
+    return x_v, y_v, z_v, r_v, z_low[:m]
+
+
+def ground_mask_reference(
+    xyz_g: np.ndarray, valid: np.ndarray, config: GroundConfig | None = None
+) -> tuple[np.ndarray, float]:
+    """:func:`ground_mask` in plain numpy: zero-filled coordinates, :func:`np.hypot`,
+    :func:`estimate_sensor_height`, :func:`column_walk_reference` and
+    :func:`refine_reference` (the reference the compiled path is tested against)."""
     cfg = config or GroundConfig()
     if xyz_g.ndim != 3 or xyz_g.shape[2] != 3 or xyz_g.shape[:2] != valid.shape:
         raise GroundError(f"xyz_g shape {xyz_g.shape} does not match valid {valid.shape}")
@@ -326,7 +565,7 @@ def ground_mask(
     z = np.where(valid, xyz_g[..., 2], 0.0).astype(np.float64)
     r = np.hypot(x, y)
     h = estimate_sensor_height(z, valid, cfg)
-    ground = column_walk(r, z, valid, h, cfg)
+    ground = column_walk_reference(r, z, valid, h, cfg)
     if cfg.refine and valid.any():
-        ground = refine(x, y, z, valid, ground, cfg, r_m=r)
+        ground = refine_reference(x, y, z, valid, ground, cfg)
     return ground, h

@@ -643,24 +643,15 @@ def _root(parent: np.ndarray, k: int) -> int:
     return k
 
 
-def range_edges(range_m: np.ndarray, valid: np.ndarray, config: SegmentConfig | None = None):
+def range_edges(
+    range_m: np.ndarray, valid: np.ndarray, config: SegmentConfig | None = None
+) -> np.ndarray:
     """Level-2 edge pixels: (H, W) bool where the range jumps to a right or lower neighbour
-    (the nearer side of the jump is the edge: it is the occluding boundary)."""
+    (the nearer side of the jump is the edge: it is the occluding boundary); ``range_m``
+    (H, W) metres, ``valid`` (H, W) bool, jumps of ``edge_jump_m + edge_jump_frac * range``.
+    A compiled pass (:func:`sp.lists.range_jump_edges`, with the level-2 primitives);
+    :func:`sp.lists.range_jump_edges_reference` is the numpy form it equals."""
+    from sp.lists import range_jump_edges  # sp.lists does not import this module: no cycle
+
     cfg = config or SegmentConfig()
-    r = np.where(valid, range_m, np.inf)
-    edge = np.zeros(valid.shape, dtype=bool)
-    for axis in (0, 1):
-        nxt = np.roll(r, -1, axis=axis)
-        if axis == 0:
-            nxt[-1] = r[-1]  # the image's bottom border is no edge
-        lo = np.minimum(r, nxt)
-        with np.errstate(invalid="ignore"):
-            jump = np.abs(r - nxt) > cfg.edge_jump_m + cfg.edge_jump_frac * lo
-        jump &= np.isfinite(lo)
-        near_here = jump & (r <= nxt)
-        near_next = jump & (nxt < r)
-        edge |= near_here
-        edge |= np.roll(near_next, 1, axis=axis) & (
-            np.ones_like(edge) if axis == 1 else np.arange(edge.shape[0])[:, None] > 0
-        )
-    return edge & valid
+    return range_jump_edges(range_m, valid, cfg.edge_jump_m, cfg.edge_jump_frac)

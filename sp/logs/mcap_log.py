@@ -22,11 +22,16 @@ Reading walks the records itself (not the summary), so that a log cut short or w
 chunks can still be read with ``skip_corrupt=True``; chunks are merged in log-time order
 assuming their start times do not decrease through the file (true for ours and for rosbag2
 recordings; otherwise the few out-of-order messages show up as backwards timestamps).
+Well-formed chunks are parsed in place (each message a memoryview of its chunk, the CRC by
+ISA-L) and anything unusual is left to the ``mcap`` library's reading, so damaged input
+fails or is skipped exactly as that reading has it; the rosbags typestore makes only the
+deserialisers it uses (see :func:`_chunk_records` and :func:`_reading_typestore`).
 """
 
 from __future__ import annotations
 
 import enum
+import functools
 import heapq
 import io
 import os
@@ -48,8 +53,17 @@ from sp.logs.ros_types import KIND_KEY, frame_topic, frame_topics_of, role_of, r
 from sp.logs.source import LogSource, TopicInfo, topic_info
 from sp.logs.types import Frame, LogError
 
+try:  # ISA-L's SIMD CRC-32 (zlib's polynomial, same values) is ~7x faster than zlib's
+    from isal.isal_zlib import crc32
+except ImportError:  # pragma: no cover - isal is a declared dependency
+    from zlib import crc32
+
 MAGIC = b"\x89MCAP0\r\n"
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
+_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end time, uncompressed size, CRC, len(compression)
+_U64 = struct.Struct("<Q")
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel, sequence, log time, publish time
 
 
 def _opcode_name(opcode: int) -> str:
@@ -202,6 +216,193 @@ class McapLogWriter:
 # ------------------------------------------------------------------------------ reading
 
 
+class _ViewReader:
+    """``io.BytesIO.read`` over a memoryview from an offset, without copying what is not read:
+    the stream the ``mcap`` record classes read a schema or channel from inside a chunk."""
+
+    __slots__ = ("_pos", "_view")
+
+    def __init__(self, view: memoryview, pos: int) -> None:
+        self._view = view
+        self._pos = pos
+
+    def read(self, n: int = -1) -> bytes:
+        end = len(self._view) if n < 0 else self._pos + n
+        out = bytes(self._view[self._pos : end])
+        self._pos += len(out)
+        return out
+
+
+def _chunk_data(body: bytes) -> tuple[int, memoryview] | None:
+    """(message start time, uncompressed records) of a chunk record's body, checked against
+    its CRC; None unless the chunk is well-formed (then the library's reading decides)."""
+    if len(body) < _CHUNK_HEAD.size:
+        return None
+    start_t_ns, _, uncompressed_size, crc, name_len = _CHUNK_HEAD.unpack_from(body)
+    pos = _CHUNK_HEAD.size + name_len
+    if pos + _U64.size > len(body):
+        return None
+    compression = body[_CHUNK_HEAD.size : pos]
+    (data_len,) = _U64.unpack_from(body, pos)
+    pos += _U64.size
+    if pos + data_len > len(body):
+        return None
+    view = memoryview(body)[pos : pos + data_len]
+    try:  # the calls the mcap library makes, so the same bytes come out
+        if compression == b"":
+            data = view
+        elif compression == b"zstd":
+            import zstandard
+
+            data = memoryview(zstandard.decompress(view, uncompressed_size))
+        elif compression == b"lz4":
+            import lz4.frame
+
+            data = memoryview(lz4.frame.decompress(view))
+        else:
+            return None
+    except Exception:  # missing codec, damaged data: as the library finds it
+        return None
+    if crc != 0 and crc32(data) != crc:
+        return None
+    return start_t_ns, data
+
+
+def _chunk_records(body: bytes) -> tuple[int, list[Any]] | None:
+    """(message start time, schemas, channels and messages) of a chunk record's body: what
+    :func:`_chunk_records_reference` gives, or None where this might differ from it.
+
+    The ``mcap`` library copies the chunk out of the record, then each message out of the
+    chunk through a ``BytesIO`` read per field, and computes the CRC with zlib's: most of the
+    reading time of a log of point clouds. Here the CRC is ISA-L's (the same values) and each
+    message's data is a memoryview into the record, which rosbags deserialises without a
+    copy (a frame's arrays are copies made by the decoders, so none refers to the record).
+    Anything unusual (a record running past the chunk, a short message, an unknown
+    compression, a CRC mismatch, a schema or channel whose fields do not fill its record)
+    returns None, and the library's reading then gives the records or the error.
+    """
+    chunk = _chunk_data(body)
+    if chunk is None:
+        return None
+    start_t_ns, data = chunk
+    records: list[Any] = []
+    pos, size = 0, len(data)
+    while pos < size:
+        if pos + _RECORD_HEAD.size > size:
+            return None
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        begin = pos + _RECORD_HEAD.size
+        pos = begin + length
+        if pos > size:
+            return None
+        if opcode == Opcode.MESSAGE:
+            if length < _MESSAGE_HEAD.size:
+                return None
+            channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, begin)
+            records.append(
+                Message(
+                    channel_id=channel_id,
+                    log_time=log_time,
+                    data=data[begin + _MESSAGE_HEAD.size : pos],  # memoryview, not bytes
+                    publish_time=publish_time,
+                    sequence=sequence,
+                )
+            )
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+            stream = ReadDataStream(_ViewReader(data, begin))
+            try:
+                record = (Schema if opcode == Opcode.SCHEMA else Channel).read(stream)
+            except Exception:
+                return None
+            if stream.count != length:  # the library would go on from where its fields end
+                return None
+            records.append(record)
+    return start_t_ns, records
+
+
+def _chunk_records_reference(stream: ReadDataStream) -> tuple[int, list[Any]]:
+    """The ``mcap`` library's reading of a chunk record (the reference of the tests, and the
+    reading of chunks :func:`_chunk_records` leaves to it): raises for a damaged chunk."""
+    chunk = Chunk.read(stream)
+    return chunk.message_start_time, breakup_chunk(chunk, validate_crc=True)
+
+
+def _reading_typestore() -> Any:
+    """An empty rosbags typestore (``Stores.EMPTY``) that makes only CDR deserialisers.
+
+    rosbags' own typestore makes thirteen functions for each message type it meets (sizes,
+    serialisers, ROS 1 converters...) by generating and compiling Python source, about
+    half a millisecond a sweep on a 10 s log; reading uses two of them. This one makes a
+    deserialiser when a message of that byte order first needs it (the same code rosbags
+    generates), and is rosbags' own where this rosbags lacks the parts it builds on.
+    """
+    make = _reading_typestore_factory()
+    if make is None:  # pragma: no cover - a rosbags without those parts
+        from rosbags.typesys import Stores, get_typestore
+
+        return get_typestore(Stores.EMPTY)
+    return make()
+
+
+@functools.cache
+def _reading_typestore_factory() -> Callable[[], Any] | None:
+    """What makes :func:`_reading_typestore`'s store; None if this rosbags lacks its parts
+    (rosbags is imported on first use: opening a log does not need it)."""
+    try:
+        from rosbags.serde.cdr import generate_deserialize_cdr
+        from rosbags.typesys.base import normalize_fieldname
+        from rosbags.typesys.store import Typestore
+        from rosbags.typesys.stores import empty
+    except ImportError:  # pragma: no cover
+        return None
+
+    class CdrMsgdef:
+        """What deserialising CDR takes from a rosbags ``Msgdef`` (name, fields, class and
+        the deserialiser of each byte order), each deserialiser generated on its first call.
+
+        No ``__getattr__`` for that: a class with one is read without the interpreter's fast
+        attribute path, and the generated code reads a definition's attributes for every
+        nested message it deserialises.
+        """
+
+        __slots__ = ("_store", "cls", "deserialize_cdr_be", "deserialize_cdr_le", "fields", "name")
+
+        def __init__(self, name: str, fields: Any, cls: type, store: Any) -> None:
+            self.name, self.fields, self.cls, self._store = name, fields, cls, store
+            self.deserialize_cdr_le = self._on_first_call("le")
+            self.deserialize_cdr_be = self._on_first_call("be")
+
+        def _on_first_call(self, endianness: str) -> Callable[..., Any]:
+            def generate_and_call(rawdata: Any, pos: int, cls: type, typestore: Any) -> Any:
+                func = generate_deserialize_cdr(self.fields, self._store, endianness)
+                setattr(self, f"deserialize_cdr_{endianness}", func)
+                return func(rawdata, pos, cls, typestore)
+
+            return generate_and_call
+
+    class CdrReadingTypestore(Typestore):
+        """rosbags' Typestore whose message definitions are :class:`CdrMsgdef`, put in its
+        cache as each type is registered (so its ``get_msgdef`` finds them there and makes
+        none of its own)."""
+
+        def __init__(self, base: Any) -> None:
+            super().__init__(base)
+            self._add_msgdefs()
+
+        def register(self, typs: Any) -> None:
+            super().register(typs)
+            self._add_msgdefs()
+
+        def _add_msgdefs(self) -> None:
+            for typename in self.fielddefs.keys() - self.cache.keys():
+                fields = [  # as rosbags' get_msgdef lists them
+                    (normalize_fieldname(name), desc) for name, desc in self.fielddefs[typename][1]
+                ]
+                self.cache[typename] = CdrMsgdef(typename, fields, self.types[typename], self)
+
+    return functools.partial(CdrReadingTypestore, empty)
+
+
 @dataclass(slots=True)
 class _ChunkMessages:
     """The messages of one chunk (or one loose message), with the chunk's start time."""
@@ -283,10 +484,12 @@ class McapLogSource(LogSource):
             stream = ReadDataStream(io.BytesIO(body))
             try:
                 if opcode == Opcode.CHUNK:
-                    chunk = Chunk.read(stream)
-                    records = breakup_chunk(chunk, validate_crc=True)
+                    parsed = _chunk_records(body)
+                    if parsed is None:  # unusual or damaged: the library's reading says what
+                        parsed = _chunk_records_reference(stream)
+                    start_t_ns, records = parsed
                     messages = [r for r in records if self._register(r)]
-                    yield _ChunkMessages(chunk.message_start_time, messages)
+                    yield _ChunkMessages(start_t_ns, messages)
                 elif opcode == Opcode.MESSAGE:
                     message = Message.read(stream, len(body))
                     yield _ChunkMessages(message.log_time, [message])
@@ -346,10 +549,10 @@ class McapLogSource(LogSource):
         return self._store.deserialize_cdr(message.data, schema.name)
 
     def _register_schema(self, schema: Schema) -> None:
-        from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+        from rosbags.typesys import get_types_from_idl, get_types_from_msg
 
         if self._store is None:
-            self._store = get_typestore(Stores.EMPTY)
+            self._store = _reading_typestore()
         text = schema.data.decode()
         if schema.encoding == "ros2msg":
             types = get_types_from_msg(text, schema.name)
