@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from sp.nan_ops import minimum as _minimum
+
 
 class ComputationError(ValueError):
     """Inputs of mismatched shapes; names them."""
@@ -410,16 +412,6 @@ def _segment_sums(runs, first, p, inten, rng, t_off, ground_z):  # pragma: no co
         cov[s, 1, 2] = cov[s, 2, 1] = yz / m
         cov[s, 2, 2] = zz / m
     return n, c, cov, z0, z1, g_n, g_sum, i_sum, r_min, t_sum
-
-
-@numba.njit(cache=True, nogil=True)
-def _minimum(a, b):  # pragma: no cover
-    """``np.minimum`` of two floats: NaN when either is NaN."""
-    if a != a:
-        return a
-    if b != b:
-        return b
-    return a if a <= b else b
 
 
 @numba.njit(cache=True, nogil=True)

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from sp.nan_ops import minimum as _nan_min
+
 
 class GroundError(ValueError):
     """An image or configuration the ground segmentation cannot use; names the value."""
@@ -303,14 +305,6 @@ def _refine_params(config: GroundConfig) -> tuple[float, int, float, float, floa
         float(config.refine_above_m),
         float(config.refine_within_m),
     )
-
-
-@numba.njit(cache=True, nogil=True)
-def _nan_min(a, b):  # pragma: no cover
-    """``np.minimum`` of two floats: NaN if either is."""
-    if a != a or b != b:
-        return np.nan
-    return a if a <= b else b
 
 
 @numba.njit(cache=True, nogil=True)

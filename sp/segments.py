@@ -39,6 +39,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from sp.nan_ops import maximum as _maximum
+from sp.nan_ops import minimum as _minimum
+
 
 class SegmentError(ValueError):
     """An image or configuration the grouping cannot use; names the value."""
@@ -228,26 +231,6 @@ def _union(parent, ra, b):  # pragma: no cover
         return ra
     parent[ra] = rb
     return rb
-
-
-@numba.njit(cache=True, nogil=True)
-def _minimum(a, b):  # pragma: no cover
-    """np.minimum of two scalars: NaN when either is NaN."""
-    if a != a:
-        return a
-    if b != b:
-        return b
-    return a if a <= b else b
-
-
-@numba.njit(cache=True, nogil=True)
-def _maximum(a, b):  # pragma: no cover
-    """np.maximum of two scalars: NaN when either is NaN."""
-    if a != a:
-        return a
-    if b != b:
-        return b
-    return a if a >= b else b
 
 
 @numba.njit(cache=True, nogil=True)

@@ -128,27 +128,7 @@ def decode_pointcloud2(msg: Any, topic: str, stats: ReadStats) -> LadarScan:
     if n_bad:
         stats.dropped_nonfinite_points += n_bad
         cloud, xyz = cloud[finite], xyz[finite]
-    n = xyz.shape[0]
-    intensity = (
-        cloud["intensity"].astype(np.float32) if "intensity" in fields else np.zeros(n, np.float32)
-    )
-    if "t" in fields or "offset_time" in fields:
-        t_off = cloud["t" if "t" in fields else "offset_time"].astype(np.int64)
-    elif "time" in fields:
-        t_off = np.round(cloud["time"].astype(np.float64) * NS_PER_S).astype(np.int64)
-    else:
-        t_off = np.zeros(n, np.int64)
-    ring_name = "ring" if "ring" in fields else "laser_number" if "laser_number" in fields else None
-    ring = cloud[ring_name].astype(np.uint16) if ring_name else None
-    return LadarScan(
-        t_ns=stamp_ns(msg.header),
-        frame_id=msg.header.frame_id,
-        points_xyz=xyz,
-        intensity=intensity,
-        t_offset_ns=t_off,
-        ring=ring,
-        topic=topic,
-    )
+    return _scan_of(msg, topic, cloud, xyz, fields)
 
 
 def _xyz_float32(cloud: np.ndarray) -> np.ndarray:
@@ -208,27 +188,7 @@ def decode_pointcloud2_reference(msg: Any, topic: str, stats: ReadStats) -> Lada
     if n_bad:
         stats.dropped_nonfinite_points += n_bad
         cloud, xyz = cloud[finite], xyz[finite]
-    n = xyz.shape[0]
-    intensity = (
-        cloud["intensity"].astype(np.float32) if "intensity" in fields else np.zeros(n, np.float32)
-    )
-    if "t" in fields or "offset_time" in fields:
-        t_off = cloud["t" if "t" in fields else "offset_time"].astype(np.int64)
-    elif "time" in fields:
-        t_off = np.round(cloud["time"].astype(np.float64) * NS_PER_S).astype(np.int64)
-    else:
-        t_off = np.zeros(n, np.int64)
-    ring_name = "ring" if "ring" in fields else "laser_number" if "laser_number" in fields else None
-    ring = cloud[ring_name].astype(np.uint16) if ring_name else None
-    return LadarScan(
-        t_ns=stamp_ns(msg.header),
-        frame_id=msg.header.frame_id,
-        points_xyz=xyz,
-        intensity=intensity,
-        t_offset_ns=t_off,
-        ring=ring,
-        topic=topic,
-    )
+    return _scan_of(msg, topic, cloud, xyz, fields)
 
 
 def _image_pixels(msg: Any) -> np.ndarray:
@@ -494,3 +454,30 @@ def _is_prerequisite(topic: str, role: Role, msg: Any) -> bool:
     if role is Role.IMAGE:
         return _is_depth(topic, msg)
     return role in (Role.CAMERA_INFO, Role.BOX_VELOCITIES)
+
+
+def _scan_of(msg: Any, topic: str, cloud: np.ndarray, xyz: np.ndarray, fields) -> LadarScan:
+    """The scan of a decoded cloud: ``cloud`` (N,) structured points (the finite ones), ``xyz``
+    (N, 3) float32 their coordinates, ``fields`` the message's field names; intensity, per-point
+    time offsets (ns) and ring taken from whichever of their usual names the cloud carries."""
+    n = xyz.shape[0]
+    intensity = (
+        cloud["intensity"].astype(np.float32) if "intensity" in fields else np.zeros(n, np.float32)
+    )
+    if "t" in fields or "offset_time" in fields:
+        t_off = cloud["t" if "t" in fields else "offset_time"].astype(np.int64)
+    elif "time" in fields:
+        t_off = np.round(cloud["time"].astype(np.float64) * NS_PER_S).astype(np.int64)
+    else:
+        t_off = np.zeros(n, np.int64)
+    ring_name = "ring" if "ring" in fields else "laser_number" if "laser_number" in fields else None
+    ring = cloud[ring_name].astype(np.uint16) if ring_name else None
+    return LadarScan(
+        t_ns=stamp_ns(msg.header),
+        frame_id=msg.header.frame_id,
+        points_xyz=xyz,
+        intensity=intensity,
+        t_offset_ns=t_off,
+        ring=ring,
+        topic=topic,
+    )
