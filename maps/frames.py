@@ -138,19 +138,25 @@ def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
 
 
 def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` to a 3x3 rotation. Refuses a zero or non-finite one."""
+    """Unit quaternion ``(x, y, z, w)`` to a 3x3 rotation. Refuses a zero or non-finite one.
+
+    The norm as ``np.linalg.norm`` takes it (``sqrt(q . q)``), the entries in Python floats
+    (the same IEEE doubles as numpy scalars, without their per-operation cost: a log has ten
+    or more poses a sweep)."""
     q = np.asarray(q_xyzw, dtype=np.float64).reshape(4)
-    n = float(np.linalg.norm(q))
-    if not np.isfinite(n) or n < 1e-12:
+    n = math.sqrt(q.dot(q))  # NaN or inf for a non-finite q (or one whose square overflows)
+    if not 1e-12 <= n < math.inf:
         raise GeometryError(f"quaternion (x, y, z, w) = {q.tolist()} has no rotation (norm {n})")
-    x, y, z, w = q / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return np.array(_rotation_rows(*(q / n).tolist()))
+
+
+def _rotation_rows(x: float, y: float, z: float, w: float) -> list[list[float]]:
+    """The rows of the rotation of the unit quaternion ``(x, y, z, w)``."""
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
@@ -260,12 +266,7 @@ def _interpolate_one(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
     n = math.sqrt(x * x + y * y + z * z + w * w)
     x, y, z, w = x / n, y / n, z / n, w / n
     t0, t1 = np.asarray(T0, dtype=np.float64)[:3, 3], np.asarray(T1, dtype=np.float64)[:3, 3]
-    t = t0 + a * (t1 - t0)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), t[0]],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), t[1]],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), t[2]],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
-    )
+    rows = _rotation_rows(x, y, z, w)
+    for r, t in zip(rows, (t0 + a * (t1 - t0)).tolist(), strict=True):
+        r.append(t)
+    return np.array([*rows, [0.0, 0.0, 0.0, 1.0]])

@@ -2,7 +2,7 @@
 
 Each piece replaced for speed kept its old form as ``*_reference``: the ``mcap`` library's
 chunk reading (:func:`sp.logs.mcap_log._chunk_records_reference`), rosbags' own typestore,
-:func:`~sp.logs.ros_decode.decode_pointcloud2_reference`, ``_T_of_reference`` and
+:func:`~sp.logs.ros_decode.decode_pointcloud2_reference` and
 ``FrameAssembler._boxes_reference``. These tests read the same logs both ways (fresh logs from
 the project's writer and from the ``mcap`` library's, uncompressed and compressed, intact and
 damaged) and compare every array bit for bit, with its dtype and shape, and every stat and
@@ -28,6 +28,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from maps.frames import GeometryError
 from sp.logs import (
     CameraFrame,
     Compression,
@@ -62,7 +63,6 @@ def reference_paths() -> Iterator[None]:
         mp.setattr(mcap_log, "_chunk_records", lambda body: None)
         mp.setattr(mcap_log, "_reading_typestore", lambda: get_typestore(Stores.EMPTY))
         mp.setattr(ros_decode, "decode_pointcloud2", ros_decode.decode_pointcloud2_reference)
-        mp.setattr(ros_decode, "_T_of", ros_decode._T_of_reference)
         mp.setattr(ros_decode.FrameAssembler, "_boxes", ros_decode.FrameAssembler._boxes_reference)
         yield
 
@@ -645,7 +645,20 @@ class _V:
         self.__dict__.update(kw)
 
 
-def test_poses_are_the_reference_matrices_bit_for_bit() -> None:
+def _rotation_numpy(q: np.ndarray) -> np.ndarray:
+    """The rotation of ``q`` in numpy scalars, as ``quat_to_matrix`` computed it before its
+    Python-float form: ``q / np.linalg.norm(q)``, then the entries."""
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def test_poses_are_the_numpy_matrices_bit_for_bit() -> None:
     rng = np.random.default_rng(4)
     for scale in (1e-5, 1e-2, 1.0, 7.0, 1e4, 1e140):
         for _ in range(400):
@@ -654,21 +667,19 @@ def test_poses_are_the_reference_matrices_bit_for_bit() -> None:
                 q[rng.choice(4, 3, replace=False)] = 0.0
             o = _V(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
             p = _V(**dict(zip("xyz", (float(v) for v in rng.normal(0, 100, 3)), strict=True)))
-            assert_same(ros_decode._T_of(p, o), ros_decode._T_of_reference(p, o), "T")
+            T = ros_decode._T_of(p, o)
+            assert_same(T[:3, :3], _rotation_numpy(q), "R")
+            assert_same(T[:3, 3], np.array([p.x, p.y, p.z]), "t")
+            assert_same(T[3], np.array([0.0, 0.0, 0.0, 1.0]), "last row")
 
 
 @pytest.mark.parametrize(
     "q", [(0, 0, 0, 0), (np.nan, 0, 0, 1), (0, np.inf, 0, 1), (1e200, 0, 0, 1), (1e-13, 0, 0, 0)]
 )
-def test_poses_without_rotation_fail_as_the_reference(q: tuple[float, ...]) -> None:
+def test_poses_without_rotation_fail(q: tuple[float, ...]) -> None:
     o, p = _V(x=q[0], y=q[1], z=q[2], w=q[3]), _V(x=0.0, y=0.0, z=0.0)
-    errors = []
-    for T_of in (ros_decode._T_of, ros_decode._T_of_reference):
-        with pytest.raises(ValueError) as info, np.errstate(over="ignore"):
-            T_of(p, o)
-        errors.append((type(info.value), str(info.value)))
-    assert errors[0] == errors[1]
-    assert "has no rotation" in errors[0][1]
+    with pytest.raises(GeometryError, match=r"has no rotation"), np.errstate(over="ignore"):
+        ros_decode._T_of(p, o)
 
 
 def test_boxes_are_the_reference_boxes(good_log: Path) -> None:

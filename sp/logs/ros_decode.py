@@ -9,7 +9,6 @@ field names, so the same code reads them.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -40,33 +39,7 @@ def stamp_ns(header: Any) -> int:
 
 
 def _T_of(position: Any, orientation: Any) -> np.ndarray:
-    """4x4 pose of a ROS position and orientation quaternion: the matrix of
-    :func:`_T_of_reference` (:func:`maps.frames.quat_to_matrix`), bit for bit.
-
-    A log has ten or more poses per sweep (odometry, truth, transforms), and on 4 x 4 numbers
-    numpy's per-call and per-scalar overhead is most of the cost, so the same operations in
-    the same order run on Python floats (the same IEEE doubles): the norm as numpy's
-    ``linalg.norm`` takes it (``sqrt(q.dot(q))``), the division by it, then the entries.
-    """
-    q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=np.float64)
-    n = math.sqrt(q.dot(q))  # NaN or inf for a non-finite q (or one whose square overflows)
-    if not 1e-12 <= n < math.inf:  # no rotation: quat_to_matrix raises its GeometryError
-        quat_to_matrix(q)
-    x, y, z, w = (q / n).tolist()
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w), position.x],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w), position.y],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y), position.z],
-            [0.0, 0.0, 0.0, 1.0],
-        ],
-        dtype=np.float64,
-    )
-
-
-def _T_of_reference(position: Any, orientation: Any) -> np.ndarray:
-    """:func:`_T_of` through ``np.eye`` and :func:`maps.frames.quat_to_matrix`: the reference
-    the tests compare it with."""
+    """4x4 pose of a ROS position and orientation quaternion."""
     T = np.eye(4)
     T[:3, :3] = quat_to_matrix(
         np.array([orientation.x, orientation.y, orientation.z, orientation.w])
