@@ -19,7 +19,6 @@ import open3d as o3d  # ray casting; imported with the module, not inside the fi
 
 import kd_store
 from kd_store import Level, State, Status
-from kd_store.covariance import FLAT_UP
 from maps.frames import se3_inverse, transform_points
 from maps.level import MapLevel
 from sp.logs.types import LadarScan
@@ -84,16 +83,18 @@ def propagate_many(s: State, steps_s: tuple[float, ...] | list[float]) -> list[S
     P = F @ s.covariance @ F.transpose(0, 2, 1)
     P[:, np.arange(6), np.arange(6)] += _Q_DIAG * np.abs(dt)[:, None]
     P = 0.5 * (P + P.transpose(0, 2, 1))
-    # each state's (34,) vector as State lays it out (position, quaternion, velocity, packed
-    # covariance, var_rpy): P is symmetric by construction, and the KD checks the queue
-    V = np.empty((dt.size, 34))
-    V[:, 0:3] = s.position_xyz + dt[:, None] * s.velocity_xyz
-    V[:, 3:7] = s.orientation_xyzw
-    V[:, 7:10] = s.velocity_xyz
-    V[:, 10:31] = P.reshape(dt.size, 36)[:, FLAT_UP]
-    V[:, 31:34] = s.orientation_var_rpy
+    pos = s.position_xyz + dt[:, None] * s.velocity_xyz
     return [
-        State.from_vector(s.t_ns + round(float(d) * 1e9), s.frame, V[k]) for k, d in enumerate(dt)
+        State(
+            s.t_ns + round(float(d) * 1e9),
+            s.frame,
+            pos[k],
+            s.orientation_xyzw,
+            s.velocity_xyz,
+            P[k],
+            s.orientation_var_rpy,
+        )
+        for k, d in enumerate(dt)
     ]
 
 
