@@ -169,7 +169,10 @@ class MapLevel:
 
     def window(self, layer: str) -> np.ndarray:
         """A copy of ``layer`` in window order ``[row, col]`` (row 0 south), no wrap visible."""
-        arr = self.storage(layer)
+        return self.to_window(self.storage(layer))
+
+    def to_window(self, arr: np.ndarray) -> np.ndarray:
+        """A copy of ``arr`` (size, size), laid out as this level's storage, in window order."""
         shift = (-int(self.origin_cell[1] % self.size), -int(self.origin_cell[0] % self.size))
         return np.roll(arr, shift, axis=(0, 1))
 

@@ -91,6 +91,12 @@ def test_cost_layer_from_traversability_unknown_and_uncertainty() -> None:
     cfg = VJConfig()
     kd = kd_store.open()
     lvl = _level()
+    # scrolled so that storage and window orders differ by an uneven wrap (3 and 1 cells: a
+    # roll the wrong way round would not give the window back)
+    lvl.move_to(np.array([3.5, 1.5]) * lvl.resolution_m)
+    assert lvl.origin_cell.tolist() == [-1, -3]
+    for name, v in (("elevation", 0.0), ("traversability", 1.0), ("elevation_var", 0.0)):
+        lvl.set_window(name, np.full((8, 8), v, np.float32))
     _set_cell(lvl, "traversability", 0, 1, 0.2)  # hard going
     _set_cell(lvl, "traversability", 0, 2, 0.0)  # impassable
     _set_cell(lvl, "elevation", 0, 3, np.nan)  # never seen

@@ -60,9 +60,7 @@ def cost_window(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) 
     min(1, sqrt(elevation_var) / sigma_ref_m)``; ``w_unknown`` where the elevation is unknown;
     plus, where SP labelled the cell with an entity, that entity's cost (its own value, else its
     class value) times :func:`confidence` in it, so denied or gone entities add nothing."""
-    cost = _cost(level, kd, cfg)
-    shift = (-int(level.origin_cell[1] % level.size), -int(level.origin_cell[0] % level.size))
-    return np.roll(cost, shift, axis=(0, 1))
+    return level.to_window(_cost(level, kd, cfg))
 
 
 def _cost(level: MapLevel, kd: kd_store.KnowledgeDatabase, cfg: VJConfig) -> np.ndarray:
