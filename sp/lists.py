@@ -12,9 +12,8 @@ compiled passes:
 
 * :func:`range_jump_edges` (for :func:`sp.segments.range_edges`): the nearer side of every
   range jump to a row or column neighbour;
-* :func:`brightness_edges`: Canny on the LADAR intensity image (:func:`canny_edges`, OpenCV's
-  algorithm), masked to pixels whose 3x3 neighbourhood is all valid (an edge of the valid
-  region is not a brightness edge);
+* :func:`brightness_edges`: Canny (OpenCV) on the LADAR intensity image, masked to pixels
+  whose 3x3 neighbourhood is all valid (an edge of the valid region is not a brightness edge);
 * :func:`edge_branches`: the crossing number of each edge pixel (how many edge branches leave
   it: 1 a line end, 2 inside an edge, 3 a T or Y, 4 and more a cross), from which vertices;
 * :func:`patch_grid`: a plane fitted to the pixels of each block of a coarse grid (``rows x
@@ -31,7 +30,6 @@ in numpy and OpenCV, compared in the tests.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -92,35 +90,7 @@ def brightness_edges(
     """(H, W) bool pixels on a brightness edge of ``intensity`` ((H, W) sensor units, NaN or
     any value where not ``valid``). Intensity is scaled by ``mean``, its mean over the valid
     pixels (:func:`mean_intensity`, computed when not given), so the thresholds are relative
-    (a reflectance step, whatever the sensor's units). Canny (:func:`canny_edges`, OpenCV's
-    algorithm compiled) and the mask of pixels whose 3x3 neighbourhood is valid in one
-    compiled pass; :func:`brightness_edges_reference` (cv2.Canny and cv2.erode) is the form
-    it equals."""
-    cfg = config or ListConfig()
-    if intensity.shape != valid.shape or intensity.ndim != 2:
-        raise ListError(f"intensity {intensity.shape} and valid {valid.shape} must be one (H, W)")
-    mean = mean_intensity(intensity, valid) if mean is None else mean
-    if not mean > 0.0 or not valid.any():
-        return np.zeros(valid.shape, dtype=bool)
-    # |x| scaled and saturated to 0..255 by OpenCV itself (its rounding, NaN -> 0), as the
-    # reference does; the mask below drops every pixel next to an invalid one
-    img8 = cv2.convertScaleAbs(np.asarray(intensity, dtype=np.float32), alpha=100.0 / mean)
-    low, high = _canny_thresholds(cfg.canny_low, cfg.canny_high)
-    state = _canny_kernel(img8, low, high)
-    v8 = valid.view(np.uint8) if valid.dtype == np.bool_ else valid.astype(np.uint8)
-    out = np.empty(valid.shape, dtype=bool)
-    _edges_inside_kernel(state, np.ascontiguousarray(v8), out)
-    return out
-
-
-def brightness_edges_reference(
-    intensity: np.ndarray,
-    valid: np.ndarray,
-    config: ListConfig | None = None,
-    mean: float | None = None,
-) -> np.ndarray:
-    """Reference of :func:`brightness_edges` with OpenCV: cv2.Canny, and cv2.erode of the
-    valid mask (the image's border counts as invalid)."""
+    (a reflectance step, whatever the sensor's units)."""
     cfg = config or ListConfig()
     if intensity.shape != valid.shape or intensity.ndim != 2:
         raise ListError(f"intensity {intensity.shape} and valid {valid.shape} must be one (H, W)")
@@ -133,151 +103,6 @@ def brightness_edges_reference(
     edge = cv2.Canny(img8, cfg.canny_low, cfg.canny_high, L2gradient=True) > 0
     inner = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0
     return edge & inner
-
-
-def _canny_thresholds(low: float, high: float) -> tuple[int, int]:
-    """cv2.Canny's integer thresholds on the squared gradient (L2 gradient): ordered, capped
-    at 32767, squared where positive, floored."""
-    low, high = (float(high), float(low)) if low > high else (float(low), float(high))
-    low, high = min(32767.0, low), min(32767.0, high)
-    low = low * low if low > 0 else low
-    high = high * high if high > 0 else high
-    return math.floor(low), math.floor(high)
-
-
-# OpenCV's tan(22.5 deg) in 17.15 fixed point: the sector tests of its non-maximum suppression
-_TG22 = int(0.4142135623730950488016887242097 * (1 << 15) + 0.5)
-
-
-@numba.njit(cache=True, nogil=True)
-def _canny_kernel(img: np.ndarray, low: int, high: int) -> np.ndarray:  # pragma: no cover
-    """OpenCV's Canny (modules/imgproc/src/canny.cpp: 3x3 Sobel with the border replicated,
-    squared L2 magnitude, its non-maximum suppression in three sectors with the same
-    integer tests and the same strict / non-strict comparisons, hysteresis through the 8
-    neighbours) of ``img`` (H, W) uint8, H, W >= 1; ``low`` / ``high`` from
-    :func:`_canny_thresholds`. Returns the (H + 2, W + 2) uint8 state with a border of 1:
-    2 on an edge, 0 a candidate never reached from a strong pixel, 1 not a candidate.
-
-    The edge set is the same whatever order the hysteresis visits in: the candidates
-    (local maxima over ``low``) 8-connected to a strong one (over ``high``). Each pass over
-    the image is free of branches on the pixels (selects of values loaded beforehand), so
-    it runs as vector code: cv2.Canny took 0.2 to 0.6 ms a 64 x 1024 sweep, this 0.2."""
-    H, W = img.shape
-    # the image with its border replicated
-    p = np.empty((H + 2, W + 2), dtype=np.int32)
-    for i in range(H + 2):
-        src = img[min(max(i - 1, 0), H - 1)]
-        row = p[i]
-        for j in range(W):
-            row[j + 1] = src[j]
-        row[0] = src[0]
-        row[W + 1] = src[W - 1]
-    # Sobel derivatives (right minus left, lower minus upper) and the squared magnitude,
-    # zero beyond the image as in OpenCV's magnitude buffer
-    dx = np.empty((H, W), dtype=np.int32)
-    dy = np.empty((H, W), dtype=np.int32)
-    mag = np.zeros((H + 2, W + 2), dtype=np.int32)
-    for i in range(H):
-        a, b, c = p[i], p[i + 1], p[i + 2]
-        dxr, dyr, mr = dx[i], dy[i], mag[i + 1]
-        for j in range(W):
-            gx = (a[j + 2] - a[j]) + 2 * (b[j + 2] - b[j]) + (c[j + 2] - c[j])
-            gy = (c[j] + 2 * c[j + 1] + c[j + 2]) - (a[j] + 2 * a[j + 1] + a[j + 2])
-            dxr[j] = gx
-            dyr[j] = gy
-            mr[j + 1] = gx * gx + gy * gy
-    state = np.empty((H + 2, W + 2), dtype=np.uint8)
-    state[0, :] = 1
-    state[H + 1, :] = 1
-    for i in range(H):
-        mp, mc, mn = mag[i], mag[i + 1], mag[i + 2]
-        dxr, dyr, st = dx[i], dy[i], state[i + 1]
-        st[0] = 1
-        st[W + 1] = 1
-        for j in range(W):
-            m = mc[j + 1]
-            xs, ys = dxr[j], dyr[j]
-            x = abs(xs)
-            y = abs(ys) << 15
-            tg22x = x * _TG22
-            horiz = y < tg22x
-            vert = y > tg22x + (x << 16)
-            # the two neighbours across the gradient: along the row, the column, or the
-            # diagonal the gradient's signs point along; all loaded, then selected
-            p0, p1, p2 = mp[j], mp[j + 1], mp[j + 2]
-            n0, n1, n2 = mn[j], mn[j + 1], mn[j + 2]
-            neg = (xs ^ ys) < 0
-            before = p2 if neg else p0
-            after = n0 if neg else n2
-            before = p1 if vert else before
-            after = n1 if vert else after
-            before = mc[j] if horiz else before
-            after = mc[j + 2] if horiz else after
-            # over the one before, and at least the one after (strictly over it on a
-            # diagonal, as OpenCV compares)
-            diag = np.int32(not (horiz or vert))
-            keep = (m > low) & (m > before) & (m >= after + diag)
-            st[j + 1] = 1 - np.uint8(keep) + 2 * np.uint8(keep & (m > high))
-    # hysteresis: from every strong pixel through the candidates
-    W2 = W + 2
-    flat = state.reshape(-1)
-    stack = np.empty(flat.size, dtype=np.int64)
-    top = 0
-    for q in range(W2, (H + 1) * W2):
-        stack[top] = q
-        top += flat[q] == 2
-    while top > 0:
-        top -= 1
-        q0 = stack[top]
-        for q in (
-            q0 - W2 - 1,
-            q0 - W2,
-            q0 - W2 + 1,
-            q0 - 1,
-            q0 + 1,
-            q0 + W2 - 1,
-            q0 + W2,
-            q0 + W2 + 1,
-        ):
-            if flat[q] == 0:
-                flat[q] = 2
-                stack[top] = q
-                top += 1
-    return state
-
-
-@numba.njit(cache=True, nogil=True)
-def _edges_inside_kernel(
-    state: np.ndarray, valid: np.ndarray, out: np.ndarray
-) -> None:  # pragma: no cover
-    """``out`` (H, W) bool: the Canny edge pixels of ``state`` ((H + 2, W + 2) from
-    :func:`_canny_kernel`) whose 3x3 neighbourhood is all ``valid`` ((H, W) uint8, nonzero
-    valid) inside the image: cv2.erode of the mask with a border of 0."""
-    H, W = valid.shape
-    for i in range(H):
-        if i == 0 or i == H - 1:
-            out[i, :] = False
-            continue
-        u, c, d, st = valid[i - 1], valid[i], valid[i + 1], state[i + 1]
-        out[i, 0] = False
-        out[i, W - 1] = False
-        for j in range(1, W - 1):
-            inner = (u[j - 1] != 0) & (u[j] != 0) & (u[j + 1] != 0)
-            inner &= (c[j - 1] != 0) & (c[j] != 0) & (c[j + 1] != 0)
-            inner &= (d[j - 1] != 0) & (d[j] != 0) & (d[j + 1] != 0)
-            out[i, j] = (st[j + 1] == 2) & inner
-
-
-def canny_edges(img: np.ndarray, low: float, high: float) -> np.ndarray:
-    """(H, W) bool Canny edges of ``img`` ((H, W) uint8), equal to
-    ``cv2.Canny(img, low, high, L2gradient=True) > 0`` (3x3 aperture): one compiled pass,
-    :func:`_canny_kernel`."""
-    if img.ndim != 2 or img.dtype != np.uint8:
-        raise ListError(f"Canny needs an (H, W) uint8 image, got {img.shape} {img.dtype}")
-    if img.size == 0:
-        return np.zeros(img.shape, dtype=bool)
-    state = _canny_kernel(np.ascontiguousarray(img), *_canny_thresholds(low, high))
-    return state[1:-1, 1:-1] == 2
 
 
 def range_jump_edges_reference(

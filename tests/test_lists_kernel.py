@@ -2,8 +2,6 @@
 
 * range edges (:func:`range_jump_edges`, behind ``sp.segments.range_edges``) against the numpy
   form with ``np.roll`` (:func:`range_jump_edges_reference`);
-* Canny (:func:`canny_edges`) against ``cv2.Canny`` itself, and :func:`brightness_edges`
-  against the OpenCV form (:func:`brightness_edges_reference`: cv2.Canny and cv2.erode);
 * the fused slots-and-sums pass (:func:`list_slots_and_sums`) against the numpy slots
   (:func:`list_slots_numpy`) and the per-pixel sums kernel (:func:`list_sums`, which adds the
   same float64 values in the same order: the sums are compared bit for bit) and, within
@@ -19,21 +17,16 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
-import cv2
 import numpy as np
 import pytest
 
 from sp.lists import (
-    ListConfig,
     brightness_edges,
-    brightness_edges_reference,
-    canny_edges,
     list_slots,
     list_slots_and_sums,
     list_slots_numpy,
     list_sums,
     list_sums_numpy,
-    mean_intensity,
     range_jump_edges,
     range_jump_edges_reference,
 )
@@ -228,99 +221,6 @@ def test_range_edges_fall_back_to_the_reference_where_numpy_would_widen() -> Non
         ref = range_jump_edges_reference(rng, valid, jump_m, frac)
         assert_same(got, ref)
     assert cases and range_jump_edges(*cases[0]).any()
-
-
-# ------------------------------------------------------------------------ Canny
-
-
-def canny_images(seed: int) -> list[np.ndarray]:
-    """uint8 images: scaled sweep intensities as brightness_edges makes them, noise,
-    blurred noise, binary speckle, flat, ramps and small sizes."""
-    g = np.random.default_rng(seed)
-    s = sweep(seed)
-    mean = mean_intensity(s.intensity, s.valid)
-    imgs = [cv2.convertScaleAbs(s.intensity, alpha=100.0 / mean)]
-    for H, W in ((64, 1024), (16, 40), (1, 1), (1, 9), (9, 1), (2, 3), (5, 300)):
-        noise = g.integers(0, 256, (H, W)).astype(np.uint8)
-        imgs.append(noise)
-        imgs.append(cv2.GaussianBlur(noise, (5, 5), 1.5))
-        imgs.append(((g.random((H, W)) < 0.3) * 200).astype(np.uint8))
-    imgs.append(np.full((8, 8), 77, np.uint8))
-    imgs.append(np.tile(np.arange(0, 256, 4, dtype=np.uint8), (12, 1)))  # a ramp: one step
-    imgs.append(np.ascontiguousarray(imgs[0][:, ::2]))
-    return imgs
-
-
-THRESHOLDS = [(40.0, 80.0), (10.0, 30.0), (100.0, 50.0), (0.0, 0.0), (40.5, 80.7), (-5, 4e4)]
-
-
-@pytest.mark.parametrize("seed", range(3))
-@pytest.mark.parametrize("threads", [None, 1])
-def test_canny_matches_cv2(seed: int, threads: int | None) -> None:
-    before = cv2.getNumThreads()
-    try:
-        if threads is not None:
-            cv2.setNumThreads(threads)  # one thread: OpenCV's single-threaded (IPP) path
-        n_edges = 0
-        for img in canny_images(seed):
-            for low, high in THRESHOLDS:
-                ref = cv2.Canny(img, low, high, L2gradient=True) > 0
-                got = canny_edges(img, low, high)
-                assert_same(got, ref)
-                n_edges += int(ref.sum())
-        assert n_edges > 1000
-    finally:
-        cv2.setNumThreads(before)
-    assert canny_edges(np.zeros((0, 4), np.uint8), 40, 80).shape == (0, 4)
-    with pytest.raises(ValueError, match="uint8"):
-        canny_edges(np.zeros((4, 4), np.float32), 40, 80)
-
-
-@pytest.mark.parametrize("seed", SEEDS)
-def test_brightness_edges_match_the_opencv_reference(seed: int) -> None:
-    s = sweep(seed)
-    configs = [ListConfig(), ListConfig(canny_low=10.0, canny_high=30.0)]
-    for cfg, mean in itertools.product(configs, (None, 0.5 * mean_intensity(s.intensity, s.valid))):
-        got = brightness_edges(s.intensity, s.valid, cfg, mean)
-        ref = brightness_edges_reference(s.intensity, s.valid, cfg, mean)
-        assert_same(got, ref)
-        assert ref.any()
-    # the stripes and boxes are edges; no edge touches an invalid pixel or the border
-    got = brightness_edges(s.intensity, s.valid)
-    assert not got[~s.valid].any() and not got[[0, -1], :].any() and not got[:, [0, -1]].any()
-
-
-@pytest.mark.parametrize(("H", "W"), [*SMALL, (16, 40)])
-def test_brightness_edges_of_small_and_degenerate_images(H: int, W: int) -> None:
-    s = small_sweep(H * W, H, W)
-    for valid in (s.valid, np.ones((H, W), bool), s.valid.astype(np.uint8)):
-        assert_same(
-            brightness_edges(s.intensity, valid), brightness_edges_reference(s.intensity, valid)
-        )
-    none = np.zeros((H, W), bool)
-    assert not brightness_edges(s.intensity, none).any()
-    flat = np.ones((H, W), np.float32)
-    assert not brightness_edges(flat, np.ones((H, W), bool)).any()
-
-
-def test_brightness_edges_of_a_return_without_intensity() -> None:
-    s = sweep(12)
-    inten = s.intensity.copy()
-    i, j = np.argwhere(s.valid)[100]
-    inten[i, j] = np.nan
-    assert brightness_edges(s.intensity, s.valid).any()
-    # the mean over the valid pixels is NaN: no scale, no edges, in both forms
-    assert not brightness_edges(inten, s.valid).any()
-    assert not brightness_edges_reference(inten, s.valid).any()
-
-
-def test_brightness_edges_of_an_all_valid_sweep() -> None:
-    s = sweep(11)
-    inten = np.nan_to_num(s.intensity, nan=3.0)
-    ones = np.ones(s.valid.shape, bool)
-    got = brightness_edges(inten, ones)
-    assert_same(got, brightness_edges_reference(inten, ones))
-    assert got.sum() > 100
 
 
 # ------------------------------------------------------------------------ lists
