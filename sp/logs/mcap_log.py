@@ -46,19 +46,13 @@ from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 
-from sp.logs.mcap_file import McapFileWriter
+from sp.logs.mcap_file import MAGIC, McapFileWriter, crc32
 from sp.logs.ros_decode import FrameAssembler
 from sp.logs.ros_encode import encode_frame
 from sp.logs.ros_types import KIND_KEY, frame_topic, frame_topics_of, role_of, ros2msg_schema
 from sp.logs.source import LogSource, TopicInfo, topic_info
 from sp.logs.types import Frame, LogError
 
-try:  # ISA-L's SIMD CRC-32 (zlib's polynomial, same values) is ~7x faster than zlib's
-    from isal.isal_zlib import crc32
-except ImportError:  # pragma: no cover - isal is a declared dependency
-    from zlib import crc32
-
-MAGIC = b"\x89MCAP0\r\n"
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end time, uncompressed size, CRC, len(compression)
 _U64 = struct.Struct("<Q")
