@@ -34,7 +34,7 @@ import numpy as np
 _BIG = 1.7976931348623157e308  # np.nan_to_num's value for +inf (float64 max)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _variance(xyz, var, mode, origin, s0, k, i):
     """Variance (m^2) of point ``i``: given per point (mode 0), one scalar (mode 1), or from
     its range to ``origin`` as ``(s0 + k r)^2`` (mode 2, :func:`maps.fusion.range_variance`)."""
@@ -49,7 +49,7 @@ def _variance(xyz, var, mode, origin, s0, k, i):
     return s * s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def bin_points(
     xyz, var, mode, origin, s0, k, idx, use_idx, clean,
     res, ox, oy, size, tag, sweep, cells, cix, ciy, z_lo, point_row, rest,
@@ -118,7 +118,7 @@ def bin_points(
     return m, n_rest, n_drop, z_sum
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def ground_gate(
     m, cells, z_lo, z_ref, elevation, elevation_var, dense_z_lo, size, ox, oy,
     obstacle_h, allowance, gate, stale,
@@ -168,7 +168,7 @@ def ground_gate(
         dense_z_lo[cells[r]] = np.inf
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def sum_points(
     xyz, var, mode, origin, s0, k, idx, use_idx, point_row, z_ref, gate, m,
     w, wz, wzz, n, n_obs, z_hi,
@@ -204,7 +204,7 @@ def sum_points(
         z_hi[r] = max(z_hi[r], z)  # no branch: the comparison is a coin toss
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def merge_child(
     m, c_ix, c_iy, c_w, c_wz, c_wzz, c_n, c_nobs, c_zmin, c_zmax, c_zref, scale,
     z_ref, res_ox, res_oy, size, tag, sweep, cells, cix, ciy,
@@ -256,7 +256,7 @@ def merge_child(
     return m
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def apply_cells(
     cells, w, wz, wzz, n, n_obs, z_min, z_max, reset, z_ref, t_ns,
     process_var, l_hit, l_miss, l_min, l_max, conf_var,
@@ -325,7 +325,7 @@ def apply_cells(
         last_seen_ns[c] = t_ns
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _walk(
     sx, sy, first, px, py, pz, qz, t_lim, res_ox, res_oy, size, free_h, stop_after,
     tag, sweep, ray_stamp, elevation, elevation_max, occupancy, l_miss, l_min,
@@ -396,7 +396,7 @@ def _walk(
     return lowered
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def cast_rays(
     xyz, idx, use_idx, origin, res, ox, oy, size, max_range, free_h, stop_after,
     tag, sweep, ray_stamp, start_stamp, start_beam, elevation, elevation_max, occupancy,
@@ -480,7 +480,7 @@ def cast_rays(
     return lowered
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _grad(prev, centre, nxt, res):
     """Gradient along one axis: central where both neighbours are known, else one-sided."""
     g = (nxt - prev) / (2.0 * res)
@@ -492,7 +492,7 @@ def _grad(prev, centre, nxt, res):
     return (centre - prev) / res
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def terrain(
     e, rough, occ, res, max_slope, max_step, max_rough, occupied, slope, step, trav
 ):  # pragma: no cover
