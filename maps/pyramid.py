@@ -165,29 +165,30 @@ def build_pyramid(
     ]
 
 
-def _collapsed(region: np.ndarray, h: int, w: int, square: bool) -> np.ndarray:
+def _collapsed(region: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     """``region`` (h + b, w + b) with the rows and columns every (h, w) window shares summed
-    into one: a (2b + 1, 2b + 1) float64 array (of squares when ``square``) whose k x k boxes,
-    k = b + 1, sum the same pixels as the windows (top and bottom b rows, left and right b
-    columns kept one by one, the shared middle collapsed to one row and one column)."""
+    into one: two (2b + 1, 2b + 1) float64 arrays, of the pixels and of their squares, whose
+    k x k boxes, k = b + 1, sum the same pixels as the windows (top and bottom b rows, left and
+    right b columns kept one by one, the shared middle collapsed to one row and one column)."""
     b = region.shape[0] - h
     block = region[b:h, b:w]
-    rows = np.vstack((region[:b], region[h:])).astype(np.float64)  # (2b, W) band rows
-    cols = np.hstack((region[b:h, :b], region[b:h, w:])).astype(np.float64)  # (h - b, 2b)
-    if square:
-        rows, cols = rows * rows, cols * cols
-        total = cv2.norm(block, cv2.NORM_L2SQR)  # double accumulators
-    else:
-        total = cv2.sumElems(block)[0]
-    c = np.empty((2 * b + 1, 2 * b + 1))
-    c[:b, :b], c[:b, b + 1 :] = rows[:b, :b], rows[:b, w:]
-    c[b + 1 :, :b], c[b + 1 :, b + 1 :] = rows[b:, :b], rows[b:, w:]
-    mid_of_rows = rows[:, b:w].sum(axis=1)
-    c[:b, b], c[b + 1 :, b] = mid_of_rows[:b], mid_of_rows[b:]
-    mid_of_cols = cols.sum(axis=0)
-    c[b, :b], c[b, b + 1 :] = mid_of_cols[:b], mid_of_cols[b:]
-    c[b, b] = total
-    return c
+    band_rows = np.vstack((region[:b], region[h:])).astype(np.float64)  # (2b, W)
+    band_cols = np.hstack((region[b:h, :b], region[b:h, w:])).astype(np.float64)  # (h - b, 2b)
+    out = []
+    for rows, cols, total in (
+        (band_rows, band_cols, cv2.sumElems(block)[0]),
+        (band_rows**2, band_cols**2, cv2.norm(block, cv2.NORM_L2SQR)),  # double accumulators
+    ):
+        c = np.empty((2 * b + 1, 2 * b + 1))
+        c[:b, :b], c[:b, b + 1 :] = rows[:b, :b], rows[:b, w:]
+        c[b + 1 :, :b], c[b + 1 :, b + 1 :] = rows[b:, :b], rows[b:, w:]
+        mid_of_rows = rows[:, b:w].sum(axis=1)
+        c[:b, b], c[b + 1 :, b] = mid_of_rows[:b], mid_of_rows[b:]
+        mid_of_cols = cols.sum(axis=0)
+        c[b, :b], c[b, b + 1 :] = mid_of_cols[:b], mid_of_cols[b:]
+        c[b, b] = total
+        out.append(c)
+    return out[0], out[1]
 
 
 def _window_sums(region: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -205,7 +206,7 @@ def _window_sums(region: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray
         tables = cv2.integral2(region, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
         h0, w0 = h, w
     else:
-        tables = [cv2.integral(_collapsed(region, h, w, square)) for square in (False, True)]
+        tables = [cv2.integral(c) for c in _collapsed(region, h, w)]
         h0 = w0 = k
     return tuple(
         t[h0 : h0 + k, w0 : w0 + k] - t[:k, w0 : w0 + k] - t[h0 : h0 + k, :k] + t[:k, :k]
@@ -274,11 +275,9 @@ class _Window:
                 var > (FLAT_STD**2) * self.n, self.t_norm * np.sqrt(np.maximum(var, 0.0)), np.nan
             )
             if self.n <= EAGER_WINDOW_PX:
-                # Small windows: all (2 reach + 1)^2 cross sums in one call beats a call each.
-                view = np.lib.stride_tricks.as_strided(
-                    self.region, (k, k, *t.shape), self.region.strides * 2, writeable=False
-                )
-                cross = np.einsum("abij,ij->ab", view, self.t)[::-1, ::-1]
+                # Small windows: all (2 reach + 1)^2 cross sums in one call beats a call each
+                # (OpenCV's plain cross-correlation, indexed by window top-left like the sums).
+                cross = cv2.matchTemplate(self.region, self.t, cv2.TM_CCORR)[::-1, ::-1]
                 self.multiply_adds += k * k * self.n
                 self.table = cross / self.denominator
                 self.done[:] = True
@@ -415,11 +414,16 @@ def _climb(
         min(max(int(start_rc[1]), -extent[1]), extent[1]),
     )
     ops = 0
-    win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
+    reach = CLIMB_REACH_PX
+    if max(extent) == CLIMB_REACH_PX and 4 * (reach + 1) <= min(mov.shape[:2]):
+        # The whole search fits one window a pixel wider (the coarsest level, mostly): built
+        # once, where a climb to the edge would build a second one.
+        reach += 1
+    win = _Window(ref, mov, center, reach, w_ref, w_mov)
     for _ in range(MAX_CLIMB_STEPS):
         if not win.covers(center):
             ops += win.multiply_adds
-            win = _Window(ref, mov, center, CLIMB_REACH_PX, w_ref, w_mov)
+            win = _Window(ref, mov, center, reach, w_ref, w_mov)
         surface = win.surface(center)
         out_r = [abs(center[0] + d) > extent[0] for d in (-1, 0, 1)]
         out_c = [abs(center[1] + d) > extent[1] for d in (-1, 0, 1)]
