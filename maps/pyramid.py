@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NoReturn
 
 import cv2
 import numpy as np
@@ -218,7 +219,7 @@ def _window_sums(region: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray
     )
 
 
-def _no_overlap(center_rc: tuple[int, int], reach: int, ref_shape, mov_shape) -> None:
+def _no_overlap(center_rc: tuple[int, int], reach: int, ref_shape, mov_shape) -> NoReturn:
     raise PyramidError(
         f"offset {center_rc} +- {reach} px leaves no overlap between images of shapes "
         f"{ref_shape} and {mov_shape}: the correlation window is larger than the image"
