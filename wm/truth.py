@@ -184,7 +184,10 @@ class DetectionScore:
     of the vehicle, at every scored time, matched greedily by the distance (m) from the
     entity's position to the true box's footprint (0 inside; at most ``match_m``): SP places
     an entity at the centre of the surfaces it saw, which for a large object lies well off the
-    box centre."""
+    box centre. Entities and boxes up to ``match_m`` beyond ``range_m`` take part in the
+    matching without being scored: a detection just inside the edge of an object just
+    outside it is no false detection, and an object just inside it detected just outside
+    no missed one."""
 
     range_m: float = 40.0
     match_m: float = 1.0
@@ -198,15 +201,17 @@ class DetectionScore:
     def add(
         self, kd: kd_store.KnowledgeDatabase, boxes: ObjectBoxes, xy: np.ndarray, skip: int
     ) -> None:
+        xy = np.asarray(xy[:2], dtype=np.float64)
+        reach = self.range_m + self.match_m
         # by footprint, as entities are by position: an entity on the near face of a building
         # whose centre lies beyond range_m is a detection of it, not a false one
-        near = footprint_distance(
-            np.asarray(xy[:2], dtype=np.float64)[None], boxes.centers[:, :2],
-            boxes.sizes[:, :2], boxes.yaws,
-        )[:, 0] <= self.range_m  # fmt: skip
-        t_c, t_id = boxes.centers[near, :2], boxes.ids[near]
+        t_dist = footprint_distance(
+            xy[None], boxes.centers[:, :2], boxes.sizes[:, :2], boxes.yaws
+        )[:, 0]  # fmt: skip
+        near = t_dist <= reach
+        t_c, t_id, t_scored = boxes.centers[near, :2], boxes.ids[near], t_dist[near] <= self.range_m
         t_cls = [c for c, k in zip(boxes.classes, near, strict=True) if k]
-        region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), self.range_m)
+        region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), reach)
         ids = [
             int(i)
             for i in kd.region(region, statuses=[Status.CONFIRMED], levels=[Level.OBJECT])
@@ -214,25 +219,28 @@ class DetectionScore:
         ]
         frames = [kd.get(i) for i in ids]
         e_c = np.array([f.state.position_xyz[:2] for f in frames]).reshape(-1, 2)  # type: ignore[union-attr]
-        used: set[int] = set()
+        e_scored = np.hypot(*(e_c - xy).T) <= self.range_m
+        t_matched = np.zeros(len(t_c), dtype=bool)
+        e_matched = np.zeros(len(e_c), dtype=bool)
         if len(e_c) and len(t_c):
             d = footprint_distance(e_c, t_c, boxes.sizes[near, :2], boxes.yaws[near])
             for flat in np.argsort(d, axis=None):
                 ti, ei = divmod(int(flat), len(e_c))
                 if d[ti, ei] > self.match_m:
                     break
-                if ti in used or -ei - 1 in used:
+                if t_matched[ti] or e_matched[ei]:
                     continue
-                used |= {ti, -ei - 1}
+                t_matched[ti] = e_matched[ei] = True
+                if not t_scored[ti]:
+                    continue  # its object lies beyond the scored range
                 self.tp += 1
                 lineage = kd.class_lineage(frames[ei].id)
                 self.class_right += int(t_cls[ti] in lineage)
                 prev = self._last_match.get(int(t_id[ti]))
                 self.id_switches += int(prev is not None and prev != frames[ei].id)
                 self._last_match[int(t_id[ti])] = frames[ei].id
-        n_match = sum(1 for u in used if u >= 0)
-        self.fn += len(t_c) - n_match
-        self.fp += len(e_c) - n_match
+        self.fn += int(np.count_nonzero(t_scored & ~t_matched))
+        self.fp += int(np.count_nonzero(e_scored & ~e_matched))
 
     def summary(self) -> dict[str, float]:
         p = self.tp / (self.tp + self.fp) if self.tp + self.fp else float("nan")
