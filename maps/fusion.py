@@ -297,6 +297,7 @@ class _Scratch:
         self.ray_stamp = np.zeros(ncell, dtype=np.int64)
         self.start_stamp = np.zeros(ncell, dtype=np.int64)
         self.start_beam = np.zeros(ncell, dtype=np.int64)
+        self.order_mark = np.full(ncell, -1, dtype=np.int32)  # for storage_order
         self.sweep = 0
         self.row_ids = np.empty((3, ncell), dtype=np.int64)  # cell, ix, iy of each row
         self.row_z = np.empty(ncell)  # lowest point of each row
@@ -622,7 +623,7 @@ def summarise_compiled(
     allowance = config.max_ground_slope * np.sqrt(2.0) * res
     kernels.ground_gate(
         m, cells, z_lo, z_ref, elev, elev_var, sc.z_lo, size, ox, oy,
-        config.obstacle_height_m, allowance, gate, stale,
+        config.obstacle_height_m, allowance, gate, stale, _storage_order(sc, cells[:m]),
     )  # fmt: skip
     kernels.sum_points(*args, point_row, z_ref, gate, m, w, wz, wzz, n, n_obs, z_hi)
     if n_child:
@@ -667,8 +668,24 @@ def apply_compiled(level: MapLevel, batch: CellBatch, config: FusionConfig, t_ns
         flat, batch.w, batch.wz, batch.wzz, batch.n, batch.n_obstacle, batch.z_min,
         batch.z_max, reset, batch.z_ref, int(t_ns), config.process_var_m2, config.l_hit,
         config.l_miss, config.l_min, config.l_max, config.confidence_var_m2, *lay,
+        _storage_order(_scratch(level), flat),
     )  # fmt: skip
     return len(batch)
+
+
+_IN_ORDER = np.zeros(0, dtype=np.int64)
+
+
+def _storage_order(sc: _Scratch, flat: np.ndarray) -> np.ndarray:
+    """Rows of ``flat`` (distinct storage indices) by storage index, for the per-cell kernels;
+    an empty array (row order) when the rows are too few to be worth ordering (a scan over the
+    level's cells costs about as much as 2 000 scattered cells)."""
+    if len(flat) * 32 < len(sc.order_mark):
+        return _IN_ORDER
+    order = np.empty(len(flat), dtype=np.int64)
+    if kernels.storage_order(flat, sc.order_mark, order) != len(flat):
+        return _IN_ORDER  # a cell given twice: keep the batch's order, as the reference does
+    return order
 
 
 def mark_touched(level: MapLevel, batch: CellBatch) -> None:

@@ -119,19 +119,42 @@ def bin_points(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def storage_order(cells, mark, order):
+    """Rows of ``cells`` (M,) distinct flat storage indices, into ``order`` (M,) by storage
+    index: the per-cell passes then walk each layer's memory forwards, a cache line serving
+    every touched cell it holds (in scan order a sweep's cells are scattered over the layers,
+    and in a full node cycle the layers have left the cache). ``mark`` (size*size) int32 must
+    hold -1 and is left so. Returns the rows ordered: fewer than M if cells repeat."""
+    for r in range(cells.shape[0]):
+        mark[cells[r]] = r
+    k = 0
+    for c in range(mark.shape[0]):
+        r = mark[c]
+        if r >= 0:
+            order[k] = r
+            k += 1
+            mark[c] = -1
+    return k
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def ground_gate(
     m, cells, z_lo, z_ref, elevation, elevation_var, dense_z_lo, size, ox, oy,
-    obstacle_h, allowance, gate, stale,
+    obstacle_h, allowance, gate, stale, order,
 ):  # fmt: skip
     """Obstacle gate ``gate[r]`` (m, relative to ``z_ref``) and refuted flag ``stale[r]`` of
     the first ``m`` rows (cells with raw points; ``z_lo`` absolute metres), exactly as
     :func:`maps.fusion._ground_gate`: the estimate + 3 sigma, or for a new or refuted cell
     ``min(own lowest, lowest 8-neighbour + allowance)``, plus ``obstacle_h``.
-    ``dense_z_lo`` (size*size) must hold +inf and is left so."""
-    for r in range(m):
+    ``dense_z_lo`` (size*size) must hold +inf and is left so. Rows are visited in ``order``
+    (:func:`storage_order`; empty: row order)."""
+    ordered = order.shape[0] == m
+    for j in range(m):
+        r = order[j] if ordered else j
         z_lo[r] = z_lo[r] - z_ref
         dense_z_lo[cells[r]] = z_lo[r]
-    for r in range(m):
+    for j in range(m):
+        r = order[j] if ordered else j
         c = cells[r]
         e = np.float64(elevation[c]) - z_ref
         sigma = math.sqrt(np.float64(elevation_var[c]))
@@ -164,8 +187,8 @@ def ground_gate(
                     nb = base
         ref = min(z_lo[r], nb + allowance)
         gate[r] = ref + obstacle_h
-    for r in range(m):
-        dense_z_lo[cells[r]] = np.inf
+    for j in range(m):
+        dense_z_lo[cells[order[j] if ordered else j]] = np.inf
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -261,15 +284,19 @@ def apply_cells(
     cells, w, wz, wzz, n, n_obs, z_min, z_max, reset, z_ref, t_ns,
     process_var, l_hit, l_miss, l_min, l_max, conf_var,
     elevation, elevation_var, elevation_min, elevation_max, count, obstacle_count,
-    z_weight, z_mean, z_m2, roughness, occupancy, confidence, last_seen_ns,
+    z_weight, z_mean, z_m2, roughness, occupancy, confidence, last_seen_ns, order,
 ):  # fmt: skip
     """Update the layers (flat storage views) of each batch cell, as :func:`maps.fusion.apply`:
     a refuted cell without ground now forgets its height; a cell with ground points gets the
     scalar Kalman update ``K = P / (P + R)``, ``x += K (z_bar - x)``, ``P = (1 - K) P`` with
     ``R = 1 / w``, ``z_bar = z_ref + wz / w`` (001, 4.5.4 eq. 4.3) and the weighted moment
-    merge; every cell its min / max, obstacle count, occupancy log-odds and last-seen time."""
+    merge; every cell its min / max, obstacle count, occupancy log-odds and last-seen time.
+    Cells are visited in ``order`` (:func:`storage_order`; empty: batch order)."""
     nan = np.nan
-    for r in range(cells.shape[0]):
+    m = cells.shape[0]
+    ordered = order.shape[0] == m
+    for j in range(m):
+        r = order[j] if ordered else j
         c = cells[r]
         g = n[r] > 0
         rs = reset[r]
