@@ -149,6 +149,8 @@ def ground_gate(
     ``dense_z_lo`` (size*size) must hold +inf and is left so. Rows are visited in ``order``
     (:func:`storage_order`; empty: row order)."""
     ordered = order.shape[0] == m
+    mask = size - 1
+    pow2 = (size & mask) == 0
     for j in range(m):
         r = order[j] if ordered else j
         z_lo[r] = z_lo[r] - z_ref
@@ -171,16 +173,30 @@ def ground_gate(
             continue
         srow = c // size
         scol = c - srow * size
-        wrow = (srow - oy) % size
-        wcol = (scol - ox) % size
+        if pow2:  # a mask, not an integer division (floor modulo for negatives too)
+            wrow = (srow - oy) & mask
+            wcol = (scol - ox) & mask
+        else:
+            wrow = (srow - oy) % size
+            wcol = (scol - ox) % size
         nb = np.inf
         for dr in range(-1, 2):
+            if wrow + dr < 0 or wrow + dr >= size:
+                continue
+            nrow = srow + dr  # the neighbour's storage row, wrapped by a compare
+            if nrow < 0:
+                nrow += size
+            elif nrow >= size:
+                nrow -= size
             for dc in range(-1, 2):
-                if dr == 0 and dc == 0:
+                if (dr == 0 and dc == 0) or wcol + dc < 0 or wcol + dc >= size:
                     continue
-                if wrow + dr < 0 or wrow + dr >= size or wcol + dc < 0 or wcol + dc >= size:
-                    continue
-                nflat = ((srow + dr) % size) * size + (scol + dc) % size
+                ncol = scol + dc
+                if ncol < 0:
+                    ncol += size
+                elif ncol >= size:
+                    ncol -= size
+                nflat = nrow * size + ncol
                 en = elevation[nflat]
                 base = dense_z_lo[nflat] if math.isnan(en) else np.float64(en) - z_ref
                 if base < nb:
