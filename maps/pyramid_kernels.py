@@ -156,19 +156,12 @@ def climb(
     ss = np.empty((k, k))
     bounds = np.zeros(4, np.int64)
     cr, cc = start_r, start_c
-    t, t_norm, w_ops = _build(ref, mov, cr, cc, reach, flat_std, table, done, s, ss, bounds)
-    if bounds[0] == NO_OVERLAP:
-        out[2], out[4], out[5] = NO_OVERLAP, cr, cc
-        return 0.0
-    wr, wc = cr, cc  # the offset the window was built at
-    ops = 0
-    n = t.shape[0] * t.shape[1]
-    cover = n / (mov.shape[0] * mov.shape[1])
-    flat2n = flat_std * flat_std * n
-    for step in range(max_steps + 1):
-        if step == max_steps:  # out of steps: pinned
-            out[0], out[1], out[2], out[3] = cr, cc, 1, ops + w_ops
-            return cover
+    wr, wc = cr + reach, cc  # the offset the window was built at (none yet: out of reach)
+    t = np.empty((0, 0), np.float32)
+    t_norm = 0.0
+    ops = w_ops = n = 0
+    cover = flat2n = 0.0
+    for _ in range(max_steps):
         if max(abs(cr - wr), abs(cc - wc)) > reach - 1:  # not covered: a new window here
             ops += w_ops
             t, t_norm, w_ops = _build(ref, mov, cr, cc, reach, flat_std, table, done, s, ss, bounds)
@@ -214,4 +207,5 @@ def climb(
             return cover
         cr += best // 3 - 1
         cc += best % 3 - 1
+    out[0], out[1], out[2], out[3] = cr, cc, 1, ops + w_ops  # out of steps: pinned
     return cover
