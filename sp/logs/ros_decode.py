@@ -58,6 +58,26 @@ def _rows_xyz(vs: list[Any]) -> np.ndarray:
     return np.array([[v.x, v.y, v.z] for v in vs], dtype=np.float64).reshape(len(vs), 3)
 
 
+def _cloud_layout(msg: Any) -> tuple[dict[str, Any], np.dtype, np.ndarray]:
+    """A PointCloud2's fields by name, its point dtype, and its points' bytes as a
+    (height, width * point_step) uint8 view of the message (rows without their padding)."""
+    order = ">" if msg.is_bigendian else "<"
+    fields = {f.name: f for f in msg.fields}
+    if not {"x", "y", "z"} <= fields.keys():
+        raise ValueError(f"PointCloud2 without x, y, z fields (has {sorted(fields)})")
+    dtype = np.dtype(
+        {
+            "names": list(fields),
+            "formats": [order + _PF_DTYPES[f.datatype] for f in fields.values()],
+            "offsets": [f.offset for f in fields.values()],
+            "itemsize": msg.point_step,
+        }
+    )
+    rows = np.frombuffer(np.asarray(msg.data, dtype=np.uint8), dtype=np.uint8)
+    rows = rows[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
+    return fields, dtype, rows[:, : msg.width * msg.point_step]
+
+
 def decode_pointcloud2(msg: Any, topic: str, stats: ReadStats) -> LadarScan:
     """PointCloud2 -> LadarScan. Non-finite points are dropped and counted in ``stats``.
 
@@ -69,23 +89,8 @@ def decode_pointcloud2(msg: Any, topic: str, stats: ReadStats) -> LadarScan:
     three field copies stacked and cast), and the per-point finiteness test only runs when
     the sweep has a non-finite coordinate at all.
     """
-    order = ">" if msg.is_bigendian else "<"
-    fields = {f.name: f for f in msg.fields}
-    if not {"x", "y", "z"} <= fields.keys():
-        raise ValueError(f"PointCloud2 without x, y, z fields (has {sorted(fields)})")
-    # the same dtype, slicing and view as the reference, so that malformed clouds raise the
-    # same errors with the same messages
-    dtype = np.dtype(
-        {
-            "names": list(fields),
-            "formats": [order + _PF_DTYPES[f.datatype] for f in fields.values()],
-            "offsets": [f.offset for f in fields.values()],
-            "itemsize": msg.point_step,
-        }
-    )
-    rows = np.frombuffer(np.asarray(msg.data, dtype=np.uint8), dtype=np.uint8)
-    rows = rows[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
-    points = rows[:, : msg.width * msg.point_step]
+    # the same layout as the reference, so that malformed clouds raise the same errors
+    fields, dtype, points = _cloud_layout(msg)
     if not points.flags.c_contiguous:  # padded rows: only a copy makes the points one array
         points = points.copy()
     # a view of the message's bytes (unaligned, read-only) or of their copy: every field
@@ -140,21 +145,8 @@ def decode_pointcloud2_reference(msg: Any, topic: str, stats: ReadStats) -> Lada
     Per-point time from a field ``t`` or ``offset_time`` (integer ns after the stamp) or
     ``time`` (float seconds after the stamp); ring from ``ring`` (or ``laser_number``).
     """
-    order = ">" if msg.is_bigendian else "<"
-    fields = {f.name: f for f in msg.fields}
-    if not {"x", "y", "z"} <= fields.keys():
-        raise ValueError(f"PointCloud2 without x, y, z fields (has {sorted(fields)})")
-    dtype = np.dtype(
-        {
-            "names": list(fields),
-            "formats": [order + _PF_DTYPES[f.datatype] for f in fields.values()],
-            "offsets": [f.offset for f in fields.values()],
-            "itemsize": msg.point_step,
-        }
-    )
-    rows = np.frombuffer(np.asarray(msg.data, dtype=np.uint8), dtype=np.uint8)
-    rows = rows[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
-    cloud = rows[:, : msg.width * msg.point_step].copy().view(dtype).reshape(-1)
+    fields, dtype, points = _cloud_layout(msg)
+    cloud = points.copy().view(dtype).reshape(-1)
     xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float32)
     finite = np.isfinite(xyz).all(axis=1)
     n_bad = int(finite.size - finite.sum())
