@@ -11,6 +11,8 @@ reference the tests compare these kernels against (``FusionConfig(compiled=False
 * :func:`sum_points`: per-cell inverse-variance sums of the ground points, obstacle counts and
   highest point; the second pass over the points;
 * :func:`merge_child`: a finer level's per-cell sums into this level's rows;
+* :func:`storage_order`: the touched cells' rows by storage index, the order in which the
+  per-cell passes walk the layers' memory;
 * :func:`apply_cells`: the per-cell Kalman update (001, 4.5.4 eq. 4.3), weighted moments,
   min / max, occupancy log-odds and last-seen; one pass over the touched cells;
 * :func:`cast_rays`: 2-D free-space traversal of each beam (Amanatides and Woo's grid walk);
