@@ -165,6 +165,8 @@ class NodeConfig:
     # (the process shares its core with the log's decoder) does not stall the node, for one
     # more sweep (0.1 s at 10 Hz) of latency
     odometry_ahead: int = 2
+    # a sweep waits for wheel odometry past its end at most this long (ns of log time)
+    wheel_wait_ns: int = 200_000_000
     # BLAS and OpenMP threads in the node's process during a run (None: the libraries' own
     # choice). One: the node's array operations are small, and the libraries' idle threads
     # spin on the core the odometry process needs (10 s default on 2 cores: main-process CPU

@@ -4,7 +4,9 @@ Per sweep, in the order of DESIGN.md section 3 and reference 001, 4.2 (the WM ke
 current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
 
 1. pose: LADAR odometry fused with wheel odometry (sp.odometry), or the log's ground truth;
-   the sweep is deskewed into the world with the pose at each slice's time. By default the
+   odometry never reads ground truth: its world starts at the first sweep, level with gravity
+   (:func:`initial_pose`), so scorers align estimates to truth themselves; the sweep is
+   deskewed into the world with the pose at each slice's time. By default the
    odometry runs in its own process (wm.odometry_worker), ``NodeConfig.odometry_ahead`` sweeps
    ahead of the rest;
 2. self state into the KD (entity ``self``, world frame);
@@ -33,7 +35,16 @@ import numpy as np
 
 import kd_store
 from kd_store import Level, State, Status
-from maps.frames import BODY, CAMERA, LADAR, matrix_to_quat
+from maps.frames import (
+    BODY,
+    CAMERA,
+    LADAR,
+    check_pose,
+    matrix_to_quat,
+    matrix_to_rpy,
+    rpy_to_matrix,
+    se3,
+)
 from maps.stack import MapStack
 from maps.terrain import update_terrain
 from sp.logs.types import (
@@ -52,6 +63,20 @@ from wm.odometry_worker import OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.truth import truth_boxes_to_world
 from wm.whatis import WhatIs
+
+
+def initial_pose(wheel: OdometryFrame) -> np.ndarray:
+    """The body pose the estimated world starts from (4x4 float64): the first wheel-odometry
+    message's roll and pitch (the gravity direction an inertial unit measures), with zero yaw
+    and position, so the world frame is z up without reading any ground-truth topic; a
+    message whose rotation is not a rotation gives the identity."""
+    T = np.asarray(wheel.T_parent_child, dtype=np.float64)
+    try:
+        check_pose(T, "first wheel odometry pose")
+    except ValueError:
+        return np.eye(4)
+    roll, pitch, _ = matrix_to_rpy(T[:3, :3])
+    return se3(rpy_to_matrix(roll, pitch, 0.0))
 
 
 class NodeError(ValueError):
@@ -121,6 +146,9 @@ class WorldModelNode:
         self.truth = PoseTrack()
         self.track = PoseTrack()  # the poses the node uses (estimated, or truth)
         self.odometry: Any | None = None
+        # where the odometry's world starts: level with gravity, never from ground truth
+        self.T_world_body0: np.ndarray | None = None
+        self.last_wheel_t_ns: int | None = None
         self.pending: deque[LadarScan] = deque()
         self.inflight: deque[tuple[LadarScan, CameraFrame | None]] = deque()  # at the odometry
         self.camera: CameraFrame | None = None
@@ -150,7 +178,11 @@ class WorldModelNode:
         elif isinstance(frame, GroundTruthPose):
             self.truth.add(frame.t_ns, frame.T_parent_child)
         elif isinstance(frame, OdometryFrame):
-            self._odometry().add_wheel_odometry(frame) if self._uses_odometry() else None
+            self.last_wheel_t_ns = max(self.last_wheel_t_ns or frame.t_ns, frame.t_ns)
+            if self._uses_odometry():
+                if self.odometry is None:
+                    self.T_world_body0 = initial_pose(frame)
+                self._odometry().add_wheel_odometry(frame)
         elif isinstance(frame, CameraFrame):
             self.camera = frame
         elif isinstance(frame, ObjectBoxes):
@@ -211,8 +243,15 @@ class WorldModelNode:
         return [self.cycle(*self.inflight.popleft())] if len(self.inflight) > ahead else []
 
     def _ready(self, scan: LadarScan) -> bool:
+        """The log has passed the sweep's last point and, when it carries wheel odometry,
+        that has too (or stayed silent ``wheel_wait_ns`` past it): the odometry's prediction
+        then interpolates the wheels over the whole sweep whatever other topics are
+        interleaved with them."""
         end = scan.t_ns + (int(scan.t_offset_ns.max()) if scan.n_points else 0)
-        return self.last_t_ns is not None and self.last_t_ns > end
+        if self.last_t_ns is None or self.last_t_ns <= end:
+            return False
+        wheel = self.last_wheel_t_ns
+        return wheel is None or wheel >= end or self.last_t_ns > end + self.config.wheel_wait_ns
 
     def _transform(self, frame: TransformFrame) -> None:
         if frame.parent_frame_id != BODY:
@@ -241,9 +280,7 @@ class WorldModelNode:
         if self.odometry is None:
             from sp.odometry import LadarOdometry
 
-            T0 = None
-            if self.truth.t_ns:  # align the odometry's world with the truth's start, if known
-                T0 = self.truth.poses[0]
+            T0 = self.T_world_body0
             if self.config.odometry_process:
                 self.odometry = OdometryWorker(self.T_body_ladar, T0)
             else:

@@ -306,11 +306,13 @@ def _metrics(node, odo: OdometryScore, det: DetectionScore, terrain) -> dict[str
     out: dict[str, Any] = {}
     if odo.errors_m:
         out["odometry"] = odo.summary()
+    T_align = odo.T_align if node.config.pose_source == PoseSource.ODOMETRY else None
     if terrain is not None and node.stats.sweeps:
         for name in ("primitive", "subsystem"):
             if any(lv.name == name for lv in node.stack.levels):
                 level = node.stack.level(name)
-                out[f"elevation_{name}"] = elevation_error(level, terrain)
+                # the map's world aligned to the truth's at the first pose (drift included)
+                out[f"elevation_{name}"] = elevation_error(level, terrain, T_align)
                 if odo.T_true_est is not None:  # the same map, without the odometry's drift
                     out[f"elevation_{name}_local"] = elevation_error(level, terrain, odo.T_true_est)
     if node.sp is not None and det.tp + det.fn + det.fp:

@@ -113,11 +113,16 @@ def elevation_error(
 
 @dataclass
 class OdometryScore:
-    """Position error (m) of the node's poses against the truth at each sweep."""
+    """Position error (m) of the node's poses against the truth at each sweep, the estimated
+    world aligned to the true one at the first scored pose (evo's ``align_origin``): the
+    odometry starts its own world and never sees the truth, so only motion since the first
+    sweep is scored. ``T_true_est`` maps the estimated world into the true one by the pose
+    error of the last sweep (the drift, for local map scores)."""
 
     errors_m: list[float] = field(default_factory=list)
     path_m: float = 0.0
     T_true_est: np.ndarray | None = None
+    T_align: np.ndarray | None = None  # true world <- estimated world, at the first pose
     _last_xy: np.ndarray | None = None
 
     def add(self, t_ns: int, T_world_body: np.ndarray, truth: PoseTrack) -> None:
@@ -125,7 +130,10 @@ class OdometryScore:
             T_true = truth.at(t_ns)
         except PoseError:
             return
-        self.errors_m.append(float(np.linalg.norm(T_world_body[:3, 3] - T_true[:3, 3])))
+        if self.T_align is None:
+            self.T_align = T_true @ se3_inverse(T_world_body)
+        T_aligned = self.T_align @ T_world_body
+        self.errors_m.append(float(np.linalg.norm(T_aligned[:3, 3] - T_true[:3, 3])))
         self.T_true_est = T_true @ se3_inverse(T_world_body)  # the pose error at this sweep
         if self._last_xy is not None:
             self.path_m += float(np.linalg.norm(T_true[:2, 3] - self._last_xy))

@@ -1,0 +1,96 @@
+"""The node's odometry never reads ground truth: its world starts at the first sweep, level with
+gravity, whatever the log's ground-truth topics say; the scorer aligns estimates to the truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import kd_store
+from maps.frames import matrix_to_rpy, rpy_to_matrix, se3
+from sp.logs import open_log
+from sp.logs.types import GroundTruthPose, ObjectBoxes, OdometryFrame
+from wm.config import NodeConfig
+from wm.node import WorldModelNode, initial_pose
+from wm.poses import PoseTrack
+from wm.truth import OdometryScore
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory):
+    from fixtures.simulate import simulate_to_log
+
+    path = tmp_path_factory.mktemp("truthfree") / "default.mcap"
+    return simulate_to_log("default", path, seconds=2.5, seed=41, progress=False)
+
+
+def _self_poses(frames) -> list[np.ndarray]:
+    kd = kd_store.open(":memory:")
+    node = WorldModelNode(kd, NodeConfig(use_sp=False))
+    poses = []
+    for f in frames:
+        poses += [c.T_world_body for c in node.feed(f)]
+    poses += [c.T_world_body for c in node.finish()]
+    kd.close()
+    return poses
+
+
+def _falsified(f):
+    """Ground truth moved 1 km away and turned: a node that reads it would move too."""
+    T_lie = se3(rpy_to_matrix(0.1, -0.2, 2.0), np.array([1000.0, -500.0, 30.0]))
+    if isinstance(f, GroundTruthPose):
+        return dataclasses.replace(f, T_parent_child=T_lie @ f.T_parent_child)
+    if isinstance(f, ObjectBoxes):
+        return None
+    return f
+
+
+def test_odometry_is_the_same_with_lying_or_absent_ground_truth(log) -> None:
+    frames = list(open_log(log).frames())
+    honest = _self_poses(frames)
+    lying = _self_poses([g for f in frames if (g := _falsified(f)) is not None])
+    blind = _self_poses([f for f in frames if not isinstance(f, GroundTruthPose | ObjectBoxes)])
+    assert len(honest) == len(lying) == len(blind) >= 20
+    for a, b, c in zip(honest, lying, blind, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+    # the estimated world starts near the origin, not where the truth says the vehicle is
+    truth = [f for f in frames if isinstance(f, GroundTruthPose)]
+    assert np.linalg.norm(truth[0].T_parent_child[:2, 3]) > 20.0
+    assert np.linalg.norm(honest[0][:2, 3]) < 1.5
+
+
+def test_initial_pose_takes_roll_and_pitch_only() -> None:
+    T = se3(rpy_to_matrix(0.05, -0.03, 1.2), np.array([12.0, 3.0, 4.0]))
+    odo = OdometryFrame(
+        t_ns=0, frame_id="odom", child_frame_id="base_link", T_parent_child=T,
+        twist_linear=np.zeros(3), twist_angular=np.zeros(3),
+        pose_covariance=np.eye(6), twist_covariance=np.eye(6),
+    )  # fmt: skip
+    T0 = initial_pose(odo)
+    roll, pitch, yaw = matrix_to_rpy(T0[:3, :3])
+    assert (roll, pitch) == pytest.approx((0.05, -0.03), abs=1e-12)
+    assert yaw == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_array_equal(T0[:3, 3], 0.0)
+    bad = dataclasses.replace(odo, T_parent_child=np.diag([2.0, 2.0, 2.0, 1.0]))
+    np.testing.assert_array_equal(initial_pose(bad), np.eye(4))
+
+
+def test_odometry_score_aligns_at_the_first_pose() -> None:
+    """Estimates in their own world (a fixed SE(3) away from the truth's) score zero error
+    when they follow the true motion, and the drift when they do not."""
+    truth = PoseTrack()
+    T_off = se3(rpy_to_matrix(0.0, 0.0, 0.7), np.array([300.0, -40.0, 2.0]))
+    score, drifting = OdometryScore(), OdometryScore()
+    for k in range(11):
+        truth.add(k * 100_000_000, se3(rpy_to_matrix(0, 0, 0.02 * k), np.array([k, 0.0, 0.0])))
+    for k in range(11):
+        T_true = truth.at(k * 100_000_000)
+        score.add(k * 100_000_000, T_off @ T_true, truth)
+        T_est = T_off @ T_true @ se3(t=np.array([0.01 * k, 0.0, 0.0]))
+        drifting.add(k * 100_000_000, T_est, truth)
+    assert score.summary()["final_error_m"] == pytest.approx(0.0, abs=1e-9)
+    assert drifting.summary()["final_error_m"] == pytest.approx(0.1, abs=1e-9)
+    assert drifting.summary()["final_error_pct_of_path"] == pytest.approx(1.0, rel=1e-3)
