@@ -524,10 +524,12 @@ class SensoryProcessor:
         )
         # states of the tracks updated this cycle
         upd = np.unique(track_of[track_of >= 0])
+        # tracks at rest by the stationarity test report the stationary filter: no speed
+        x_rep, P_rep = tr.reported(cfg.tracker)
         if upd.size:
             yaw = tr.w[upd, 3]
-            moving = np.hypot(tr.x[upd, 3], tr.x[upd, 4]) > 1.0
-            yaw = np.where(moving, np.arctan2(tr.x[upd, 4], tr.x[upd, 3]), yaw)
+            moving = np.hypot(x_rep[upd, 3], x_rep[upd, 4]) > 1.0
+            yaw = np.where(moving, np.arctan2(x_rep[upd, 4], x_rep[upd, 3]), yaw)
             q = np.stack([matrix_to_quat(rot_z(float(y))) for y in yaw])
             var_rpy = np.zeros((upd.size, 3))
             var_rpy[:, 2] = tr.Pw[upd, 3]
@@ -536,10 +538,10 @@ class SensoryProcessor:
                     tr.id[upd].copy(),
                     tr.t_ns[upd].copy(),
                     "world",
-                    tr.x[upd, :3].copy(),
+                    x_rep[upd, :3],
                     q,
-                    tr.x[upd, 3:].copy(),
-                    tr.P[upd].copy(),
+                    x_rep[upd, 3:],
+                    P_rep[upd],
                     var_rpy,
                 )
             )
@@ -553,7 +555,7 @@ class SensoryProcessor:
             changes: dict[str, object] = {"status": status, "confidence": _unit(tr.confidence[k])}
             s = seg_of_track[k]
             if s >= 0:
-                changes["attributes"] = _attributes(a, s, tr.w[k], tr.Pw[k], tr.x[k])
+                changes["attributes"] = _attributes(a, s, tr.w[k], tr.Pw[k], x_rep[k])
                 self._observe_appearance(self.track_reflectance, tid, float(a.intensity[s]))
             kd.update_entity(tid, **changes)
             if was == int(status_code(status)) or (was < 0 and status == Status.HYPOTHESIZED):

@@ -12,6 +12,14 @@ filterpy's textbook symbols (x, P, F, Q, H, R, K, S), so 50 tracks cost one batc
 * *what*: random walk over (length, width, height, yaw) with the yaw innovation wrapped to
   (-pi/2, pi/2] (a footprint's long axis has no front).
 
+Beside the constant-velocity model each track runs a *stationary* one (position only, a slow
+random walk ``q_static_m`` for the wandering visible centre) and a sequential test between the
+two (Wald's SPRT: the log-likelihood ratio of every innovation under the moving model against
+the stationary one, summed and clipped to ``+-llr_max``). While it stays below
+``llr_moving`` the track is at rest: its reported state is the stationary filter's position
+with zero velocity, so a bush whose centre wanders as more of it comes into view is not
+given a speed (reference 001, 4.5.3: hypotheses tested against predictions).
+
 Association gates on the Mahalanobis distance of the position innovation (chi-square, 3 dof)
 and solves the optimal assignment (scipy's ``linear_sum_assignment``). Confidence follows the
 innovation statistics: each hit moves it towards ``exp(-max(NIS - 3, 0) / 6)``, each miss
@@ -61,6 +69,11 @@ class TrackerConfig:
     part_margin_m:  a free measurement inside a track's footprint enlarged by this is a part
                     of it; an unseen confirmed track inside another's footprint is a duplicate.
     alpha:          confidence gain per cycle; confirm / deny thresholds; min_hits to confirm.
+    q_static_m:     random walk (m per sqrt(s)) of the stationary model's position.
+    llr0:           log-likelihood ratio (moving vs stationary) of a new track: a prior for
+                    rest, as most things a vehicle passes do not move; llr_moving is the
+                    threshold above which a track is moving, llr_max the clip that lets
+                    a parked car that drives off be moving within a few cycles.
     max_misses:     cycles a confirmed track may go unseen before it is gone, plus
                     ``max_misses_per_m`` per metre of its last range (far objects fall in and
                     out of the sparse beams); a hypothesized one is denied after
@@ -87,6 +100,10 @@ class TrackerConfig:
     max_misses_per_m: float = 0.2
     part_margin_m: float = 0.5
     max_misses_hyp: int = 2
+    q_static_m: float = 0.1
+    llr0: float = -2.0
+    llr_moving: float = 0.0
+    llr_max: float = 5.0
 
 
 @dataclass
@@ -123,9 +140,28 @@ class Tracks:
     misses: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     nis: np.ndarray = field(default_factory=lambda: np.zeros(0))
     range_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # at the last hit
+    xs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # stationary position
+    Ps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))  # and its covariance
+    llr: np.ndarray = field(default_factory=lambda: np.zeros(0))  # moving vs stationary
 
     def __len__(self) -> int:
         return int(self.id.shape[0])
+
+    def moving(self, config: TrackerConfig) -> np.ndarray:
+        """(T,) bool: the sequential test favours the moving model."""
+        return self.llr > config.llr_moving
+
+    def reported(self, config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
+        """The state to report per track: (x (T, 6), P (T, 6, 6)), the constant-velocity
+        filter's for moving tracks, the stationary filter's position at zero velocity (with
+        the velocity variance of a track at rest, ``q_static_m**2``) for the others."""
+        x, P = self.x.copy(), self.P.copy()
+        rest = ~self.moving(config)
+        x[rest, :3], x[rest, 3:] = self.xs[rest], 0.0
+        P[rest] = 0.0
+        P[rest, :3, :3] = self.Ps[rest]
+        P[rest, 3:, 3:] = np.eye(3) * config.q_static_m**2
+        return x, P
 
     def take(self, keep: np.ndarray) -> Tracks:
         return Tracks(**{k: v[keep] for k, v in self.__dict__.items()})
@@ -173,6 +209,31 @@ def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray):
     P_new = 0.5 * (P_new + P_new.transpose(0, 2, 1))
     nis = np.einsum("ti,tij,tj->t", y, S_inv, y)
     return x_new, P_new, nis
+
+
+def gaussian_loglik(y: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Log density (T,) of innovations y (T, k) under N(0, S) with S (T, k, k)."""
+    k = y.shape[1]
+    _, logdet = np.linalg.slogdet(S)
+    d2 = np.einsum("ti,ti->t", y, np.linalg.solve(S, y[..., None])[..., 0])
+    return -0.5 * (d2 + logdet + k * np.log(2.0 * np.pi))
+
+
+def stationary_update(
+    xs: np.ndarray, Ps: np.ndarray, z: np.ndarray, R: np.ndarray, dt_s: np.ndarray, q: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stationary model's step: position xs (T, 3) with covariance Ps (T, 3, 3), a random
+    walk of q m/sqrt(s) over dt_s (T,), measured by z (T, 3) with noise R (T, 3, 3).
+    Returns (xs, Ps, log-likelihood (T,) of the innovation)."""
+    Pp = Ps + (q**2 * dt_s)[:, None, None] * np.eye(3)
+    S = Pp + R
+    y = z - xs
+    ll = gaussian_loglik(y, S)
+    K = Pp @ np.linalg.inv(S)
+    xs_new = xs + np.einsum("tij,tj->ti", K, y)
+    IK = np.eye(3) - K
+    Ps_new = IK @ Pp @ IK.transpose(0, 2, 1) + K @ R @ K.transpose(0, 2, 1)
+    return xs_new, 0.5 * (Ps_new + Ps_new.transpose(0, 2, 1)), ll
 
 
 def wrap_half_pi(a: np.ndarray) -> np.ndarray:
@@ -302,8 +363,15 @@ class Tracker:
             dt = np.maximum((meas.t_ns[mi] - tr.t_ns[ti]) * 1e-9, 0.0)
             xp, Pp = predict(tr.x[ti], tr.P[ti], dt, cfg.q_accel)
             R = measurement_R(meas.what[mi], cfg, tr.w[ti])
-            x_new, P_new, nis = update(xp, Pp, meas.position_xyz[mi], R)
+            z = meas.position_xyz[mi]
+            ll_moving = gaussian_loglik(z - xp[:, :3], Pp[:, :3, :3] + R)
+            x_new, P_new, nis = update(xp, Pp, z, R)
             tr.x[ti], tr.P[ti], tr.nis[ti] = x_new, P_new, nis
+            tr.xs[ti], tr.Ps[ti], ll_rest = stationary_update(
+                tr.xs[ti], tr.Ps[ti], z, R, dt, cfg.q_static_m
+            )
+            llr = tr.llr[ti] + ll_moving - ll_rest
+            tr.llr[ti] = np.clip(llr, -cfg.llr_max, cfg.llr_max)
             tr.t_ns[ti] = np.maximum(meas.t_ns[mi], tr.t_ns[ti] + 1)
             self._update_what(ti, meas.what[mi], dt)
             score = np.exp(-np.maximum(nis - 3.0, 0.0) / 6.0)
@@ -401,6 +469,9 @@ class Tracker:
             misses=np.zeros(n, np.int64),
             nis=np.zeros(n),
             range_m=np.asarray(meas.range_m)[fm].astype(np.float64),
+            xs=meas.position_xyz[fm].copy(),
+            Ps=P[:, :3, :3].copy(),
+            llr=np.full(n, cfg.llr0),
         )
 
     def drop_finished(self) -> Tracks:

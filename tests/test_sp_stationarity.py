@@ -1,0 +1,67 @@
+"""The tracker's stationarity test (sp.tracking): objects at rest are reported at rest, objects
+that move are reported moving within a few cycles, and a parked car that drives off is found
+moving soon after it starts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sp.tracking import Measurements, Tracker, TrackerConfig
+
+DT_NS = 100_000_000  # 10 Hz sweeps
+
+
+def _run(positions: np.ndarray, what: np.ndarray, seed: int = 0, noise_m: float = 0.1):
+    """One object seen at ``positions`` (K, 3) with extents ``what`` (4,), plus noise; returns
+    per cycle (moving?, reported x (6,), filter x (6,))."""
+    rng = np.random.default_rng(seed)
+    tracker = Tracker(TrackerConfig())
+    out = []
+    for k, p in enumerate(positions):
+        z = p + rng.normal(0.0, noise_m, 3) * np.array([1.0, 1.0, 0.3])
+        meas = Measurements(z[None], np.array([k * DT_NS]), what[None], np.array([15.0]))
+        tracker.step(meas, k * DT_NS)
+        tr = tracker.tracks
+        assert len(tr) == 1, f"cycle {k}: the object split into {len(tr)} tracks"
+        x_rep, _ = tr.reported(tracker.config)
+        out.append((bool(tr.moving(tracker.config)[0]), x_rep[0], tr.x[0].copy()))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_bush_whose_centre_wanders_is_reported_at_rest(seed: int) -> None:
+    # the visible centre drifts 0.4 m over 3 s as more of the bush comes into view
+    k = np.arange(30)
+    centre = np.column_stack([10.0 + 0.4 * k / 29, 5.0 + 0.0 * k, 0.8 + 0.0 * k])
+    out = _run(centre, np.array([2.0, 2.0, 1.5, 0.0]), seed)
+    assert not any(m for m, _, _ in out[3:])
+    speeds = [np.hypot(*x[3:5]) for _, x, _ in out]
+    assert max(speeds) == 0.0
+    # without the test the constant-velocity filter would have given it a speed
+    assert max(np.hypot(*x[3:5]) for _, _, x in out[5:]) > 0.05
+    x_end = out[-1][1]
+    assert np.hypot(x_end[0] - 10.3, x_end[1] - 5.0) < 0.3
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_walking_person_is_moving_within_a_second(seed: int) -> None:
+    k = np.arange(30)
+    walk = np.column_stack([8.0 + 1.4 * 0.1 * k, 2.0 + 0.0 * k, 0.9 + 0.0 * k])
+    out = _run(walk, np.array([0.5, 0.6, 1.75, 0.0]), seed, noise_m=0.05)
+    first = next(i for i, (m, _, _) in enumerate(out) if m)
+    assert first <= 10
+    assert all(m for m, _, _ in out[first:])
+    v = np.array([x[3] for _, x, _ in out[-10:]])
+    assert np.median(v) == pytest.approx(1.4, abs=0.3)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_parked_car_that_drives_off_is_moving_soon_after(seed: int) -> None:
+    k = np.arange(60)
+    t = 0.1 * k
+    x = 20.0 + np.where(t > 3.0, 0.5 * 2.0 * (t - 3.0) ** 2, 0.0)  # 2 m/s^2 from t = 3 s
+    out = _run(np.column_stack([x, 0.0 * k, 0.0 * k + 0.8]), np.array([4.5, 1.8, 1.5, 0.0]), seed)
+    assert not any(m for m, _, _ in out[3:30])
+    first = next(i for i, (m, _, _) in enumerate(out) if i >= 30 and m)
+    assert first <= 45  # within 1.5 s of starting, at under 3 m/s
