@@ -14,9 +14,13 @@ Per sweep (one :class:`~sp.logs.types.LadarScan`):
    a sweep with too few points, a jump beyond ``max_step_m`` / ``max_step_rad`` or a quality
    under ``min_quality`` is *rejected*: the map is not touched and the pose follows the
    prediction, with ``status`` saying why (the next good sweep recovers);
-4. fuse: the sweep's motion is ``delta = delta_pred + K (delta_icp - delta_pred)`` per axis, with
-   ``K = P / (P + R)``, ``P`` the wheel odometry's variance and ``R`` the registration's, which
-   grows as the quality falls.
+4. fuse: the sweep's motion is ``delta = delta_pred + K (delta_icp - delta_pred)`` over the six
+   axes (translation, rotation vector), with ``K = P (P + R)^-1``, ``P`` the wheel odometry's
+   covariance and ``R`` the registration's: ``R = c H^-1 / quality^2`` with ``H`` the
+   point-to-plane information of the registered points (:func:`registration_information`),
+   so a direction the scene does not constrain (along a bare slope, around the vertical in
+   open country) gets a large variance and follows the wheels, while a well-constrained one
+   follows the registration (degeneracy as in Zhang, Kaess and Singh, ICRA 2016).
 
 Poses: KISS-ICP deskews a sweep to the end of its per-point times once the motion is known; a
 sweep taken as it is (no per-point times, deskew off, or the first sweeps before any motion is
@@ -73,6 +77,11 @@ class OdometryConfig:
     icp_sigma_m, icp_sigma_rad: per-sweep standard deviation of a fully trusted registration.
     gate_sigma:     per axis, a registration further than this many standard deviations from
                     the wheel odometry is not used on that axis.
+    info_neighbours, info_radius_m: the neighbours (and their farthest distance) that fit the
+                    local plane of each registered point for the information matrix.
+    info_well_constrained: the per-point information (eigenvalue of ``H / n``) of a
+                    direction that ``icp_sigma_m`` describes; weaker directions get
+                    proportionally more variance.
     max_points_per_voxel: points KISS-ICP's local map keeps per voxel (its default is 20).
                     Each source point's nearest neighbour is sought among the 27 voxels
                     around it, so this bounds the registration's cost: on the default
@@ -112,8 +121,8 @@ class OdometryConfig:
     max_step_m: float = 5.0
     max_step_rad: float = 0.6
     min_quality: float = 0.25
-    wheel_sigma_m: float = 0.02
-    wheel_sigma_rad: float = 0.002
+    wheel_sigma_m: float = 0.01
+    wheel_sigma_rad: float = 0.001
     icp_sigma_m: float = 0.02
     icp_sigma_rad: float = 0.002
     gate_sigma: float = 3.0
@@ -124,6 +133,9 @@ class OdometryConfig:
     thin_before_deskew: bool = True
     source_voxel_ratio: float = 1.5
     max_source_points: int | None = 2000
+    info_neighbours: int = 8
+    info_radius_m: float = 2.0
+    info_well_constrained: float = 0.07
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_range_m < self.max_range_m:
@@ -261,6 +273,7 @@ class LadarOdometry:
         self.n_lost = 0
         self._previous_voxels: np.ndarray | None = None
         self.last_gain = np.zeros(6)  # per-axis weight of the registration in the last fusion
+        self.last_information = np.zeros((6, 6))  # H / n of the last registration
 
     def add_wheel_odometry(self, frame: OdometryFrame) -> None:
         self.wheel.add(frame)
@@ -347,7 +360,8 @@ class LadarOdometry:
         if why:
             return self._reject(t_ns, delta_pred, why, quality, n_usable)
         if from_wheel:
-            pose = kiss.last_pose @ self._fuse(delta_pred, delta_icp, quality)
+            info = registration_information(frame_down, source, pose, kiss.last_pose, cfg)
+            pose = kiss.last_pose @ self._fuse(delta_pred, delta_icp, quality, info)
         kiss.adaptive_threshold.update_model_deviation(se3_inverse(guess) @ pose)
         kiss.local_map.update(frame_down, pose)
         kiss.last_delta = se3_inverse(kiss.last_pose) @ pose
@@ -401,19 +415,26 @@ class LadarOdometry:
             )
         return quality, ""
 
-    def _fuse(self, delta_pred: np.ndarray, delta_icp: np.ndarray, quality: float) -> np.ndarray:
-        """Per-axis Kalman blend of wheel (prediction) and registration (measurement)."""
+    def _fuse(
+        self, delta_pred: np.ndarray, delta_icp: np.ndarray, quality: float, info: np.ndarray
+    ) -> np.ndarray:
+        """Kalman blend of the wheels (prediction, covariance P) and the registration
+        (measurement, covariance R from its information ``info`` (6, 6), sensor frame, axes
+        x y z rx ry rz), both sensor motions over one sweep (4x4)."""
         cfg = self.config
-        P = np.array([cfg.wheel_sigma_m] * 3 + [cfg.wheel_sigma_rad] * 3) ** 2
-        R = np.array([cfg.icp_sigma_m] * 3 + [cfg.icp_sigma_rad] * 3) ** 2 / max(quality, 1e-3) ** 2
-        K = P / (P + R)
+        P = np.diag(np.array([cfg.wheel_sigma_m] * 3 + [cfg.wheel_sigma_rad] * 3) ** 2)
+        R = registration_covariance(info, quality, cfg)
         x_pred = to_vector(delta_pred)
         innovation = to_vector(delta_icp) - x_pred
-        # Gate per axis: a registration that slid along a poorly constrained direction (open
-        # ground, a corridor) disagrees with the wheels far beyond both spreads: keep the wheels.
-        K[np.abs(innovation) > cfg.gate_sigma * np.sqrt(P + R)] = 0.0
-        self.last_gain = K
-        return from_vector(x_pred + K * innovation)
+        K = P @ np.linalg.inv(P + R)
+        # Gate per axis: a registration that disagrees with the wheels far beyond both spreads
+        # (a slide the information did not reveal, a wheel slip) is not used on that axis.
+        gated = np.abs(innovation) > cfg.gate_sigma * np.sqrt(np.diag(P + R))
+        K[gated, :] = 0.0
+        K[:, gated] = 0.0
+        self.last_gain = np.diag(K).copy()
+        self.last_information = info
+        return from_vector(x_pred + K @ innovation)
 
     def _reject(
         self,
@@ -436,6 +457,57 @@ class LadarOdometry:
         return OdometryEstimate(
             t_ns, self._T_world_body(kiss.last_pose), quality, TrackStatus.LOST, message, n_points
         )
+
+
+def registration_information(
+    cloud_sensor: np.ndarray,
+    source_sensor: np.ndarray,
+    T_map_sensor: np.ndarray,
+    T_map_last: np.ndarray,
+    config: OdometryConfig,
+) -> np.ndarray:
+    """Point-to-plane information ``H / n`` (6, 6) of a registration, in the frame of the last
+    sensor pose, axes (x, y, z, rx, ry, rz) as :func:`to_vector` orders a motion.
+
+    Each registered point ``p`` (source_sensor (n, 3), sensor frame) with the normal ``n`` of
+    its neighbours in the sweep (cloud_sensor (m, 3)) constrains the motion along
+    ``a = (n, p x n)``, weighted by how planar the neighbourhood is; ``H = sum a a^T``. Points and
+    normals are expressed in the last pose's frame, where the fused motion is taken. A
+    direction with a small eigenvalue is one the scene does not pin down."""
+    from scipy.spatial import cKDTree
+
+    n_src = len(source_sensor)
+    if n_src == 0 or len(cloud_sensor) < config.info_neighbours:
+        return np.zeros((6, 6))
+    k = config.info_neighbours
+    dist, idx = cKDTree(cloud_sensor).query(
+        source_sensor, k=k, distance_upper_bound=config.info_radius_m
+    )
+    ok = np.isfinite(dist).all(axis=1)
+    if not ok.any():
+        return np.zeros((6, 6))
+    nb = cloud_sensor[idx[ok]]  # (n, k, 3)
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred) / k)
+    normal = v[:, :, 0]
+    planarity = (w[:, 1] - w[:, 0]) / np.maximum(w[:, 2], 1e-12)
+    T_last_sensor = se3_inverse(T_map_last) @ T_map_sensor
+    R, t = T_last_sensor[:3, :3], T_last_sensor[:3, 3]
+    p = source_sensor[ok] @ R.T + t
+    normal = normal @ R.T
+    a = np.concatenate([normal, np.cross(p, normal)], axis=1) * np.sqrt(planarity)[:, None]
+    return a.T @ a / n_src
+
+
+def registration_covariance(info: np.ndarray, quality: float, config: OdometryConfig) -> np.ndarray:
+    """Covariance (6, 6) of one registration's motion from its information ``H / n`` (see
+    :func:`registration_information`): a direction with ``info_well_constrained`` of
+    information per point has the variance ``icp_sigma_m ** 2``, a weaker one proportionally
+    more; the quality scales it as before. Regularised so that a direction with no information
+    at all has a standard deviation of about 10 m (10 rad), not infinity."""
+    c = config.icp_sigma_m**2 * config.info_well_constrained
+    H = info / c + np.eye(6) * 1e-2
+    return np.linalg.inv(H) / max(quality, 1e-3) ** 2
 
 
 def scale_motion(T: np.ndarray, factor: float) -> np.ndarray:

@@ -210,3 +210,48 @@ def test_deskewed_poses_refer_to_the_end_of_the_sweep():
     assert est.t_ns == 7 * PERIOD_NS + end
     # 1 m of motion within each sweep: without deskewing the error would be ~0.5 m.
     assert np.linalg.norm(est.T_world_body[:3, 3] - _pose_at(est.t_ns)[:3, 3]) < 0.05
+
+
+def _plane_points(rng, normal_axis: int, offset: float, n: int = 3000) -> np.ndarray:
+    p = rng.uniform(-20.0, 20.0, (n, 3))
+    p[:, normal_axis] = offset + rng.normal(0.0, 0.01, n)
+    return p
+
+
+def test_registration_information_finds_the_unconstrained_directions() -> None:
+    """Ground alone pins z, roll and pitch but not x, y or yaw; walls across x and y pin all."""
+    from sp.odometry import OdometryConfig, registration_information
+
+    rng = np.random.default_rng(3)
+    cfg = OdometryConfig()
+    ground = _plane_points(rng, 2, -1.6)
+    H = registration_information(ground, ground[::5], np.eye(4), np.eye(4), cfg)
+    d = np.diag(H)
+    assert d[2] > 0.3 and min(d[3], d[4]) > 10.0  # z, roll, pitch
+    assert max(d[0], d[1]) < 1e-3 * d[2] and d[5] < 1e-3 * min(d[3], d[4])  # x, y, yaw: free
+    walls = np.vstack([ground, _plane_points(rng, 0, 12.0), _plane_points(rng, 1, -8.0)])
+    H = registration_information(walls, walls[::5], np.eye(4), np.eye(4), cfg)
+    assert np.linalg.eigvalsh(H[:3, :3]).min() > 0.1
+    assert H[5, 5] > 1.0  # yaw pinned by the walls' distance from the sensor
+
+
+def test_fusion_keeps_the_wheels_along_a_direction_the_scene_does_not_constrain() -> None:
+    """A registration that slid 0.3 m forward on bare ground is not believed along x, while
+    its z (which the ground pins) is; with walls the same slide is believed."""
+    from sp.odometry import LadarOdometry, OdometryConfig, from_vector, registration_information
+
+    rng = np.random.default_rng(4)
+    cfg = OdometryConfig()
+    odo = LadarOdometry(cfg)
+    pred = from_vector(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    icp = from_vector(np.array([1.3, 0.0, 0.02, 0.0, 0.0, 0.0]))
+    ground = _plane_points(rng, 2, -1.6)
+    H = registration_information(ground, ground[::5], np.eye(4), np.eye(4), cfg)
+    fused = odo._fuse(pred, icp, 1.0, H)
+    assert fused[0, 3] == pytest.approx(1.0, abs=0.01)
+    assert fused[2, 3] > 0.01  # more than half the way to the registration
+    walls = np.vstack([ground, _plane_points(rng, 0, 12.0), _plane_points(rng, 1, -8.0)])
+    H = registration_information(walls, walls[::5], np.eye(4), np.eye(4), cfg)
+    icp_small = from_vector(np.array([1.02, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    fused = odo._fuse(pred, icp_small, 1.0, H)
+    assert fused[0, 3] > 1.01
