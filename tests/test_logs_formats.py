@@ -170,6 +170,25 @@ def test_kitti_times_nan_points_and_broken_scans(tmp_path) -> None:
     assert len(list(src.frames())) == 2 and src.stats.skipped_records == 1
 
 
+def test_kitti_dataset_root_with_one_sequence_or_several(tmp_path) -> None:
+    """The dataset's root opens when it holds one sequence; with several the error names them."""
+    root = tmp_path / "kitti"
+    rng = np.random.default_rng(2)
+    for seq in ("00",):
+        (root / "sequences" / seq / "velodyne").mkdir(parents=True)
+        rng.normal(0, 10, (50, 4)).astype(np.float32).tofile(
+            root / "sequences" / seq / "velodyne" / "000000.bin"
+        )
+    src = open_log(root)
+    assert isinstance(src, KittiLogSource) and len(list(src.frames())) == 1
+    (root / "sequences" / "07" / "velodyne").mkdir(parents=True)
+    rng.normal(0, 10, (50, 4)).astype(np.float32).tofile(
+        root / "sequences" / "07" / "velodyne" / "000000.bin"
+    )
+    with pytest.raises(LogError, match=r"several sequences \(00, 07\); pass one of them"):
+        open_log(root)
+
+
 @pytest.mark.real_data
 def test_damaged_ros1_bag(real_data, tmp_path) -> None:
     original = real_data / "rosbag" / "robot_localization_test2.bag"

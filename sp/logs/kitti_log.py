@@ -1,6 +1,8 @@
 """KITTI Velodyne folders: ``NNNNNN.bin`` scans (N x 4 float32: x, y, z, reflectance).
 
-The path may be the folder of ``.bin`` files or a sequence folder holding ``velodyne/``.
+The path may be the folder of ``.bin`` files, a sequence folder holding ``velodyne/``, or the
+dataset's root holding ``sequences/NN/velodyne/`` for exactly one sequence (with several, the
+error names them: pass the one to read).
 KITTI scans carry no times: when the sequence folder has ``times.txt`` (seconds, one line
 per scan) those are used, otherwise times are synthesised at 10 Hz (the HDL-64's spin rate,
 scan k at k * 100 ms) and :meth:`LogSource.info` says so. Points have no per-point times
@@ -30,6 +32,20 @@ def _scan_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.bin") if _SCAN_NAME.match(p.name))
 
 
+def _sequences(root: Path) -> list[Path]:
+    """Sequence folders under a dataset root (``sequences/NN`` with scans in ``velodyne/``)."""
+    return sorted(q for q in root.glob("sequences/*") if _scan_files(q / "velodyne"))
+
+
+def scan_folder(path: Path) -> Path | None:
+    """The folder holding the scans of ``path`` (see the module docstring), or None."""
+    for folder in (path, path / "velodyne"):
+        if _scan_files(folder):
+            return folder
+    seqs = _sequences(path)
+    return seqs[0] / "velodyne" if len(seqs) == 1 else None
+
+
 class KittiLogSource(LogSource):
     """A folder of KITTI Velodyne scans (yields :class:`LadarScan` on ``/ladar/points``)."""
 
@@ -39,11 +55,17 @@ class KittiLogSource(LogSource):
     def accepts(cls, path: Path) -> bool:
         if not path.is_dir():
             return False
-        return bool(_scan_files(path) or _scan_files(path / "velodyne"))
+        return scan_folder(path) is not None or len(_sequences(path)) > 1
 
     def __init__(self, path: str | Path, *, skip_corrupt: bool = False) -> None:
         super().__init__(path, skip_corrupt=skip_corrupt)
-        folder = self.path if _scan_files(self.path) else self.path / "velodyne"
+        folder = scan_folder(self.path)
+        if folder is None:
+            names = ", ".join(q.name for q in _sequences(self.path)) or "none"
+            raise LogError(
+                f"{self.path}: a KITTI root with several sequences ({names}); pass one of "
+                f"them, e.g. {self.path / 'sequences' / names.split(', ')[0]}"
+            )
         self.scan_files = _scan_files(folder)
         if not self.scan_files:
             raise LogError(f"{self.path}: no NNNNNN.bin scans")
