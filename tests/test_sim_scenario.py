@@ -16,7 +16,7 @@ from fixtures.scenario import (
 
 
 def test_builtin_names_are_listed() -> None:
-    assert {"default", "village", "open"} <= set(scenario_names())
+    assert {"default", "village", "open", "parking"} <= set(scenario_names())
 
 
 def test_unknown_name_error_lists_the_valid_names() -> None:
@@ -28,7 +28,7 @@ def test_unknown_name_error_lists_the_valid_names() -> None:
         assert name in message
 
 
-@pytest.mark.parametrize("name", ["default", "village", "open"])
+@pytest.mark.parametrize("name", ["default", "village", "open", "parking"])
 def test_yaml_round_trip(name: str) -> None:
     scenario = load_scenario(name)
     again = Scenario.from_yaml(scenario.to_yaml())

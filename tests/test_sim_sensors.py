@@ -39,11 +39,16 @@ def flat_world(speed_mps: float = 0.0, objects=None, agents=None, route_y: float
 
 
 def small_ladar(**kw) -> LadarConfig:
+    """A small LADAR without noise or dropouts (each test turns on what it measures)."""
     base = dict(
         n_beams=16,
         n_azimuth=360,
         range_noise_sigma_m=0.0,
+        range_noise_per_m=0.0,
         dropout_prob=0.0,
+        weak_dropout_max=0.0,
+        intensity_noise_rel=0.0,
+        intensity_noise_abs=0.0,
         mount_xyz=MOUNT,
         max_range_m=60.0,
     )
@@ -186,9 +191,9 @@ def test_camera_depth_agrees_with_ladar_range_on_common_surfaces() -> None:
     world = flat_world()
     ladar = Ladar(small_ladar(n_beams=32, n_azimuth=720), world, np.random.default_rng(0))
     cam_cfg = CameraConfig(width=128, height=96, hfov_deg=100.0, noise_sigma_gray=0.0)
-    camera = Camera(cam_cfg, world, np.random.default_rng(0))
+    camera = Camera(cam_cfg.without_depth_errors(), world, np.random.default_rng(0))
     scan, frame = ladar.sweep(0), camera.render(0)
-    assert frame.image.shape == (96, 128) and frame.depth.dtype == np.float32
+    assert frame.image.shape == (96, 128, 3) and frame.depth.dtype == np.float32
     T_cam_ladar = se3_inverse(camera.T_body_camera) @ ladar.T_body_ladar
     pc = transform_points(T_cam_ladar, scan.points_xyz.astype(np.float64))
     pc = pc[pc[:, 2] > 0.5]
@@ -222,9 +227,8 @@ def test_camera_depth_agrees_with_ladar_range_on_common_surfaces() -> None:
 
 
 def test_camera_sees_sky_above_and_ground_below() -> None:
-    frame = Camera(
-        CameraConfig(noise_sigma_gray=0.0), flat_world(), np.random.default_rng(0)
-    ).render(0)
+    cfg = CameraConfig(noise_sigma_gray=0.0, shot_noise_gain=0.0).without_depth_errors()
+    frame = Camera(cfg, flat_world(), np.random.default_rng(0)).render(0)
     assert np.all(np.isnan(frame.depth[0])) and np.all(np.isfinite(frame.depth[-1]))
     assert frame.image[0].mean() > frame.image[-1].mean()  # bright sky, darker ground
     assert frame.K[0, 0] == pytest.approx(128.0)  # 90 deg over 256 px

@@ -90,7 +90,7 @@ def test_same_seed_identical_arrays_other_seed_different() -> None:
     assert any(x.shape != y.shape or not np.array_equal(x, y) for x, y in zip(a, c, strict=False))
 
 
-@pytest.mark.parametrize("name", ["village", "open"])
+@pytest.mark.parametrize("name", ["village", "open", "parking"])
 def test_other_scenarios_simulate(name: str) -> None:
     frames = list(simulate(small(name), seconds=0.1))
     scans = [f for f in frames if isinstance(f, LadarScan)]
