@@ -25,6 +25,9 @@ $(STAMP): pyproject.toml | system-deps
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
+	# TrackEval (HOTA in wm.evaluation) without its declared opencv-python, which would
+	# replace opencv-python-headless; HOTA uses numpy and scipy only
+	$(PY) -m pip install -q --no-deps 'trackeval==1.3.0'
 	@touch $(STAMP)
 
 # The main job on the embedded default scenario.

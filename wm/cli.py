@@ -9,6 +9,7 @@
     wm whatif --kd KD.duckdb --waypoints "t,x,y;..."   (the maps and entities a run stored)
     wm render LOG --out DIR [--seconds S]
     wm render --kd KD.duckdb OUT_DIR                    (the maps and entities a run stored)
+    wm evaluate LOG KD.duckdb [--json OUT]             (scores of a KD against the log's truth)
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -37,12 +38,14 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
     from kd_store.errors import KDError
     from maps.frames import GeometryError
     from sp.logs.types import LogError
+    from wm.evaluation import EvaluationError
     from wm.node import NodeError
     from wm.tiles import TileError
     from wm.whatif import WhatIfError
     from wm.whatis import WhatIsError
 
     types: list[type[BaseException]] = [
+        EvaluationError,
         UserError,
         LogError,
         GeometryError,
@@ -330,6 +333,22 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """The scores of one KD against one log's ground truth (docs/evaluation.md)."""
+    import json
+
+    from wm.evaluation import evaluate_files
+
+    scores = evaluate_files(_check_log(args.log), args.kd)
+    for name, value in scores.items():
+        print(f"{name}: {value:.4g}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(scores, indent=2) + "\n")
+        print(f"scores {args.json}")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """The main job on the embedded default: simulate the default scenario, then run it."""
     out = Path(args.out) / "default.mcap"
@@ -438,6 +457,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
     pose_flag(g)
     g.set_defaults(func=cmd_render)
+
+    e = sub.add_parser("evaluate", help="scores of a KD against a log's ground truth")
+    e.add_argument("log", help="the log the KD was made from (with ground truth)")
+    e.add_argument("kd", help="KD file `wm run` wrote (DuckDB)")
+    e.add_argument("--json", default=None, help="write the scores as JSON here")
+    e.set_defaults(func=cmd_evaluate)
 
     d = sub.add_parser("demo", help="simulate the default scenario and run the world model on it")
     d.add_argument("--out", default="out", help="folder for the demo's files (default: out/)")
