@@ -86,6 +86,9 @@ from sp.windowing import WindowConfig, window_mask
 log = logging.getLogger(__name__)
 
 IMAGE_NAMES = {2: "sp2_lists", 3: "sp3_surfaces", 4: "sp4_objects", 5: "sp5_groups"}
+# classes of objects that move by themselves: only they link as moving members of a group
+MOBILE_CLASSES = frozenset({"vehicle", "person"})
+
 _STATUS = {
     TrackStatus.HYPOTHESIZED: Status.HYPOTHESIZED,
     TrackStatus.CONFIRMED: Status.CONFIRMED,
@@ -224,6 +227,10 @@ class SensoryProcessor:
         self._list_lut = np.full(1024, -1, dtype=np.int64)  # owner * 4 + kind -> list slot
         self._list_ids = np.zeros(0, dtype=np.int64)  # list slot -> list frame id
         self._lists_of: dict[int, list[int]] = {}  # owner id -> its list ids
+        # per list slot: recursive confidence, sweeps seen, and whether still hypothesized
+        self._list_conf = np.zeros(0)
+        self._list_hits = np.zeros(0, dtype=np.int64)
+        self._list_open = np.zeros(0, dtype=bool)
         self._list_classifier = Classifier(kd.classes, Level.LIST, self.config.classify)
         self.surface_tracker = SurfaceTracker(self.config.surfaces)
         self._surface_contact: dict[int, int] = {}  # free surface id -> its contact list id
@@ -235,6 +242,7 @@ class SensoryProcessor:
         self.track_surface: dict[int, tuple[int, int]] = {}  # object -> (face, contact) ids
         self._surface_classifier = Classifier(kd.classes, Level.SURFACE, self.config.classify)
         self.groups: dict[int, frozenset[int]] = {}
+        self._group_hits: dict[int, int] = {}  # cycles each group has been seen
         self._attention = np.zeros((0, 0), dtype=bool)
         self._last_pose: tuple[int, np.ndarray] | None = None
         self._next_provisional = -2  # ids of hypotheses without a frame yet: -2, -3, ...
@@ -1065,14 +1073,19 @@ class SensoryProcessor:
                     f"{KIND_CLASS[ListKind(kd_kind)]} of {oid}",
                     Level.LIST,
                     images=(IMAGE_NAMES[2],),
-                    status=Status.CONFIRMED,
-                    confidence=1.0,
+                    status=Status.HYPOTHESIZED,
+                    confidence=self.config.tracker.confidence0,
                 ).id
                 kd.relate(lid, "belongs_to", oid, t_ns=t_ns)
                 self._list_lut[k] = first_new + len(new)
                 self._lists_of.setdefault(oid, []).append(lid)
                 new.append(lid)
             self._list_ids = np.r_[self._list_ids, np.array(new, dtype=np.int64)]
+            self._list_conf = np.r_[
+                self._list_conf, np.full(len(new), self.config.tracker.confidence0)
+            ]
+            self._list_hits = np.r_[self._list_hits, np.zeros(len(new), dtype=np.int64)]
+            self._list_open = np.r_[self._list_open, np.ones(len(new), dtype=bool)]
             fill_slots(slots, out, self._list_lut, self._list_ids)
         if self._list_ids.size == 0:
             return np.full(owner.shape, -1, dtype=np.int64)
@@ -1080,31 +1093,65 @@ class SensoryProcessor:
             sums = list_sums(slots, rng, intensity, r_edge | b_edge, branches, self._list_ids.size)
         # attributes of every list seen; classes and frames of those due this sweep and new
         a = list_attributes(sums, 2 * math.pi / owner.shape[1], inten_mean)
+        self._list_confidence(a.ids)
         ids = self._list_ids[a.ids]
         due = self._due(ids) | (a.ids >= first_new)
         rows = [r for r, d in zip(a.as_dicts(), due, strict=True) if d]
         matches = self._list_classifier.classify_many(rows)
-        ids = ids[due]
+        ids, conf = ids[due], self._list_conf[a.ids[due]]
         self.class_table.set(ids, [self._class_index.get(m.name or "", -1) for m in matches])
-        for i, r, m in zip(ids, rows, matches, strict=True):
+        for i, c, r, m in zip(ids, conf, rows, matches, strict=True):
             kd.update_entity(
                 int(i),
                 attributes={n: Attribute(observed=v) for n, v in r.items()},
                 generic_classes=m.generic,
+                confidence=_unit(c),
             )
         return out
+
+    def _list_confidence(self, seen_slots: np.ndarray) -> None:
+        """Recursive confidence of every list (4.5.3, as for objects and groups): each sweep
+        a list has pixels it rises by the tracker's gain ``alpha`` towards 1, each sweep it
+        has none it decays by the same gain. A hypothesized list is confirmed above the
+        tracker's ``confirm`` after ``min_hits`` sweeps and denied below its ``deny`` (a
+        few pixels of one sweep that never came back); confirmed lists go with their owner."""
+        tc = self.config.tracker
+        seen = np.zeros(self._list_ids.size, dtype=bool)
+        seen[seen_slots] = True
+        c = self._list_conf
+        c[seen] += tc.alpha * (1.0 - c[seen])
+        c[~seen] *= 1.0 - tc.alpha
+        self._list_hits[seen] += 1
+        confirm = self._list_open & (c >= tc.confirm) & (self._list_hits >= tc.min_hits)
+        deny = self._list_open & (c < tc.deny) & (self._list_hits > 0) & ~seen
+        for k, status in ((confirm, Status.CONFIRMED), (deny, Status.DENIED)):
+            for slot in np.flatnonzero(k):
+                lid = int(self._list_ids[slot])
+                if lid in self.kd and self.kd.get(lid).status == Status.HYPOTHESIZED:
+                    self.kd.update_entity(lid, status=status, confidence=_unit(c[slot]))
+        self._list_open &= ~(confirm | deny)
 
     # ------------------------------------------------------------------ level 5
 
     def _groups(self, t_ns: int, image4: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        """Level 5: groups of confirmed objects (:func:`group_labels`). Only objects whose
+        motion the filter is sure of (:func:`evident_speed`) and whose class moves (vehicle,
+        person) link as moving, so static clutter with noisy velocities makes no convoy or
+        crowd. A group starts hypothesized and is confirmed by its own recursive confidence
+        as it persists (:meth:`_group_confidence`), like any other entity."""
         kd = self.kd
         tr = self.tracker.tracks
         conf = np.flatnonzero(tr.status == TrackStatus.CONFIRMED)
         ids = tr.id[conf]
-        is_tree = np.array(
-            [self.track_class.get(int(i), (None, 0))[0] == "tree" for i in ids], dtype=bool
+        cls = [self.track_class.get(int(i), (None, 0))[0] for i in ids]
+        is_tree = np.array([c == "tree" for c in cls], dtype=bool)
+        mobile = np.array([c in MOBILE_CLASSES for c in cls], dtype=bool)
+        sure = tr.moving(self.config.tracker)[conf] & np.array(
+            [evident_speed(tr.x[k], tr.P[k], self.config.speed_sigmas) > 0 for k in conf],
+            dtype=bool,
         )
-        lab = group_labels(tr.x[conf, :2], tr.x[conf, 3:5], is_tree, self.config.groups)
+        v = np.where((mobile & sure)[:, None], tr.x[conf, 3:5], 0.0)
+        lab = group_labels(tr.x[conf, :2], v, is_tree, self.config.groups)
         current = [
             frozenset(int(i) for i in ids[lab == g]) for g in range(int(lab.max(initial=-1)) + 1)
         ]
@@ -1119,10 +1166,10 @@ class SensoryProcessor:
                     f"group@{t_ns}",
                     Level.GROUP,
                     images=(IMAGE_NAMES[5],),
-                    status=Status.CONFIRMED,
-                    confidence=0.8,
+                    status=Status.HYPOTHESIZED,
+                    confidence=self.config.tracker.confidence0,
                 ).id
-                events.append(emit(kd, EventClass.GROUP_FORMED, t_ns, [gid, *members], 5))
+            self._group_confidence(gid, t_ns, members, events)
             old = self.groups.get(gid, frozenset())
             for m in members - old:
                 kd.relate(m, "belongs_to", gid, t_ns=t_ns)
@@ -1140,13 +1187,33 @@ class SensoryProcessor:
             for m in self.groups[gid]:
                 if m in kd:
                     kd.unrelate(m, "belongs_to", gid, t_ns=t_ns)
-            kd.update_entity(gid, status=Status.GONE)
-            events.append(emit(kd, EventClass.VANISHED, t_ns, [gid], 5))
+            was_confirmed = kd.get(gid).status == Status.CONFIRMED
+            kd.update_entity(gid, status=Status.GONE if was_confirmed else Status.DENIED)
+            if was_confirmed:
+                events.append(emit(kd, EventClass.VANISHED, t_ns, [gid], 5))
         self.groups = groups
         image5 = np.full(image4.shape, -1, dtype=np.int64)
         for gid, members in groups.items():
             image5[np.isin(image4, np.fromiter(members, np.int64))] = gid
         return image5, events
+
+    def _group_confidence(
+        self, gid: int, t_ns: int, members: frozenset[int], events: list[int]
+    ) -> None:
+        """Recursive confidence of group ``gid`` seen again this cycle: it rises by the
+        tracker's gain ``alpha`` towards 1 each cycle the group persists; the group is
+        confirmed (and "group_formed" emitted) once it is above the tracker's ``confirm``
+        after ``min_hits`` cycles, as an object track is."""
+        tc = self.config.tracker
+        f = self.kd.get(gid)
+        c = f.confidence + tc.alpha * (1.0 - f.confidence) if gid in self.groups else f.confidence
+        hits = self._group_hits.get(gid, 0) + 1
+        self._group_hits[gid] = hits
+        changes: dict[str, object] = {"confidence": _unit(c)}
+        if f.status == Status.HYPOTHESIZED and c >= tc.confirm and hits >= tc.min_hits:
+            changes["status"] = Status.CONFIRMED
+            events.append(emit(self.kd, EventClass.GROUP_FORMED, t_ns, [gid, *members], 5))
+        self.kd.update_entity(gid, **changes)
 
     def _group_state(self, gid: int, members: frozenset[int], t_ns: int) -> None:
         tr = self.tracker.tracks

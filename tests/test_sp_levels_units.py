@@ -356,3 +356,28 @@ def test_a_failing_sweep_is_skipped_and_tracks_kept() -> None:
     r = sp.process(bad, T)
     assert not r.ok and sp.n_failed == 1 and len(sp.tracker.tracks) == n
     assert math.isfinite(float(sp.tracker.tracks.x.sum()))
+
+
+def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_again() -> None:
+    """A list starts hypothesized; seen three sweeps running it is confirmed, while one seen
+    once and never again is denied after its confidence decays below the deny threshold."""
+    kd = kd_store.open(":memory:")
+    sp = SensoryProcessor(kd)
+    tc = sp.config.tracker
+    lids = [
+        kd.add_entity(f"list {i}", Level.LIST, status=Status.HYPOTHESIZED, confidence=0.3).id
+        for i in range(2)
+    ]
+    sp._list_ids = np.array(lids, dtype=np.int64)
+    sp._list_conf = np.full(2, tc.confidence0)
+    sp._list_hits = np.zeros(2, dtype=np.int64)
+    sp._list_open = np.ones(2, dtype=bool)
+    statuses = []
+    for sweep in range(8):
+        sp._list_confidence(np.array([0, 1] if sweep == 0 else [0]))
+        statuses.append((kd.get(lids[0]).status, kd.get(lids[1]).status))
+    assert [s[0] for s in statuses[:2]] == [Status.HYPOTHESIZED] * 2
+    assert statuses[2][0] == Status.CONFIRMED and kd.get(lids[0]).confidence >= tc.confirm
+    first_denied = next(k for k, s in enumerate(statuses) if s[1] == Status.DENIED)
+    assert 2 <= first_denied <= 6 and kd.get(lids[1]).confidence < tc.deny
+    assert statuses[-1] == (Status.CONFIRMED, Status.DENIED)

@@ -242,6 +242,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--engine-path", default=None, help="run this engine copy (PYTHONPATH first)")
     p.add_argument("--poses", choices=("odometry", "truth"), default="odometry")
     p.add_argument("--label", default=None, help="name of this run in tables and JSON names")
+    p.add_argument(
+        "--development", action="store_true",
+        help="score development seeds (0..99, given with --seeds) while tuning; labelled dev-",
+    )  # fmt: skip
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds per subprocess")
     return p
 
@@ -251,10 +255,16 @@ def sweep(argv: Sequence[str] | None = None) -> dict[str, list[dict[str, float] 
     args = build_parser().parse_args(argv)
     scenarios = args.scenarios or scenarios_available()
     seeds = list(args.seeds if args.seeds else EVAL_SEEDS)[: args.n_seeds]
-    check_eval_seeds(scenarios, seeds)
+    if args.development:
+        if not set(seeds) <= set(DEV_SEEDS):
+            raise SystemExit(f"--development takes seeds in 0..99 only, got {seeds}")
+    else:
+        check_eval_seeds(scenarios, seeds)
     label = args.label or (
         "engine-" + Path(args.engine_path).name if args.engine_path else "current"
     )
+    if args.development:
+        label = "dev-" + label
     if args.poses == "truth":
         label += "-poses-truth"
     command = "python -m wm.eval_sweep " + shlex.join(sys.argv[1:] if argv is None else argv)
