@@ -15,7 +15,8 @@ filterpy's textbook symbols (x, P, F, Q, H, R, K, S), so 50 tracks cost one batc
 Beside the constant-velocity model each track runs a *stationary* one (position only, a slow
 random walk ``q_static_m`` for the wandering visible centre) and a sequential test between the
 two (Wald's SPRT: the log-likelihood ratio of every innovation under the moving model against
-the stationary one, summed and clipped to ``+-llr_max``). While it stays below
+the stationary one, summed and clipped to ``+-llr_max``; both allow the visible centre anywhere
+on the footprint, :func:`footprint_spread`). While it stays below
 ``llr_moving`` the track is at rest: its reported state is the stationary filter's position
 with zero velocity, so a bush whose centre wanders as more of it comes into view is not
 given a speed (reference 001, 4.5.3: hypotheses tested against predictions).
@@ -74,6 +75,8 @@ class TrackerConfig:
                     rest, as most things a vehicle passes do not move; llr_moving is the
                     threshold above which a track is moving, llr_max the clip that lets
                     a parked car that drives off be moving within a few cycles.
+    view_spread:    share of a point uniform over the footprint (L^2 / 12 along, W^2 / 12
+                    across) added to both hypotheses' innovation covariance in the test.
     max_misses:     cycles a confirmed track may go unseen before it is gone, plus
                     ``max_misses_per_m`` per metre of its last range (far objects fall in and
                     out of the sparse beams); a hypothesized one is denied after
@@ -104,6 +107,7 @@ class TrackerConfig:
     llr0: float = -2.0
     llr_moving: float = 0.0
     llr_max: float = 5.0
+    view_spread: float = 0.5
 
 
 @dataclass
@@ -217,6 +221,18 @@ def gaussian_loglik(y: np.ndarray, S: np.ndarray) -> np.ndarray:
     _, logdet = np.linalg.slogdet(S)
     d2 = np.einsum("ti,ti->t", y, np.linalg.solve(S, y[..., None])[..., 0])
     return -0.5 * (d2 + logdet + k * np.log(2.0 * np.pi))
+
+
+def footprint_spread(what: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) covariance of a point uniform over each footprint (``what`` (T, 4): length,
+    width, height, yaw): ``L^2 / 12`` along the long axis, ``W^2 / 12`` across it, none in z."""
+    c, s = np.cos(what[:, 3]), np.sin(what[:, 3])
+    u = np.stack([c, s], axis=1)
+    v = np.stack([-s, c], axis=1)
+    out = np.zeros((what.shape[0], 3, 3))
+    out[:, :2, :2] = (what[:, 0] ** 2 / 12.0)[:, None, None] * np.einsum("ti,tj->tij", u, u)
+    out[:, :2, :2] += (what[:, 1] ** 2 / 12.0)[:, None, None] * np.einsum("ti,tj->tij", v, v)
+    return out
 
 
 def stationary_update(
@@ -364,11 +380,15 @@ class Tracker:
             xp, Pp = predict(tr.x[ti], tr.P[ti], dt, cfg.q_accel)
             R = measurement_R(meas.what[mi], cfg, tr.w[ti])
             z = meas.position_xyz[mi]
-            ll_moving = gaussian_loglik(z - xp[:, :3], Pp[:, :3, :3] + R)
+            # both hypotheses allow the visible centre anywhere on the footprint: a large
+            # object at rest wanders that much as the view changes, and only a displacement
+            # beyond it is evidence of motion
+            R_view = R + cfg.view_spread * footprint_spread(tr.w[ti])
+            ll_moving = gaussian_loglik(z - xp[:, :3], Pp[:, :3, :3] + R_view)
             x_new, P_new, nis = update(xp, Pp, z, R)
             tr.x[ti], tr.P[ti], tr.nis[ti] = x_new, P_new, nis
             tr.xs[ti], tr.Ps[ti], ll_rest = stationary_update(
-                tr.xs[ti], tr.Ps[ti], z, R, dt, cfg.q_static_m
+                tr.xs[ti], tr.Ps[ti], z, R_view, dt, cfg.q_static_m
             )
             llr = tr.llr[ti] + ll_moving - ll_rest
             tr.llr[ti] = np.clip(llr, -cfg.llr_max, cfg.llr_max)

@@ -64,4 +64,5 @@ def test_a_parked_car_that_drives_off_is_moving_soon_after(seed: int) -> None:
     out = _run(np.column_stack([x, 0.0 * k, 0.0 * k + 0.8]), np.array([4.5, 1.8, 1.5, 0.0]), seed)
     assert not any(m for m, _, _ in out[3:30])
     first = next(i for i, (m, _, _) in enumerate(out) if i >= 30 and m)
-    assert first <= 45  # within 1.5 s of starting, at under 3 m/s
+    assert first <= 48  # within 1.8 s of starting (3.2 m, 3.6 m/s): a 4.5 m car at rest
+    # wanders by a fraction of its length as the view changes, so motion needs a few metres
