@@ -231,6 +231,7 @@ class SensoryProcessor:
         self._list_conf = np.zeros(0)
         self._list_hits = np.zeros(0, dtype=np.int64)
         self._list_open = np.zeros(0, dtype=bool)
+        self._sensor_xy: np.ndarray | None = None  # the sensor's world xy this sweep
         self._list_classifier = Classifier(kd.classes, Level.LIST, self.config.classify)
         self.surface_tracker = SurfaceTracker(self.config.surfaces)
         self._surface_contact: dict[int, int] = {}  # free surface id -> its contact list id
@@ -363,6 +364,7 @@ class SensoryProcessor:
         clock.lap("computation")
 
         # filtering: associate with the predictions, update, confirm or deny
+        self._sensor_xy = T_world_ladar[:2, 3].copy()  # partial views lie on its side
         obj_ids, events_f = self._filter(attrs, t_ns)
         events += events_f
         clock.lap("filtering")
@@ -501,7 +503,7 @@ class SensoryProcessor:
             self._next_provisional -= n
             return np.arange(start, start - n, -1, dtype=np.int64)
 
-        track_of, prev = self.tracker.step(meas, t_ns, provisional_ids)
+        track_of, prev = self.tracker.step(meas, t_ns, provisional_ids, self._sensor_xy)
         tr = self.tracker.tracks
         # M-of-N birth: hypotheses seen often enough get their frame (and "appeared") now; the
         # KD makes the frame first, so images, tracks and frames share the id

@@ -16,16 +16,17 @@ Beside the constant-velocity model each track runs a *stationary* one (position 
 random walk ``q_static_m`` for the wandering visible centre) and a sequential test between the
 two (Wald's SPRT: the log-likelihood ratio of every innovation under the moving model against
 the stationary one, summed and clipped to ``+-llr_max``; both allow the visible centre anywhere
-on the footprint, :func:`footprint_spread`). While it stays below
-``llr_moving`` the track is at rest: its reported state is the stationary filter's position
-with zero velocity, so a bush whose centre wanders as more of it comes into view is not
-given a speed (reference 001, 4.5.3: hypotheses tested against predictions).
+on the footprint, :func:`footprint_spread`). While it stays below ``llr_moving`` and the
+filter is not sure of a clear speed (``evident_mps``) the track is at rest and reported at
+zero velocity, so a bush whose centre wanders as more of it comes into view is not given a
+speed (reference 001, 4.5.3: hypotheses tested against predictions).
 
 Association gates on the Mahalanobis distance of the position innovation (chi-square, 3 dof)
 and solves the optimal assignment (scipy's ``linear_sum_assignment``). Confidence follows the
 innovation statistics: each hit moves it towards ``exp(-max(NIS - 3, 0) / 6)``, each miss
 towards 0; above ``confirm`` (after ``min_hits``) the hypothesis is confirmed, below ``deny``
-a hypothesized track is denied; a confirmed track not seen for ``max_misses`` cycles is gone.
+a hypothesized track is denied; a confirmed track not seen for ``max_misses`` cycles is gone,
+and so is one whose confidence falls below ``deny`` while it is still being measured.
 The covariance update is Joseph's form, symmetrised, so P stays symmetric positive definite
 even for degenerate measurements.
 """
@@ -75,6 +76,8 @@ class TrackerConfig:
                     rest, as most things a vehicle passes do not move; llr_moving is the
                     threshold above which a track is moving, llr_max the clip that lets
                     a parked car that drives off be moving within a few cycles.
+    evident_mps, evident_sigmas: a speed the filter is this sure of (its speed less this
+                    many standard deviations) makes a track moving whatever the test says.
     view_spread:    share of a point uniform over the footprint (L^2 / 12 along, W^2 / 12
                     across) added to both hypotheses' innovation covariance in the test.
     max_misses:     cycles a confirmed track may go unseen before it is gone, plus
@@ -108,6 +111,8 @@ class TrackerConfig:
     llr_moving: float = 0.0
     llr_max: float = 5.0
     view_spread: float = 0.5
+    evident_mps: float = 1.5
+    evident_sigmas: float = 2.0
 
 
 @dataclass
@@ -152,18 +157,26 @@ class Tracks:
         return int(self.id.shape[0])
 
     def moving(self, config: TrackerConfig) -> np.ndarray:
-        """(T,) bool: the sequential test favours the moving model."""
-        return self.llr > config.llr_moving
+        """(T,) bool: the sequential test favours the moving model, or the constant-velocity
+        filter is sure of a ground speed of at least ``evident_mps`` (its speed less
+        ``evident_sigmas`` standard deviations): a vehicle first seen driving is moving as
+        soon as its filter has its speed, before the test has gathered its evidence."""
+        v = np.hypot(self.x[:, 3], self.x[:, 4])
+        sd = np.sqrt(np.maximum(0.5 * (self.P[:, 3, 3] + self.P[:, 4, 4]), 0.0))
+        evident = v - config.evident_sigmas * sd >= config.evident_mps
+        return (self.llr > config.llr_moving) | evident
 
     def reported(self, config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
         """The state to report per track: (x (T, 6), P (T, 6, 6)), the constant-velocity
-        filter's for moving tracks, the stationary filter's position at zero velocity (with
-        the velocity variance of a track at rest, ``q_static_m**2``) for the others."""
+        filter's for moving tracks; for the others its position at zero velocity (with the
+        velocity variance of a track at rest, ``q_static_m**2``, and no position-velocity
+        correlation). The position stays the filter's, not the stationary model's smoothed
+        one, so a mover not yet found moving is not left behind where it was first seen."""
         x, P = self.x.copy(), self.P.copy()
         rest = ~self.moving(config)
-        x[rest, :3], x[rest, 3:] = self.xs[rest], 0.0
-        P[rest] = 0.0
-        P[rest, :3, :3] = self.Ps[rest]
+        x[rest, 3:] = 0.0
+        P[rest, :3, 3:] = 0.0
+        P[rest, 3:, :3] = 0.0
         P[rest, 3:, 3:] = np.eye(3) * config.q_static_m**2
         return x, P
 
@@ -221,6 +234,49 @@ def gaussian_loglik(y: np.ndarray, S: np.ndarray) -> np.ndarray:
     _, logdet = np.linalg.slogdet(S)
     d2 = np.einsum("ti,ti->t", y, np.linalg.solve(S, y[..., None])[..., 0])
     return -0.5 * (d2 + logdet + k * np.log(2.0 * np.pi))
+
+
+def along_motion(
+    what: np.ndarray, x: np.ndarray, P: np.ndarray, config: TrackerConfig
+) -> np.ndarray:
+    """Measured extents (M, 4: length, width, height, yaw) turned to the track's motion: an
+    object the filter is sure moves (``evident_mps``) has its long axis along its heading, so
+    a view whose long axis lies across it (the back of a truck seen from behind is wider than
+    it is deep) has its length and width swapped and its yaw turned by 90 degrees. x (M, 6),
+    P (M, 6, 6): the tracks' filter states."""
+    v = np.hypot(x[:, 3], x[:, 4])
+    sd = np.sqrt(np.maximum(0.5 * (P[:, 3, 3] + P[:, 4, 4]), 0.0))
+    sure = v - config.evident_sigmas * sd >= config.evident_mps
+    heading = np.arctan2(x[:, 4], x[:, 3])
+    across = sure & (np.abs(wrap_half_pi(what[:, 3] - heading)) > np.pi / 4)
+    out = what.copy()
+    out[across, 0], out[across, 1] = what[across, 1], what[across, 0]
+    out[across, 3] = wrap_half_pi(what[across, 3] + np.pi / 2)
+    return out
+
+
+def far_side_shift(
+    center_xy: np.ndarray, what_seen: np.ndarray, what_track: np.ndarray, sensor_xy: np.ndarray
+) -> np.ndarray:
+    """(M, 2) shift from the centre of a partial view to the centre of the track's footprint.
+
+    A LADAR sees the faces of an object that look at it: when the visible length (width) is
+    shorter than the track's estimate, the unseen part lies on the far side, so the footprint's
+    centre is half the difference further from the sensor along the long (short) axis, by the
+    share of the line of sight along that axis (all of it seen end on, none seen broadside,
+    where the missing part may lie at either end). Without this a truck coming into view
+    moves its seen centre faster than it drives. center_xy (M, 2) world m, what (M, 4): length,
+    width, height, yaw of the view and of the track, sensor_xy (2,)."""
+    d = center_xy - sensor_xy[None, :2]
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    c, s = np.cos(what_track[:, 3]), np.sin(what_track[:, 3])
+    u = np.stack([c, s], axis=1)
+    v = np.stack([-s, c], axis=1)
+    along = 0.5 * np.maximum(what_track[:, 0] - what_seen[:, 0], 0.0)
+    across = 0.5 * np.maximum(what_track[:, 1] - what_seen[:, 1], 0.0)
+    du = np.einsum("mi,mi->m", d, u)
+    dv = np.einsum("mi,mi->m", d, v)
+    return (along * du)[:, None] * u + (across * dv)[:, None] * v
 
 
 def footprint_spread(what: np.ndarray) -> np.ndarray:
@@ -359,12 +415,15 @@ class Tracker:
         meas: Measurements,
         t_ref_ns: int,
         new_ids: Callable[[int], np.ndarray] | None = None,
+        sensor_xy: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One cycle. Returns (track_of_meas (M,) int64 index into the new ``tracks`` or -1,
         previous_status (T_new,) int8 status each track had before this cycle, -1 for births).
 
         ``new_ids(n)``: makes ids for the n births (the caller makes the KD frames); when None,
-        births are numbered from the largest id + 1.
+        births are numbered from the largest id + 1. ``sensor_xy`` (2,), world m: where the
+        sensor was; with it a partial view's centre is moved to the track's full footprint
+        (:func:`far_side_shift`).
         """
         cfg = self.config
         tr = self.tracks
@@ -378,8 +437,11 @@ class Tracker:
         if ti.size:
             dt = np.maximum((meas.t_ns[mi] - tr.t_ns[ti]) * 1e-9, 0.0)
             xp, Pp = predict(tr.x[ti], tr.P[ti], dt, cfg.q_accel)
-            R = measurement_R(meas.what[mi], cfg, tr.w[ti])
-            z = meas.position_xyz[mi]
+            what = along_motion(meas.what[mi], tr.x[ti], tr.P[ti], cfg)
+            R = measurement_R(what, cfg, tr.w[ti])
+            z = meas.position_xyz[mi].copy()
+            if sensor_xy is not None:
+                z[:, :2] += far_side_shift(z[:, :2], what, tr.w[ti], sensor_xy)
             # both hypotheses allow the visible centre anywhere on the footprint: a large
             # object at rest wanders that much as the view changes, and only a displacement
             # beyond it is evidence of motion
@@ -393,7 +455,7 @@ class Tracker:
             llr = tr.llr[ti] + ll_moving - ll_rest
             tr.llr[ti] = np.clip(llr, -cfg.llr_max, cfg.llr_max)
             tr.t_ns[ti] = np.maximum(meas.t_ns[mi], tr.t_ns[ti] + 1)
-            self._update_what(ti, meas.what[mi], dt)
+            self._update_what(ti, what, dt)
             score = np.exp(-np.maximum(nis - 3.0, 0.0) / 6.0)
             tr.confidence[ti] += cfg.alpha * (score - tr.confidence[ti])
             tr.hits[ti] += 1
@@ -466,6 +528,10 @@ class Tracker:
         )
         allowed = cfg.max_misses + cfg.max_misses_per_m * tr.range_m
         tr.status[conf & (tr.misses > allowed)] = TrackStatus.GONE
+        # a confirmed track still being hit whose innovations no longer fit (its confidence
+        # fell below deny while measured, not while unseen) has lost its object: a duplicate
+        # on part of another object or one following clutter
+        tr.status[conf & (tr.misses == 0) & (tr.confidence < cfg.deny)] = TrackStatus.GONE
 
     def _births(self, meas: Measurements, fm: np.ndarray, ids: np.ndarray) -> Tracks:
         cfg = self.config

@@ -254,4 +254,4 @@ def test_fusion_keeps_the_wheels_along_a_direction_the_scene_does_not_constrain(
     H = registration_information(walls, walls[::5], np.eye(4), np.eye(4), cfg)
     icp_small = from_vector(np.array([1.02, 0.0, 0.0, 0.0, 0.0, 0.0]))
     fused = odo._fuse(pred, icp_small, 1.0, H)
-    assert fused[0, 3] > 1.01
+    assert fused[0, 3] - 1.0 > 0.25 * 0.02  # at least a quarter of the registration's say
