@@ -115,8 +115,9 @@ def _inside(points: np.ndarray, center: np.ndarray, size: np.ndarray, yaw: float
 def av2_scores(folder: Path) -> dict:
     """Cuboids with >= MIN_CUBOID_POINTS interior points in a sweep: found by an object entity
     (any status: two sweeps are too few to confirm a track) and does its class agree with the
-    cuboid's category (CLASS_ALIASES)?"""
-    kd, results, source = _run(folder, NodeConfig(pose_source=PoseSource.TRUTH))
+    cuboid's category (CLASS_ALIASES)? On odometry poses (LADAR alone: the log has no wheel
+    odometry); points and cuboids are compared per sweep, so no alignment is needed."""
+    kd, results, source = _run(folder, NodeConfig(pose_source=PoseSource.ODOMETRY))
     sweeps = {int(s.t_ns): s for s in source.frames() if type(s).__name__ == "LadarScan"}
     boxes = {b.t_ns: b for b in source.boxes()}
     rows: dict[int, dict] = {}
@@ -180,11 +181,12 @@ def test_av2_cuboids_are_found(real_data: Path) -> None:
     s = av2_scores(real_data / "av2")
     record("av2_cuboid_recall", s["recall"], "", target=">= 0.9", command="make eval")
     record("av2_class_agreement", s["class_agreement"], "", command="make eval")
-    # the target (0.9) is missed: 21 of 24 cuboids with >= 20 interior points are found, the
-    # misses two pedestrians and a bicycle that segmentation merges with their surroundings;
-    # this bound guards against losing more
-    assert s["recall"] >= 0.85, s
-    assert s["class_agreement"] >= 0.3, s
+    # the target (0.9) is missed: measured on odometry poses 19 of 24 cuboids with >= 20
+    # interior points found (recall 0.792), class agreement 0.22; on truth poses 21 of 24
+    # (0.875, the misses two pedestrians and a bicycle that segmentation merges with their
+    # surroundings), 0.25. These bounds guard against losing more
+    assert s["recall"] >= 0.75, s
+    assert s["class_agreement"] >= 0.2, s
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ def ran(tmp_path_factory) -> tuple[Path, Path, Path]:
     assert r.returncode == 0, r.stderr
     kd = d / "kd.duckdb"
     r = run("run", str(log), "--kd", str(kd), "--report", str(d / "r.json"),
-            "--render", str(d / "pics"), "--poses", "truth", "--no-progress")  # fmt: skip
+            "--render", str(d / "pics"), "--no-progress")  # fmt: skip
     assert r.returncode == 0, r.stderr
     return log, kd, d
 
@@ -33,7 +33,7 @@ def ran(tmp_path_factory) -> tuple[Path, Path, Path]:
 def test_run_prints_a_summary_and_writes_report_and_pictures(ran) -> None:
     _, kd, d = ran
     report = json.loads((d / "r.json").read_text())
-    assert report["sweeps"] >= 10 and report["pose_source"] == "truth"
+    assert report["sweeps"] >= 10 and report["pose_source"] == "odometry"  # the default
     assert "elevation_primitive" in report["metrics"]
     assert sorted(p.name for p in (d / "pics").glob("*.png"))[0] == "level2_primitive_cost.png"
     assert kd.exists()
@@ -48,10 +48,10 @@ def test_whatis_prints_the_self_state(ran) -> None:
 
 def test_whatif_straight_ahead_and_bad_waypoints(ran) -> None:
     log, _, _ = ran
-    r = run("whatif", str(log), "--poses", "truth", "--waypoints", "0,0,0;2,10,0;4,20,0")
+    r = run("whatif", str(log), "--waypoints", "0,0,0;2,10,0;4,20,0")
     assert r.returncode == 0, r.stderr
     assert "first collision:" in r.stdout and "VJ: cost" in r.stdout
-    r = run("whatif", str(log), "--poses", "truth", "--waypoints", "0,0,0;0,1,0")
+    r = run("whatif", str(log), "--waypoints", "0,0,0;0,1,0")
     assert r.returncode == 2 and "times must increase" in r.stderr
     r = run("whatif", str(log), "--waypoints", "0,0,0;1,1,0", "--level", "galaxy")
     assert r.returncode == 2 and "does not exist" in r.stderr
@@ -63,8 +63,7 @@ def test_render_and_whatif_from_the_kd_alone_and_render_from_a_log(ran, tmp_path
     r = run("render", "--kd", str(kd), str(tmp_path / "kd"))
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in (tmp_path / "kd").glob("*.png")) == run_pictures
-    r = run("render", str(log), "--out", str(tmp_path / "log"), "--seconds", "0.5", "--poses",
-            "truth")  # fmt: skip
+    r = run("render", str(log), "--out", str(tmp_path / "log"), "--seconds", "0.5")
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in (tmp_path / "log").glob("*.png")) == run_pictures
     r = run("whatif", "--kd", str(kd), "--waypoints", "0,0,0;2,10,0;4,20,0")

@@ -127,7 +127,7 @@ def test_each_level_updates_its_terrain_at_its_own_period(monkeypatch, tmp_path)
     monkeypatch.setattr(node_module, "update_terrain", counting)
     log = simulate_to_log("default", tmp_path / "d.mcap", seconds=3.0, seed=3, progress=False)
     periods = {"primitive": 0.2, "subsystem": 0.5, "vehicle": 1.0, "section": 5.0}
-    cfg = NodeConfig(pose_source=PoseSource.TRUTH, use_sp=False, level_periods_s=periods)
+    cfg = NodeConfig(pose_source=PoseSource.ODOMETRY, use_sp=False, level_periods_s=periods)
     node = run_node(log, ":memory:", cfg)
     span_s = (node.stats.sweeps - 1) * 0.1  # sweeps at 10 Hz
     node.kd.close()

@@ -196,6 +196,8 @@ def _scan(t_ns: int) -> LadarScan:
 
 
 def _node() -> WorldModelNode:
+    """A node standing at the origin. Truth poses: these unit tests feed hand-made two-point
+    sweeps and need the pose known exactly, which no odometry gives from them."""
     cfg = NodeConfig(pose_source=PoseSource.TRUTH, use_sp=False,
                      prediction=PredictionConfig(range_image_every=0))  # fmt: skip
     node = WorldModelNode(kd_store.open(), cfg)
