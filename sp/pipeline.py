@@ -87,6 +87,13 @@ log = logging.getLogger(__name__)
 
 IMAGE_NAMES = {2: "sp2_lists", 3: "sp3_surfaces", 4: "sp4_objects", 5: "sp5_groups"}
 # classes of objects that move by themselves: only they link as moving members of a group
+# shape attributes of an object's points, observed per sweep (sp.computation.SegmentAttributes,
+# same names) and averaged per object; the last, ``longest_m``, is the longest extent the object
+# was seen with (it grows as more of a wall comes into view)
+SHAPE_KEYS = ("thickness_m", "curvature", "verticality", "breadth_m", "clearance_m", "longest_m")
+_SURFACE_KEYS = 3  # the first three describe a surface of points, not a line (_observe_shape)
+SHAPE_MIN_BREADTH_M = 0.05  # a segment's points spread this far along its middle axis ...
+SHAPE_MIN_PIXELS = 12  # ... in this many returns at least, or its thickness is unknown
 MOBILE_CLASSES = frozenset({"vehicle", "person"})
 
 _STATUS = {
@@ -223,6 +230,7 @@ class SensoryProcessor:
         self.track_class: dict[int, tuple[str | None, float]] = {}
         self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
         self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
+        self.track_shape: dict[int, np.ndarray] = {}  # object id -> running shape (SHAPE_KEYS)
         self.class_table = ClassTable()  # entity id -> class index, for the class images
         self._list_lut = np.full(1024, -1, dtype=np.int64)  # owner * 4 + kind -> list slot
         self._list_ids = np.zeros(0, dtype=np.int64)  # list slot -> list frame id
@@ -231,6 +239,8 @@ class SensoryProcessor:
         self._list_conf = np.zeros(0)
         self._list_hits = np.zeros(0, dtype=np.int64)
         self._list_open = np.zeros(0, dtype=bool)
+        self._list_key = np.zeros(0, dtype=np.int64)  # slot -> owner * 4 + kind
+        self._list_dead = np.zeros(0, dtype=bool)  # denied: its key makes a new list if seen
         self._sensor_xy: np.ndarray | None = None  # the sensor's world xy this sweep
         self._list_classifier = Classifier(kd.classes, Level.LIST, self.config.classify)
         self.surface_tracker = SurfaceTracker(self.config.surfaces)
@@ -567,6 +577,7 @@ class SensoryProcessor:
             if s >= 0:
                 changes["attributes"] = _attributes(a, s, tr.w[k], tr.Pw[k], x_rep[k])
                 self._observe_appearance(self.track_reflectance, tid, float(a.intensity[s]))
+                self._observe_shape(tid, a, int(s))
             kd.update_entity(tid, **changes)
             if was == int(status_code(status)) or (was < 0 and status == Status.HYPOTHESIZED):
                 continue
@@ -583,10 +594,10 @@ class SensoryProcessor:
             self.track_class.pop(int(tid), None)
             self.track_reflectance.pop(int(tid), None)
             self.track_camera.pop(int(tid), None)
+            self.track_shape.pop(int(tid), None)
             for part in self.track_surface.pop(int(tid), ()):
                 kd.update_entity(part, status=Status.GONE)  # the object's face goes with it
-            for part in self._lists_of.pop(int(tid), ()):
-                kd.update_entity(part, status=Status.GONE)  # and its lists
+            self._parts_gone(self._lists_of.pop(int(tid), ()))  # and its lists
         self._provisional_segments = np.flatnonzero(track_of == -2)
         # object id per segment
         ids_all = np.concatenate([tr.id])
@@ -609,6 +620,7 @@ class SensoryProcessor:
             rows.append(
                 {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
                 | self._appearance_of(int(tr.id[k]))
+                | self._shape_of(int(tr.id[k]))
             )
         # all at once (a class founded below takes part from the next sweep on)
         for k, m in zip(ks, self.classifier.classify_many(rows), strict=True):
@@ -653,6 +665,33 @@ class SensoryProcessor:
             return
         old = table.get(tid)
         table[tid] = value if old is None else old + self.config.appearance_gain * (value - old)
+
+    def _observe_shape(self, tid: int, a: SegmentAttributes, s: int) -> None:
+        """Running mean (``appearance_gain``) of the shape of object ``tid``'s points in this
+        sweep's segment ``s`` (:data:`SHAPE_KEYS`), and the longest extent it was seen with.
+        The scatter's thickness and curvature say nothing of a segment whose points lie on a
+        line (one scan row, or a few returns: its smallest two eigenvalues are both noise), so
+        those are averaged over the sweeps that saw a surface (``SHAPE_MIN_BREADTH_M`` spread
+        along the middle axis and ``SHAPE_MIN_PIXELS`` returns) only."""
+        v = np.array([float(getattr(a, k)[s]) for k in SHAPE_KEYS[:-1]] + [float(a.length_m[s])])
+        if not np.all(np.isfinite(v)):
+            return
+        surface = a.breadth_m[s] >= SHAPE_MIN_BREADTH_M and a.n_pixels[s] >= SHAPE_MIN_PIXELS
+        old = self.track_shape.get(tid)
+        if old is None:
+            old = np.full(len(SHAPE_KEYS), np.nan)
+        new = np.where(np.isnan(old), v, old + self.config.appearance_gain * (v - old))
+        if not surface:
+            new[:_SURFACE_KEYS] = old[:_SURFACE_KEYS]
+        new[-1] = np.fmax(old[-1], v[-1])
+        self.track_shape[tid] = new
+
+    def _shape_of(self, tid: int) -> dict[str, float]:
+        """The shape attributes object ``tid`` has been observed with (none if never)."""
+        v = self.track_shape.get(tid)
+        if v is None:
+            return {}
+        return {k: float(x) for k, x in zip(SHAPE_KEYS, v, strict=True) if np.isfinite(x)}
 
     def _appearance_of(self, tid: int) -> dict[str, float]:
         """The appearance attributes object ``tid`` has been observed with: ``reflectance``
@@ -1028,8 +1067,14 @@ class SensoryProcessor:
         parts = self._lists_of.pop(sid, [])
         if sid in self._surface_contact:
             parts.append(self._surface_contact.pop(sid))
+        self._parts_gone(parts)
+
+    def _parts_gone(self, parts) -> None:
+        """Lists (or contacts) whose owner went go too; a denied list the KD has already
+        dropped stays dropped."""
         for lid in parts:
-            self.kd.update_entity(lid, status=Status.GONE)
+            if lid in self.kd and self.kd.get(lid).status != Status.DENIED:
+                self.kd.update_entity(lid, status=Status.GONE)
 
     def _lists(
         self,
@@ -1088,6 +1133,8 @@ class SensoryProcessor:
             ]
             self._list_hits = np.r_[self._list_hits, np.zeros(len(new), dtype=np.int64)]
             self._list_open = np.r_[self._list_open, np.ones(len(new), dtype=bool)]
+            self._list_key = np.r_[self._list_key, missing.astype(np.int64)]
+            self._list_dead = np.r_[self._list_dead, np.zeros(len(new), dtype=bool)]
             fill_slots(slots, out, self._list_lut, self._list_ids)
         if self._list_ids.size == 0:
             return np.full(owner.shape, -1, dtype=np.int64)
@@ -1096,8 +1143,12 @@ class SensoryProcessor:
         # attributes of every list seen; classes and frames of those due this sweep and new
         a = list_attributes(sums, 2 * math.pi / owner.shape[1], inten_mean)
         self._list_confidence(a.ids)
+        # a hypothesis the KD's short-term memory has let go of is treated as denied
+        gone = np.array([int(i) not in kd for i in self._list_ids[a.ids]], dtype=bool)
+        if gone.any():
+            self._release_lists(a.ids[gone])
         ids = self._list_ids[a.ids]
-        due = self._due(ids) | (a.ids >= first_new)
+        due = (self._due(ids) | (a.ids >= first_new)) & ~self._list_dead[a.ids]
         rows = [r for r, d in zip(a.as_dicts(), due, strict=True) if d]
         matches = self._list_classifier.classify_many(rows)
         ids, conf = ids[due], self._list_conf[a.ids[due]]
@@ -1132,6 +1183,20 @@ class SensoryProcessor:
                 if lid in self.kd and self.kd.get(lid).status == Status.HYPOTHESIZED:
                     self.kd.update_entity(lid, status=status, confidence=_unit(c[slot]))
         self._list_open &= ~(confirm | deny)
+        self._release_lists(np.flatnonzero(deny))
+
+    def _release_lists(self, slots: np.ndarray) -> None:
+        """Denied (or forgotten) lists: their (owner, kind) starts a new hypothesis if its
+        pixels come back, and they are no longer their owner's."""
+        for slot in slots:
+            key = int(self._list_key[slot])
+            if 0 <= key < self._list_lut.size and self._list_lut[key] == slot:
+                self._list_lut[key] = -1
+            owned = self._lists_of.get(key // len(ListKind), [])
+            if int(self._list_ids[slot]) in owned:
+                owned.remove(int(self._list_ids[slot]))
+        self._list_dead[slots] = True
+        self._list_open[slots] = False
 
     # ------------------------------------------------------------------ level 5
 

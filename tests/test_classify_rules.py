@@ -9,6 +9,7 @@ import numpy as np
 import kd_store
 from kd_store import Level, Status
 from sp.classify import Classifier
+from sp.computation import SegmentAttributes
 from sp.pipeline import SensoryProcessor
 
 
@@ -34,11 +35,65 @@ def test_a_pole_is_not_a_person() -> None:
     assert _cls(c, 0.2, 0.05, 1.8, 1.0) != "person"  # too thin, even if it seems to move
 
 
-def test_a_person_needs_motion_and_a_person_sized_shape() -> None:
+def _shape(
+    c: Classifier, lwh: tuple[float, float, float], speed: float, **shape: float
+) -> str | None:
+    """Class of an object of extents ``lwh`` (m), speed (m/s) and shape attributes of its
+    points (sp.pipeline.SHAPE_KEYS: thickness_m, verticality, breadth_m ...)."""
+    row = {"length_m": lwh[0], "width_m": lwh[1], "height_m": lwh[2], "speed_mps": speed}
+    return c.classify(row | shape).name
+
+
+# a person's points in one sweep: an upright blob, 0.3-0.9 m across (std 0.1-0.26 m along the
+# middle axis), a few centimetres off any plane (a curved torso, limbs)
+PERSON_SHAPE = {"thickness_m": 0.05, "breadth_m": 0.13, "verticality": 0.25}
+
+
+def test_a_person_is_a_person_sized_upright_blob_moving_or_not() -> None:
     c = _object_classifier()
-    assert _cls(c, 0.6, 0.4, 1.75, 1.3) == "person"
-    assert _cls(c, 0.6, 0.4, 1.75, 0.0) != "person"  # a still one is a trunk or a shrub
-    assert _cls(c, 0.6, 0.4, 2.6, 1.3) != "person"  # taller than people are
+    assert _shape(c, (0.6, 0.4, 1.75), 1.3, **PERSON_SHAPE) == "person"
+    assert _shape(c, (0.6, 0.4, 1.75), 0.0, **PERSON_SHAPE) == "person"  # standing still
+    assert _shape(c, (1.5, 0.45, 1.6), 1.2, **PERSON_SHAPE) == "person"  # the box trails a walker
+    assert _shape(c, (0.6, 0.4, 2.6), 1.3, **PERSON_SHAPE) != "person"  # taller than people are
+
+
+def test_a_wall_piece_of_person_height_is_not_a_person() -> None:
+    c = _object_classifier()
+    # 1.4 m of a wall: its points spread 0.4 m (std) along the middle axis, a plane
+    piece = {"thickness_m": 0.01, "breadth_m": 0.4, "verticality": 0.02}
+    assert _shape(c, (1.4, 0.3, 1.7), 0.0, **piece) != "person"
+
+
+def test_a_planar_wall_piece_is_a_freestanding_wall_not_a_vehicle() -> None:
+    c = _object_classifier()
+    plane = {"thickness_m": 0.01, "breadth_m": 0.6, "verticality": 0.02}  # a vertical plane
+    assert _shape(c, (5.0, 0.5, 2.0), 0.0, **plane) == "freestanding wall"
+    assert _shape(c, (2.0, 0.4, 1.8), 0.0, **plane) == "freestanding wall"  # a short piece
+    assert _shape(c, (12.0, 0.5, 2.2), 0.0, **plane) == "freestanding wall"
+    # and a wall is a wall: its generic lineage names it
+    assert "wall" in c.classify({"length_m": 5.0, "width_m": 0.5, "height_m": 2.0} | plane).generic
+
+
+def test_a_car_seen_in_its_roof_and_side_is_still_a_vehicle() -> None:
+    c = _object_classifier()
+    # hood, roof and one side: a bent surface, mostly facing up
+    car = {"thickness_m": 0.1, "breadth_m": 0.5, "verticality": 0.7}
+    assert _shape(c, (4.2, 1.7, 1.5), 0.0, **car) == "vehicle"
+    assert _shape(c, (4.2, 0.6, 1.5), 0.0, **car) == "vehicle"
+
+
+def test_a_tree_crown_is_vegetation_not_a_vehicle() -> None:
+    c = _object_classifier()
+    crown = {"thickness_m": 0.45, "breadth_m": 0.8, "verticality": 0.4}  # a volume of leaves
+    assert _shape(c, (4.0, 3.5, 6.0), 0.0, **crown) == "tree"
+    assert _shape(c, (1.6, 1.4, 1.2), 0.0, **crown | {"breadth_m": 0.4}) == "bush"
+
+
+def test_a_thin_pole_is_a_post() -> None:
+    c = _object_classifier()
+    pole = {"thickness_m": 0.005, "breadth_m": 0.03, "verticality": 0.02}
+    assert _shape(c, (0.15, 0.15, 2.5), 0.0, **pole) == "post"
+    assert _shape(c, (0.15, 0.12, 1.7), 0.0, **pole) == "post"  # person height, pole thin
 
 
 def test_motion_is_evidence_against_static_classes_only() -> None:
@@ -80,3 +135,31 @@ def test_a_group_is_hypothesized_until_its_confidence_confirms_it() -> None:
     first = statuses.index(Status.CONFIRMED)
     assert first + 1 >= tc.min_hits
     assert kd.get(gid).confidence > tc.confirm
+
+
+def _segments(**over: float) -> SegmentAttributes:
+    """One segment's attributes (a 5 m x 0.5 m x 2 m vertical plane of 200 returns), with
+    ``over`` replacing some of them."""
+    one = {
+        "n_pixels": 200, "length_m": 5.0, "width_m": 0.5, "height_m": 2.0, "ground_z_m": 0.0,
+        "clearance_m": 0.1, "area_m2": 2.5, "volume_m3": 5.0, "intensity": 0.4,
+        "curvature": 0.001, "verticality": 0.02, "thickness_m": 0.01, "breadth_m": 0.6,
+        "range_m": 10.0, "yaw_rad": 0.0, "t_offset_ns": 0,
+    } | over  # fmt: skip
+    arrays = {k: np.array([v]) for k, v in one.items()}
+    xyz = np.array([[10.0, 0.0, 1.0]])
+    return SegmentAttributes(centroid_xyz=xyz, center_xyz=xyz, **arrays)
+
+
+def test_shape_is_averaged_over_sweeps_that_saw_a_surface_only() -> None:
+    sp = SensoryProcessor(kd_store.open(":memory:"))
+    sp._observe_shape(7, _segments(), 0)
+    first = sp._shape_of(7)
+    assert first["thickness_m"] == 0.01 and first["verticality"] == 0.02
+    # one scan row of the same wall: a line, whose "normal" points anywhere
+    sp._observe_shape(7, _segments(breadth_m=0.01, verticality=0.97, length_m=9.0), 0)
+    after = sp._shape_of(7)
+    assert after["verticality"] == 0.02  # the line said nothing of the surface
+    assert after["longest_m"] == 9.0  # but more of the wall came into view
+    assert 0.01 < after["breadth_m"] < 0.6
+    assert sp._shape_of(8) == {}  # never observed: the classifier leaves shape out

@@ -372,6 +372,10 @@ def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_agai
     sp._list_conf = np.full(2, tc.confidence0)
     sp._list_hits = np.zeros(2, dtype=np.int64)
     sp._list_open = np.ones(2, dtype=bool)
+    sp._list_key = np.array([4 * 7, 4 * 7 + 1], dtype=np.int64)  # owner 7, two kinds
+    sp._list_dead = np.zeros(2, dtype=bool)
+    sp._list_lut[[28, 29]] = [0, 1]
+    sp._lists_of[7] = list(lids)
     statuses = []
     for sweep in range(8):
         sp._list_confidence(np.array([0, 1] if sweep == 0 else [0]))
@@ -381,3 +385,5 @@ def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_agai
     first_denied = next(k for k, s in enumerate(statuses) if s[1] == Status.DENIED)
     assert 2 <= first_denied <= 6 and kd.get(lids[1]).confidence < tc.deny
     assert statuses[-1] == (Status.CONFIRMED, Status.DENIED)
+    # the denied list is no longer its owner's, and its (owner, kind) would start a new one
+    assert sp._lists_of[7] == [lids[0]] and sp._list_lut[29] == -1 and sp._list_lut[28] == 0
