@@ -251,3 +251,15 @@ def test_a_kd_without_self_is_refused():
     kd.add_entity("tree", Level.OBJECT, status=Status.CONFIRMED, confidence=0.9)
     with pytest.raises(EvaluationError, match="self"):
         load_kd(kd)
+
+
+def test_claimed_classes_go_up_the_library_never_down() -> None:
+    from wm.evaluation import predicted_classes
+
+    is_a = {"freestanding wall": "wall", "wall": "surface", "tree": "vegetation"}
+    assert predicted_classes(["object", "freestanding wall"], None, is_a) == {
+        "freestanding wall", "wall", "surface",
+    }  # fmt: skip
+    assert "tree" not in predicted_classes(["object", "vegetation"], None, is_a)
+    assert predicted_classes(None, "tree", is_a) == {"tree", "vegetation"}
+    assert predicted_classes(["REGULAR_VEHICLE"], None, {}) == {"vehicle"}

@@ -155,15 +155,20 @@ class KDRun:
         return {i for i, c in self.classes.items() if "person" in c and i in set(self.ent_id)}
 
 
-def predicted_classes(generic: list[str] | None, specific: str | None) -> frozenset[str]:
+def predicted_classes(
+    generic: list[str] | None, specific: str | None, is_a: dict[str, str] | None = None
+) -> frozenset[str]:
     """The classes an entity claims: its most specific generic class (the last of
-    ``generic_classes``, which run general to specific) and its ``specific_class``. A parent
-    such as ``vegetation`` does not count as claiming ``tree``."""
+    ``generic_classes``, which run general to specific) and its ``specific_class``, each with
+    the classes it is a kind of (``is_a``: class -> parent, from the KD's class library), so a
+    ``freestanding wall`` claims ``wall``. A parent such as ``vegetation`` does not count as
+    claiming ``tree``: claims go up the library, never down."""
     out = set()
-    if generic:
-        out.add(CLASS_ALIASES.get(generic[-1], generic[-1]))
-    if specific:
-        out.add(CLASS_ALIASES.get(specific, specific))
+    for c in ([generic[-1]] if generic else []) + ([specific] if specific else []):
+        seen = 0
+        while c and seen < 32:  # the library is a tree; the bound guards a cycle
+            out.add(CLASS_ALIASES.get(c, c))
+            c, seen = (is_a or {}).get(c), seen + 1
     return frozenset(out)
 
 
@@ -200,8 +205,10 @@ def load_kd(kd: Any, config: EvalConfig = EvalConfig()) -> KDRun:
         f"SELECT id, generic_classes, specific_class FROM entities WHERE level = {OBJECT_LEVEL} "
         f"AND name <> 'self' AND status IN ({statuses})"
     ).to_pydict()
+    lib = kd.sql("SELECT name, is_a FROM classes").to_pydict()
+    is_a = {n: p for n, p in zip(lib["name"], lib["is_a"], strict=True) if p}
     classes = {
-        int(i): predicted_classes(g, sc)
+        int(i): predicted_classes(g, sc, is_a)
         for i, g, sc in zip(
             ents["id"], ents["generic_classes"], ents["specific_class"], strict=True
         )
