@@ -94,3 +94,30 @@ def test_odometry_score_aligns_at_the_first_pose() -> None:
     assert score.summary()["final_error_m"] == pytest.approx(0.0, abs=1e-9)
     assert drifting.summary()["final_error_m"] == pytest.approx(0.1, abs=1e-9)
     assert drifting.summary()["final_error_pct_of_path"] == pytest.approx(1.0, rel=1e-3)
+
+
+def test_a_log_without_attitude_is_levelled_on_the_first_sweeps_ground() -> None:
+    """Ground tilted by the body's roll and pitch (as a LADAR on a car on a camber sees it),
+    with walls and a car on it: the ground fit recovers the tilt to 0.2 degrees; a sweep with
+    no ground within reach, or ground steeper than any road, gives None (the world then starts
+    at the body's own attitude)."""
+    from wm.node import level_from_ground
+
+    rng = np.random.default_rng(5)
+    T_world_body = se3(rpy_to_matrix(0.04, -0.03, 0.0))
+    T_body_ladar = se3(t=np.array([1.2, 0.0, 1.6]))
+    xy = rng.uniform(-30.0, 30.0, (20000, 2))
+    ground = np.column_stack([xy, rng.normal(-0.0, 0.02, len(xy))])
+    car = rng.uniform([8, -2, 0], [12.5, -0.2, 1.5], (800, 3))
+    n = 1500
+    wall = np.column_stack([rng.uniform(-20, 20, n), np.full(n, 9.0), rng.uniform(0, 3, n)])
+    world = np.vstack([ground, car, wall])
+    T_ladar_world = np.linalg.inv(T_world_body @ T_body_ladar)
+    in_ladar = world @ T_ladar_world[:3, :3].T + T_ladar_world[:3, 3]
+    T0 = level_from_ground(in_ladar, T_body_ladar)
+    assert T0 is not None
+    roll, pitch, yaw = matrix_to_rpy(T0[:3, :3])
+    assert abs(roll - 0.04) < 0.0035 and abs(pitch + 0.03) < 0.0035 and abs(yaw) < 1e-9
+    steep = np.column_stack([xy, 0.5 * xy[:, 0]])  # 27 degrees: no ground to level on
+    assert level_from_ground(steep, np.eye(4)) is None
+    assert level_from_ground(ground[np.hypot(*ground[:, :2].T) < 2.5], np.eye(4)) is None

@@ -5,7 +5,8 @@ current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
 
 1. pose: LADAR odometry fused with wheel odometry (sp.odometry), or the log's ground truth;
    odometry never reads ground truth: its world starts at the first sweep, level with gravity
-   (:func:`initial_pose`), so scorers align estimates to truth themselves; the sweep is
+   (:func:`initial_pose` from wheel odometry, else :func:`level_from_ground`), so scorers
+   align estimates to truth themselves; the sweep is
    deskewed into the world with the pose at each slice's time. By default the
    odometry runs in its own process (wm.odometry_worker), ``NodeConfig.odometry_ahead`` sweeps
    ahead of the rest;
@@ -76,6 +77,51 @@ def initial_pose(wheel: OdometryFrame) -> np.ndarray:
     except ValueError:
         return np.eye(4)
     roll, pitch, _ = matrix_to_rpy(T[:3, :3])
+    return se3(rpy_to_matrix(roll, pitch, 0.0))
+
+
+def level_from_ground(
+    points_xyz: np.ndarray,
+    T_body_ladar: np.ndarray,
+    cell_m: float = 2.0,
+    ring_m: tuple[float, float] = (3.0, 30.0),
+    min_cells: int = 20,
+    max_rms_m: float = 0.1,
+    max_tilt_rad: float = 0.26,
+) -> np.ndarray | None:
+    """The body's roll and pitch from the ground under it (4x4 float64, zero yaw and position),
+    for a log with no attitude (no wheel odometry or inertial unit): the lowest return of each
+    ``cell_m`` cell between ``ring_m`` metres (body xy) is taken as ground, a plane is fitted to
+    them by least squares twice (dropping cells over 0.15 m off the first fit), and the body is
+    turned so that its normal is up. None when fewer than ``min_cells`` cells fit, their RMS is
+    over ``max_rms_m`` (no flat ground to trust) or the tilt is over ``max_tilt_rad``.
+    points_xyz (N, 3) in the LADAR frame, metres."""
+    pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)] @ T_body_ladar[:3, :3].T + T_body_ladar[:3, 3]
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    pts = pts[(r >= ring_m[0]) & (r <= ring_m[1])]
+    if len(pts) < min_cells:
+        return None
+    cell = np.floor(pts[:, :2] / cell_m).astype(np.int64)
+    key = cell[:, 0] * 100_003 + cell[:, 1]
+    order = np.lexsort((pts[:, 2], key))
+    first = np.r_[True, key[order][1:] != key[order][:-1]]
+    low = pts[order[first]]
+    keep = np.ones(len(low), dtype=bool)
+    for _ in range(2):
+        if keep.sum() < min_cells:
+            return None
+        A = np.column_stack([low[keep, :2], np.ones(int(keep.sum()))])
+        coef = np.linalg.lstsq(A, low[keep, 2], rcond=None)[0]
+        resid = low[:, 2] - np.column_stack([low[:, :2], np.ones(len(low))]) @ coef
+        keep = np.abs(resid) <= 0.15
+    if keep.sum() < min_cells or np.sqrt(np.mean(resid[keep] ** 2)) > max_rms_m:
+        return None
+    n = np.array([-coef[0], -coef[1], 1.0]) / np.hypot(np.hypot(coef[0], coef[1]), 1.0)
+    roll = float(np.arctan2(n[1], n[2]))
+    pitch = float(np.arctan2(-n[0], np.hypot(n[1], n[2])))
+    if max(abs(roll), abs(pitch)) > max_tilt_rad:
+        return None
     return se3(rpy_to_matrix(roll, pitch, 0.0))
 
 
@@ -237,7 +283,7 @@ class WorldModelNode:
         (the process registers them meanwhile)."""
         if not (self._uses_odometry() and self.config.odometry_process):
             return [self.cycle(scan, self.camera)]
-        self._odometry().submit(scan)
+        self._odometry(scan).submit(scan)
         self.inflight.append((scan, self.camera))
         ahead = self.config.odometry_ahead
         return [self.cycle(*self.inflight.popleft())] if len(self.inflight) > ahead else []
@@ -276,7 +322,11 @@ class WorldModelNode:
     def _uses_odometry(self) -> bool:
         return self.config.pose_source == PoseSource.ODOMETRY
 
-    def _odometry(self) -> Any:
+    def _odometry(self, scan: LadarScan | None = None) -> Any:
+        if self.odometry is None and self.T_world_body0 is None and scan is not None:
+            # no wheel odometry to give the attitude: level the world on the first sweep's ground
+            mount = self.T_body_ladar if self.T_body_ladar is not None else np.eye(4)
+            self.T_world_body0 = level_from_ground(scan.points_xyz, mount)
         if self.odometry is None:
             from sp.odometry import LadarOdometry
 
@@ -348,7 +398,7 @@ class WorldModelNode:
                 )
             self.track = self.truth
             return "truth"
-        odo = self._odometry()
+        odo = self._odometry(scan)
         if isinstance(odo, OdometryWorker):
             est, cpu_s = odo.result()
             self.stats.stage_cpu_s["odometry"] += cpu_s
