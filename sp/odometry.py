@@ -78,7 +78,9 @@ class OdometryConfig:
     gate_sigma:     per axis, a registration further than this many standard deviations from
                     the wheel odometry is not used on that axis.
     info_neighbours, info_radius_m: the neighbours (and their farthest distance) that fit the
-                    local plane of each registered point for the information matrix.
+                    local plane of each registered point for the information matrix, found
+                    in the sweep thinned to one point per ``info_voxel_m``, for at most
+                    ``info_max_points`` registered points (an even share of them).
     info_well_constrained: the per-point information (eigenvalue of ``H / n``) of a
                     direction that ``icp_sigma_m`` describes; weaker directions get
                     proportionally more variance.
@@ -134,7 +136,9 @@ class OdometryConfig:
     source_voxel_ratio: float = 1.5
     max_source_points: int | None = 2000
     info_neighbours: int = 8
-    info_radius_m: float = 2.0
+    info_radius_m: float = 3.0
+    info_voxel_m: float = 1.0
+    info_max_points: int = 500
     info_well_constrained: float = 0.07
 
     def __post_init__(self) -> None:
@@ -360,7 +364,9 @@ class LadarOdometry:
         if why:
             return self._reject(t_ns, delta_pred, why, quality, n_usable)
         if from_wheel:
-            info = registration_information(frame_down, source, pose, kiss.last_pose, cfg)
+            stride = max(1, -(-len(source) // cfg.info_max_points))
+            cloud = self._down_sample(frame_down, cfg.info_voxel_m)
+            info = registration_information(cloud, source[::stride], pose, kiss.last_pose, cfg)
             pose = kiss.last_pose @ self._fuse(delta_pred, delta_icp, quality, info)
         kiss.adaptive_threshold.update_model_deviation(se3_inverse(guess) @ pose)
         kiss.local_map.update(frame_down, pose)
@@ -480,9 +486,10 @@ def registration_information(
     if n_src == 0 or len(cloud_sensor) < config.info_neighbours:
         return np.zeros((6, 6))
     k = config.info_neighbours
-    dist, idx = cKDTree(cloud_sensor).query(
-        source_sensor, k=k, distance_upper_bound=config.info_radius_m
-    )
+    tree = cKDTree(
+        cloud_sensor, balanced_tree=False, compact_nodes=False
+    )  # built once, queried once
+    dist, idx = tree.query(source_sensor, k=k, distance_upper_bound=config.info_radius_m)
     ok = np.isfinite(dist).all(axis=1)
     if not ok.any():
         return np.zeros((6, 6))
