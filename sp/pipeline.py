@@ -80,13 +80,12 @@ from sp.surfaces import (
     plane_fit,
 )
 from sp.sweep_points import sweep_points
-from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
+from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus, evident_speed
 from sp.windowing import WindowConfig, window_mask
 
 log = logging.getLogger(__name__)
 
 IMAGE_NAMES = {2: "sp2_lists", 3: "sp3_surfaces", 4: "sp4_objects", 5: "sp5_groups"}
-# classes of objects that move by themselves: only they link as moving members of a group
 # shape attributes of an object's points, observed per sweep (sp.computation.SegmentAttributes,
 # same names) and averaged per object; the last, ``longest_m``, is the longest extent the object
 # was seen with (it grows as more of a wall comes into view)
@@ -94,6 +93,7 @@ SHAPE_KEYS = ("thickness_m", "curvature", "verticality", "breadth_m", "clearance
 _SURFACE_KEYS = 3  # the first three describe a surface of points, not a line (_observe_shape)
 SHAPE_MIN_BREADTH_M = 0.05  # a segment's points spread this far along its middle axis ...
 SHAPE_MIN_PIXELS = 12  # ... in this many returns at least, or its thickness is unknown
+# classes of objects that move by themselves: only they link as moving members of a group
 MOBILE_CLASSES = frozenset({"vehicle", "person"})
 
 _STATUS = {
@@ -125,7 +125,6 @@ class SPConfig:
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
     max_object_range_m: float = 120.0  # farther segments are left ungrouped
     min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)
-    speed_sigmas: float = 2.0  # classification uses the speed less this many std devs
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 list entities (edges, vertices, patches)
@@ -544,7 +543,7 @@ class SensoryProcessor:
         )
         # states of the tracks updated this cycle
         upd = np.unique(track_of[track_of >= 0])
-        # tracks at rest by the stationarity test report the stationary filter: no speed
+        # tracks the stationarity test finds at rest are reported at zero speed
         x_rep, P_rep = tr.reported(cfg.tracker)
         if upd.size:
             yaw = tr.w[upd, 3]
@@ -613,9 +612,9 @@ class SensoryProcessor:
         tr = self.tracker.tracks
         events: list[int] = []
         ks = np.flatnonzero(tr.id >= 0)
+        speeds = evident_speed(tr.x[ks], tr.P[ks], self.config.tracker.evident_sigmas)
         rows = []
-        for k in ks:
-            speed = evident_speed(tr.x[k], tr.P[k], self.config.speed_sigmas)
+        for k, speed in zip(ks, speeds.tolist(), strict=True):
             l, w, h = (float(v) for v in tr.w[k, :3])
             rows.append(
                 {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
@@ -1213,10 +1212,8 @@ class SensoryProcessor:
         cls = [self.track_class.get(int(i), (None, 0))[0] for i in ids]
         is_tree = np.array([c == "tree" for c in cls], dtype=bool)
         mobile = np.array([c in MOBILE_CLASSES for c in cls], dtype=bool)
-        sure = tr.moving(self.config.tracker)[conf] & np.array(
-            [evident_speed(tr.x[k], tr.P[k], self.config.speed_sigmas) > 0 for k in conf],
-            dtype=bool,
-        )
+        tc = self.config.tracker
+        sure = tr.moving(tc)[conf] & (evident_speed(tr.x[conf], tr.P[conf], tc.evident_sigmas) > 0)
         v = np.where((mobile & sure)[:, None], tr.x[conf, 3:5], 0.0)
         lab = group_labels(tr.x[conf, :2], v, is_tree, self.config.groups)
         current = [
@@ -1321,15 +1318,6 @@ def column_poses(
     mid = off / np.maximum(v.sum(axis=0), 1)
     alpha = (t_ns + mid - t_prev_ns) / float(pose_t_ns - t_prev_ns)
     return interpolate_pose(T_world_prev, T_world_ladar, alpha.astype(np.float64))
-
-
-def evident_speed(x: np.ndarray, P: np.ndarray, n_sigma: float) -> float:
-    """Ground speed (m/s) the filter is sure of: |v_xy| less ``n_sigma`` standard deviations
-    of it (0 when the motion is within its uncertainty), so a static object whose centre
-    wanders as more of it comes into view is not taken for a moving one. x (6,), P (6, 6)."""
-    v = float(np.hypot(x[3], x[4]))
-    sd = math.sqrt(max(0.5 * (P[3, 3] + P[4, 4]), 0.0))
-    return max(v - n_sigma * sd, 0.0)
 
 
 def vertical_face(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:

@@ -161,9 +161,7 @@ class Tracks:
         filter is sure of a ground speed of at least ``evident_mps`` (its speed less
         ``evident_sigmas`` standard deviations): a vehicle first seen driving is moving as
         soon as its filter has its speed, before the test has gathered its evidence."""
-        v = np.hypot(self.x[:, 3], self.x[:, 4])
-        sd = np.sqrt(np.maximum(0.5 * (self.P[:, 3, 3] + self.P[:, 4, 4]), 0.0))
-        evident = v - config.evident_sigmas * sd >= config.evident_mps
+        evident = evident_speed(self.x, self.P, config.evident_sigmas) >= config.evident_mps
         return (self.llr > config.llr_moving) | evident
 
     def reported(self, config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -236,6 +234,16 @@ def gaussian_loglik(y: np.ndarray, S: np.ndarray) -> np.ndarray:
     return -0.5 * (d2 + logdet + k * np.log(2.0 * np.pi))
 
 
+def evident_speed(x: np.ndarray, P: np.ndarray, n_sigma: float) -> np.ndarray:
+    """Ground speed (m/s) the filter is sure of: |v_xy| less ``n_sigma`` standard deviations
+    of it, 0 when the motion is within its uncertainty (a static object whose centre wanders
+    as more of it comes into view is not taken for a moving one). x (..., 6), P (..., 6, 6);
+    returns (...)."""
+    v = np.hypot(x[..., 3], x[..., 4])
+    sd = np.sqrt(np.maximum(0.5 * (P[..., 3, 3] + P[..., 4, 4]), 0.0))
+    return np.maximum(v - n_sigma * sd, 0.0)
+
+
 def along_motion(
     what: np.ndarray, x: np.ndarray, P: np.ndarray, config: TrackerConfig
 ) -> np.ndarray:
@@ -244,9 +252,7 @@ def along_motion(
     a view whose long axis lies across it (the back of a truck seen from behind is wider than
     it is deep) has its length and width swapped and its yaw turned by 90 degrees. x (M, 6),
     P (M, 6, 6): the tracks' filter states."""
-    v = np.hypot(x[:, 3], x[:, 4])
-    sd = np.sqrt(np.maximum(0.5 * (P[:, 3, 3] + P[:, 4, 4]), 0.0))
-    sure = v - config.evident_sigmas * sd >= config.evident_mps
+    sure = evident_speed(x, P, config.evident_sigmas) >= config.evident_mps
     heading = np.arctan2(x[:, 4], x[:, 3])
     across = sure & (np.abs(wrap_half_pi(what[:, 3] - heading)) > np.pi / 4)
     out = what.copy()
