@@ -234,6 +234,12 @@ def gaussian_loglik(y: np.ndarray, S: np.ndarray) -> np.ndarray:
     return -0.5 * (d2 + logdet + k * np.log(2.0 * np.pi))
 
 
+def footprint_axes(yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors (T, 2) along and across footprints at ``yaw`` (T,) rad."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([c, s], axis=1), np.stack([-s, c], axis=1)
+
+
 def evident_speed(x: np.ndarray, P: np.ndarray, n_sigma: float) -> np.ndarray:
     """Ground speed (m/s) the filter is sure of: |v_xy| less ``n_sigma`` standard deviations
     of it, 0 when the motion is within its uncertainty (a static object whose centre wanders
@@ -275,9 +281,7 @@ def far_side_shift(
     width, height, yaw of the view and of the track, sensor_xy (2,)."""
     d = center_xy - sensor_xy[None, :2]
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    c, s = np.cos(what_track[:, 3]), np.sin(what_track[:, 3])
-    u = np.stack([c, s], axis=1)
-    v = np.stack([-s, c], axis=1)
+    u, v = footprint_axes(what_track[:, 3])
     along = 0.5 * np.maximum(what_track[:, 0] - what_seen[:, 0], 0.0)
     across = 0.5 * np.maximum(what_track[:, 1] - what_seen[:, 1], 0.0)
     du = np.einsum("mi,mi->m", d, u)
@@ -288,9 +292,7 @@ def far_side_shift(
 def footprint_spread(what: np.ndarray) -> np.ndarray:
     """(T, 3, 3) covariance of a point uniform over each footprint (``what`` (T, 4): length,
     width, height, yaw): ``L^2 / 12`` along the long axis, ``W^2 / 12`` across it, none in z."""
-    c, s = np.cos(what[:, 3]), np.sin(what[:, 3])
-    u = np.stack([c, s], axis=1)
-    v = np.stack([-s, c], axis=1)
+    u, v = footprint_axes(what[:, 3])
     out = np.zeros((what.shape[0], 3, 3))
     out[:, :2, :2] = (what[:, 0] ** 2 / 12.0)[:, None, None] * np.einsum("ti,tj->tij", u, u)
     out[:, :2, :2] += (what[:, 1] ** 2 / 12.0)[:, None, None] * np.einsum("ti,tj->tij", v, v)
@@ -334,8 +336,7 @@ def measurement_R(
     R[:, 0, 0] = R[:, 1, 1] = s**2
     R[:, 2, 2] = (0.5 * s + 0.5 * config.sigma_pos_per_m * what[:, 2]) ** 2
     if what_track is not None:
-        u = np.stack([np.cos(what[:, 3]), np.sin(what[:, 3])], axis=1)
-        v = np.stack([-u[:, 1], u[:, 0]], axis=1)
+        u, v = footprint_axes(what[:, 3])
         dl = 0.5 * np.abs(what[:, 0] - what_track[:, 0])
         dw = 0.5 * np.abs(what[:, 1] - what_track[:, 1])
         R[:, :2, :2] += (dl**2)[:, None, None] * np.einsum("mi,mj->mij", u, u)
