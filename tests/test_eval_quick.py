@@ -17,14 +17,25 @@ CASES = [("default", 21), ("village", 22), ("parking", 23)]  # development seeds
 
 
 @pytest.fixture(scope="module", params=CASES, ids=[f"{s}-{n}" for s, n in CASES])
-def scores(request, tmp_path_factory) -> dict[str, float]:
+def scores(request, tmp_path_factory) -> dict:
     from fixtures.simulate import simulate_to_log
 
     scenario, seed = request.param
     d = tmp_path_factory.mktemp(f"quick-{scenario}")
     log = simulate_to_log(scenario, d / "log.mcap", seconds=SECONDS, seed=seed, progress=False)
-    run_log(log, d / "run.kd", config=NodeConfig(), progress=False)
-    return {"scenario": scenario, **evaluate_files(log, d / "run.kd")}
+    report = run_log(log, d / "run.kd", config=NodeConfig(), progress=False)
+    return {"scenario": scenario, "report": report, **evaluate_files(log, d / "run.kd")}
+
+
+def test_the_run_report_scores_as_wm_evaluate(scores) -> None:
+    """`wm run`'s report carries the scorer's figures for its own KD, and its odometry drift
+    (wm.truth, needed by the map scores) agrees with evo's (aligned at the first pose)."""
+    report = scores["report"]
+    for k, v in report.metrics["detection"].items():
+        assert v == pytest.approx(scores[k], nan_ok=True), k
+    odo = report.metrics["odometry"]
+    assert odo["final_error_m"] == pytest.approx(scores["final_error_m"], abs=0.01)
+    assert odo["final_error_pct_of_path"] == pytest.approx(scores["drift_pct"], rel=0.05)
 
 
 def test_tracking_precision_and_identity(scores) -> None:

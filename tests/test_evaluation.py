@@ -57,7 +57,7 @@ def _truth(
         p_world = np.vstack(pts) if pts else np.zeros((0, 3))
         p_body = transform_points(np.linalg.inv(T), p_world).astype(np.float32)
         sweeps.append(Sweep(t, p_body, np.zeros(len(p_body), dtype=np.int64)))
-    return Truth(track, sets, sweeps)
+    return Truth.from_sweeps(track, sets, sweeps)
 
 
 def _kd(

@@ -1,16 +1,13 @@
-"""Scoring against truth: the map's elevation scored with and without the odometry's drift;
-detections scored without counting pairs across the range edge."""
+"""Scoring against truth: the map's elevation scored with and without the odometry's drift
+(tracking is scored by wm.evaluation: tests/test_evaluation.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-import kd_store
-from kd_store import Level, Status
 from maps.frames import rot_z, se3
 from maps.level import LevelConfig, MapLevel
-from sp.logs.types import ObjectBoxes
-from wm.truth import DetectionScore, TerrainTruth, elevation_error
+from wm.truth import TerrainTruth, elevation_error
 
 
 def _tilted_truth() -> TerrainTruth:
@@ -37,30 +34,3 @@ def test_elevation_error_without_drift_is_zero_and_drift_is_removed_by_the_pose_
     local = elevation_error(level, truth, T_true_est)
     # left: only the cell quantisation of the moved points on a 5 % slope
     assert local["median_abs_m"] < 0.03 and local["cells"] > 500
-
-
-def test_detection_score_does_not_count_pairs_across_the_range_edge():
-    """Vehicle at the origin, range 40 m, match 1 m. Scored: an object with its detection
-    (hit), a detection without object (false), an object without detection (missed). Across
-    the edge: a detection just inside it of an object just outside (neither false nor hit),
-    and an object just inside it detected just outside (a hit, not a miss)."""
-    kd = kd_store.open()
-    for name, xy in {
-        "hit": (10.2, 0.0),
-        "inside-of-outside": (39.8, 0.0),
-        "outside-of-inside": (0.0, 40.5),
-        "false": (-20.0, 0.0),
-    }.items():
-        kd.add_entity(
-            name, Level.OBJECT, generic_classes=("rock",), status=Status.CONFIRMED,
-            state=kd_store.State(0, "world", (*xy, 0.0)),
-        )  # fmt: skip
-    centers = np.array([[10.0, 0, 0], [40.6, 0, 0], [0, 39.7, 0], [0, -20.0, 0]])
-    boxes = ObjectBoxes(
-        0, "world", np.arange(4), ["rock"] * 4, centers, np.ones((4, 3)), np.zeros(4),
-        np.zeros((4, 3)),
-    )  # fmt: skip
-    score = DetectionScore(range_m=40.0, match_m=1.0)
-    score.add(kd, boxes, np.zeros(2), skip=-1)
-    assert (score.tp, score.fp, score.fn) == (2, 1, 1)
-    assert score.class_right == 2

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -74,20 +75,87 @@ class Sweep:
         span = int(self.t_offset_ns.max()) if len(self.t_offset_ns) else 0
         return self.t_ns + span // 2
 
+    @property
+    def end_ns(self) -> int:
+        return self.t_ns + (int(self.t_offset_ns.max()) if len(self.t_offset_ns) else 0)
+
+
+@dataclass
+class Seen:
+    """How one sweep saw the truth: its middle time ``mid_ns``, and for the boxes of the set
+    nearest that time (ids (M,) int64) the LADAR returns in each grown box (M,) int64; ``ids``
+    None when the truth poses do not cover the sweep (visibility unknown)."""
+
+    mid_ns: int
+    ids: np.ndarray | None
+    points: np.ndarray
+
+    def count(self, box_ids: np.ndarray) -> np.ndarray:
+        """Returns per box id (K,) int64: 0 for a box the sweep did not count, -1 for all
+        when visibility is unknown."""
+        if self.ids is None:
+            return np.full(len(box_ids), -1, dtype=np.int64)
+        lookup = dict(zip(self.ids.tolist(), self.points.tolist(), strict=True))
+        return np.array([lookup.get(int(i), 0) for i in box_ids], dtype=np.int64)
+
 
 @dataclass
 class Truth:
     """A log's ground truth: true body poses, truth boxes in the truth world (time order),
-    LADAR sweeps and the static mount ``T_body_ladar`` (4x4)."""
+    what each LADAR sweep saw of them (:class:`Seen`, in time order) and the static mount
+    ``T_body_ladar`` (4x4). The sweeps themselves are not kept: a long log's points would not
+    fit in memory."""
 
     poses: PoseTrack
     boxes: list[Any]  # sp.logs.types.ObjectBoxes, frame "world", classes after CLASS_ALIASES
-    sweeps: list[Sweep]
+    seen: list[Seen]
     T_body_ladar: np.ndarray = field(default_factory=lambda: np.eye(4))
 
     @property
     def box_t_ns(self) -> np.ndarray:
         return np.array([b.t_ns for b in self.boxes], dtype=np.int64)
+
+    @classmethod
+    def from_sweeps(
+        cls,
+        poses: PoseTrack,
+        boxes: list[Any],
+        sweeps: list[Sweep],
+        T_body_ladar: np.ndarray | None = None,
+        config: EvalConfig = EvalConfig(),
+    ) -> Truth:
+        """The truth of world-frame ``boxes`` and ``sweeps`` counted against them."""
+        truth = cls(poses, list(boxes), [], np.eye(4) if T_body_ladar is None else T_body_ladar)
+        truth.seen = [see(truth, sw, config) for sw in sweeps]
+        return truth
+
+
+def see(truth: Truth, sweep: Sweep, config: EvalConfig) -> Seen:
+    """What ``sweep`` saw of the truth boxes nearest its middle (moved to it): the returns,
+    each moved to the true world with the true pose at its own time, inside each box within
+    reach of the true body, grown by ``box_grow_m``."""
+    t = sweep.mid_ns
+    got = truth_at(truth, t, config) if truth.boxes else None
+    if got is None or not truth.poses.covers(t):
+        return Seen(t, None, np.zeros(0, dtype=np.int64))
+    boxes, centers = got
+    T_body_world = se3_inverse(truth.poses.at(t))
+    c_body = transform_points(T_body_world, centers)
+    yaw_body = boxes.yaws + math.atan2(T_body_world[1, 0], T_body_world[0, 0])
+    reach = config.range_m + config.dont_care_band_m
+    rng = footprint_distance(np.zeros((1, 2)), c_body[:, :2], boxes.sizes[:, :2], yaw_body)[:, 0]
+    near = np.flatnonzero(rng < reach)
+    try:
+        p_world = deskew_to_world(
+            sweep.points_xyz, sweep.t_offset_ns, sweep.t_ns, truth.poses, truth.T_body_ladar,
+            config.deskew_bins,
+        )  # fmt: skip
+    except ValueError:  # the truth poses do not cover the sweep: visibility unknown
+        return Seen(t, None, np.zeros(0, dtype=np.int64))
+    counts = points_in_boxes(
+        p_world, centers[near], boxes.sizes[near], boxes.yaws[near], config.box_grow_m
+    )
+    return Seen(t, boxes.ids[near].astype(np.int64), counts)
 
 
 def unbounded_track() -> PoseTrack:
@@ -95,40 +163,62 @@ def unbounded_track() -> PoseTrack:
     return PoseTrack(horizon=1 << 40)
 
 
-def load_truth(log_path: str | Path) -> Truth:
+def load_truth(log_path: str | Path, config: EvalConfig = EvalConfig()) -> Truth:
     """Ground truth of a log (GroundTruthPose, ObjectBoxes, LadarScan, static base_link->ladar
     TransformFrame). Body-frame boxes are moved to the world with the true pose at their time.
-    Raises EvaluationError when the log has no true poses or no truth boxes."""
+    Each sweep is counted against the boxes (:func:`see`) once the poses cover it and the box
+    set nearest its middle is in, and then let go. Raises EvaluationError when the log has no
+    true poses or no truth boxes."""
     from sp.logs import open_log
     from sp.logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
-    from wm.truth import truth_boxes_to_world
 
-    poses = unbounded_track()
-    raw_boxes: list[ObjectBoxes] = []
-    sweeps: list[Sweep] = []
-    T_body_ladar = np.eye(4)
+    truth = Truth(unbounded_track(), [], [])
+    waiting_boxes: list[ObjectBoxes] = []  # body-frame sets whose pose is not in yet
+    waiting: deque[Sweep] = deque()
+    last_box_ns = -(2**62)
     kinds = (GroundTruthPose, ObjectBoxes, LadarScan, TransformFrame)
     for f in open_log(log_path).frames(kinds=kinds):
         if isinstance(f, GroundTruthPose):
-            poses.add(f.t_ns, f.T_parent_child)
+            truth.poses.add(f.t_ns, f.T_parent_child)
         elif isinstance(f, ObjectBoxes):
             if f.topic == "/ground_truth/objects":
-                raw_boxes.append(f)
+                waiting_boxes.append(f)
+                last_box_ns = max(last_box_ns, int(f.t_ns))
         elif isinstance(f, LadarScan):
-            sweeps.append(Sweep(f.t_ns, f.points_xyz, np.asarray(f.t_offset_ns, np.int64)))
+            waiting.append(Sweep(f.t_ns, f.points_xyz, np.asarray(f.t_offset_ns, np.int64)))
         elif f.static and f.child_frame_id == "ladar":
-            T_body_ladar = np.asarray(f.T_parent_child, dtype=np.float64)
-    if not len(poses):
+            truth.T_body_ladar = np.asarray(f.T_parent_child, dtype=np.float64)
+        waiting_boxes = _boxes_to_world(truth, waiting_boxes)
+        last_pose_ns = truth.poses.t_ns[-1] if len(truth.poses) else -(2**62)
+        while (
+            waiting
+            and waiting[0].end_ns <= last_pose_ns
+            and (waiting[0].mid_ns + config.truth_dt_ns <= last_box_ns)
+        ):
+            truth.seen.append(see(truth, waiting.popleft(), config))
+    _boxes_to_world(truth, waiting_boxes, last=True)
+    truth.seen += [see(truth, sw, config) for sw in waiting]
+    if not len(truth.poses):
         raise EvaluationError(f"log {log_path}: no /ground_truth/pose; nothing to score against")
-    if not raw_boxes:
+    if not truth.boxes:
         raise EvaluationError(f"log {log_path}: no /ground_truth/objects boxes")
-    boxes = []
-    for b in raw_boxes:
+    return truth
+
+
+def _boxes_to_world(truth: Truth, sets: list[Any], last: bool = False) -> list[Any]:
+    """Moves the box sets the truth can place into ``truth.boxes`` (world frame, CLASS_ALIASES
+    applied); returns those still waiting for a true pose (none when ``last``)."""
+    from wm.truth import truth_boxes_to_world
+
+    rest = []
+    for b in sets:
         if b.frame_id == "world":
-            boxes.append(truth_boxes_to_world(b, np.eye(4)))  # applies CLASS_ALIASES
-        elif b.frame_id == "base_link" and poses.covers(b.t_ns):
-            boxes.append(truth_boxes_to_world(b, poses.at(b.t_ns)))
-    return Truth(poses, boxes, sweeps, T_body_ladar)
+            truth.boxes.append(truth_boxes_to_world(b, np.eye(4)))
+        elif b.frame_id == "base_link" and truth.poses.covers(b.t_ns):
+            truth.boxes.append(truth_boxes_to_world(b, truth.poses.at(b.t_ns)))
+        elif b.frame_id == "base_link" and not last:
+            rest.append(b)
+    return rest
 
 
 # --- what the KD holds ---------------------------------------------------------------------
@@ -316,7 +406,7 @@ def truth_at(truth: Truth, t_ns: int, config: EvalConfig) -> tuple | None:
 
 
 def frame_at(
-    truth: Truth, run: KDRun, k: int, config: EvalConfig, sweep_mid_ns: np.ndarray
+    truth: Truth, run: KDRun, k: int, config: EvalConfig, seen_mid_ns: np.ndarray
 ) -> FrameData | None:
     """The scored data at the KD's k-th self time (None when the truth has no pose or boxes
     there)."""
@@ -334,19 +424,8 @@ def frame_at(
     rng = footprint_distance(np.zeros((1, 2)), c_body[:, :2], boxes.sizes[:, :2], yaw_body)[:, 0]
     near = np.flatnonzero(rng < reach)
     pts = np.full(len(near), -1, dtype=np.int64)
-    if len(sweep_mid_ns) and len(near):
-        j = int(np.argmin(np.abs(sweep_mid_ns - t)))
-        sw = truth.sweeps[j]
-        try:
-            p_world = deskew_to_world(
-                sw.points_xyz, sw.t_offset_ns, sw.t_ns, truth.poses, truth.T_body_ladar,
-                config.deskew_bins,
-            )  # fmt: skip
-            pts = points_in_boxes(
-                p_world, centers[near], boxes.sizes[near], boxes.yaws[near], config.box_grow_m
-            )
-        except ValueError:  # truth poses do not cover the sweep: visibility unknown
-            pts = np.full(len(near), -1, dtype=np.int64)
+    if len(seen_mid_ns) and len(near):
+        pts = truth.seen[int(np.argmin(np.abs(seen_mid_ns - t)))].count(boxes.ids[near])
     hid, hxy, hspeed = hypotheses_at(run, t, run.T_odom_body[k], config.state_window_ns)
     return FrameData(
         t, boxes.ids[near], [boxes.classes[i] for i in near], c_body[near, :2],
@@ -541,10 +620,10 @@ def trajectory_scores(
 def evaluate_run(truth: Truth, run: KDRun, config: EvalConfig = EvalConfig()) -> dict:
     """Every figure of one run (docs/evaluation.md): tracking over the KD's self times, the
     trajectory over those of them the truth covers."""
-    sweep_mid = np.array([s.mid_ns for s in truth.sweeps], dtype=np.int64)
+    seen_mid = np.array([s.mid_ns for s in truth.seen], dtype=np.int64)
     frames = []
     for k in range(len(run.self_t_ns)):
-        fd = frame_at(truth, run, k, config, sweep_mid)
+        fd = frame_at(truth, run, k, config, seen_mid)
         if fd is not None:
             frames.append(fd)
     if not frames:
@@ -562,4 +641,4 @@ def evaluate_run(truth: Truth, run: KDRun, config: EvalConfig = EvalConfig()) ->
 def evaluate_files(log_path: str | Path, kd_path: str | Path, config: EvalConfig = EvalConfig()):
     """Every figure of the KD file ``kd_path`` (opened read-only) against the truth in the log
     ``log_path``: a dict name -> float (units in docs/evaluation.md)."""
-    return evaluate_run(load_truth(log_path), load_kd(kd_path, config), config)
+    return evaluate_run(load_truth(log_path, config), load_kd(kd_path, config), config)

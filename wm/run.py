@@ -2,7 +2,8 @@
 
 ``run_log(log, kd_path)`` reads any supported log (sp.logs.open_log), feeds every frame to a
 :class:`~wm.node.WorldModelNode`, scores against the log's ground truth when it has some
-(:mod:`wm.truth`), flushes the KD and returns a :class:`RunReport` (also written as JSON).
+(:mod:`wm.truth` for odometry and maps, :mod:`wm.evaluation` for the KD's entities), flushes
+the KD and returns a :class:`RunReport` (also written as JSON).
 With a KD file, map tiles leaving the windows (and the last windows) are kept in it
 (:mod:`wm.tiles`), and a later run over the same file starts from them.
 """
@@ -22,22 +23,14 @@ from typing import Any
 import numpy as np
 
 import kd_store
-from maps.frames import NS_PER_S, se3_inverse
+from maps.frames import NS_PER_S
 from sp.logs import LogSource, open_log
 from sp.logs.prefetch import FramePrefetcher
 from sp.logs.types import CameraFrame, Frame, LadarScan, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
-from wm.poses import PoseError
 from wm.tiles import keep_windows, map_stack_over_kd
-from wm.truth import (
-    DetectionScore,
-    OdometryScore,
-    RasterTruth,
-    TerrainTruth,
-    elevation_error,
-    truth_boxes_to_world,
-)
+from wm.truth import OdometryScore, RasterTruth, TerrainTruth, elevation_error
 
 
 @dataclass
@@ -163,7 +156,7 @@ def run_log(
     ):
         stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
         node = WorldModelNode(kd, config, stack)
-        odo, det = OdometryScore(), DetectionScore()
+        odo = OdometryScore()
         first_t, last_t = None, None
         frames = _cpu_timed(frames_in, read_cpu_s)
         for frame in _progress(frames, total, progress, Path(log_path).name):
@@ -172,9 +165,9 @@ def run_log(
                 break
             last_t = frame.t_ns
             for c in node.feed(frame):
-                _score(node, c, odo, det)
+                _score(node, c, odo)
         for c in node.finish():
-            _score(node, c, odo, det)
+            _score(node, c, odo)
         if stack is not None:
             keep_windows(stack)  # the last windows too, for the next run over this KD
         wall = time.perf_counter() - t_start
@@ -187,7 +180,8 @@ def run_log(
         }
         if reader is not None and reader.decode_cpu_s:
             report.cpu_ms_per_sweep["decode_process"] = 1e3 * reader.decode_cpu_s / n
-        report.metrics.update(_metrics(node, odo, det, terrain))
+        report.metrics.update(_metrics(node, odo, terrain))
+        report.metrics.update(_tracking(node, kd, log_path))
         if render_dir is not None:
             from wm.render import render_run
 
@@ -253,27 +247,33 @@ def _progress(frames, total: int, show: bool, name: str):
     return tqdm(frames, total=total, unit="msg", desc=f"wm run {name}", disable=not tty)
 
 
-def _score(node: WorldModelNode, cycle, odo: OdometryScore, det: DetectionScore) -> None:
+def _score(node: WorldModelNode, cycle, odo: OdometryScore) -> None:
     if node.truth.t_ns:
         odo.add(cycle.t_pose_ns, cycle.T_world_body, node.truth)
-    if node.sp is not None and node.truth_boxes is not None:
-        det.add(node.kd, _truth_in_estimated_world(node, cycle), cycle.T_world_body[:3, 3],
-                node.self_id)  # fmt: skip
 
 
-def _truth_in_estimated_world(node: WorldModelNode, cycle) -> ObjectBoxes:
-    """The true boxes in the world frame the node estimates. With odometry poses that frame
-    drifts from the true one; entities are placed relative to the estimated vehicle, so the
-    truth is moved by this sweep's pose error before scoring: detection then scores
-    perception, and the odometry score alone scores the drift."""
-    boxes = node.truth_boxes
-    if node.config.pose_source == PoseSource.TRUTH or not node.truth.t_ns:
-        return boxes
+def _tracking(node: WorldModelNode, kd: kd_store.KnowledgeDatabase, log_path) -> dict[str, Any]:
+    """The KD's object entities against the log's truth, as `wm evaluate` scores them
+    (:mod:`wm.evaluation`, docs/evaluation.md: py-motmetrics, TrackEval, evo), once the run is
+    over: the log is read again for its truth, off the node's time. Empty when SP did not run
+    or the log has no true poses and boxes."""
+    if node.sp is None or not node.truth.t_ns or not node.stats.frames[ObjectBoxes.__name__]:
+        return {}
+    from wm.evaluation import EvaluationError, evaluate_run, load_kd, load_truth
+
+    kd.flush()
     try:
-        T_true = node.truth.at(cycle.t_pose_ns)
-    except PoseError:
-        return boxes
-    return truth_boxes_to_world(boxes, cycle.T_world_body @ se3_inverse(T_true))
+        s = evaluate_run(load_truth(log_path), load_kd(kd))
+    except EvaluationError as e:
+        return {"detection": {"error": str(e)}}
+    return {"detection": {k: s[k] for k in REPORTED_TRACKING if k in s}}
+
+
+#: the scores of :mod:`wm.evaluation` a run's report carries (``wm evaluate`` prints them all)
+REPORTED_TRACKING = (
+    "precision", "recall", "mota", "idf1", "hota", "switches_per_100",
+    "classification_accuracy", "static_speed_median_mps", "person_count_error",
+)  # fmt: skip
 
 
 def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
@@ -302,7 +302,7 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
     )
 
 
-def _metrics(node, odo: OdometryScore, det: DetectionScore, terrain) -> dict[str, Any]:
+def _metrics(node, odo: OdometryScore, terrain) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if odo.errors_m:
         out["odometry"] = odo.summary()
@@ -315,8 +315,6 @@ def _metrics(node, odo: OdometryScore, det: DetectionScore, terrain) -> dict[str
                 out[f"elevation_{name}"] = elevation_error(level, terrain, T_align)
                 if odo.T_true_est is not None:  # the same map, without the odometry's drift
                     out[f"elevation_{name}_local"] = elevation_error(level, terrain, odo.T_true_est)
-    if node.sp is not None and det.tp + det.fn + det.fp:
-        out["detection"] = det.summary()
     if node.stats.range_image_error_m:
         out["prediction"] = {
             "range_median_abs_error_m": float(np.median(node.stats.range_image_error_m)),

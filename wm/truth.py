@@ -1,5 +1,6 @@
-"""Scores against a log's ground truth: odometry error, elevation RMSE, detection, tracking and
-classification (what ``wm run`` reports when the log carries truth).
+"""Scores against a log's ground truth: odometry error and elevation RMSE (what ``wm run`` reports
+beside the tracking scores of :mod:`wm.evaluation` when the log carries truth), and the truth
+helpers both use.
 
 Truth comes from the log itself: ``/ground_truth/pose`` (GroundTruthPose), ``/ground_truth/
 objects`` (ObjectBoxes) and the simulator's ``terrain.npy`` attachment with its ``terrain``
@@ -15,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-import kd_store
-from kd_store import Level, Status
 from maps.apriori import ElevationRaster, load_av2_ground_height
 from maps.frames import se3_inverse
 from maps.level import MapLevel
@@ -184,79 +183,3 @@ def footprint_distance(
     u = np.abs(c * d[..., 0] + s * d[..., 1]) - 0.5 * sizes_lw[:, 0:1]
     w = np.abs(-s * d[..., 0] + c * d[..., 1]) - 0.5 * sizes_lw[:, 1:2]
     return np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))
-
-
-@dataclass
-class DetectionScore:
-    """Confirmed object entities (by position) vs true boxes (by footprint) within ``range_m``
-    of the vehicle, at every scored time, matched greedily by the distance (m) from the
-    entity's position to the true box's footprint (0 inside; at most ``match_m``): SP places
-    an entity at the centre of the surfaces it saw, which for a large object lies well off the
-    box centre. Entities and boxes up to ``match_m`` beyond ``range_m`` take part in the
-    matching without being scored: a detection just inside the edge of an object just
-    outside it is no false detection, and an object just inside it detected just outside
-    no missed one."""
-
-    range_m: float = 40.0
-    match_m: float = 1.0
-    tp: int = 0
-    fp: int = 0
-    fn: int = 0
-    class_right: int = 0
-    id_switches: int = 0
-    _last_match: dict[int, int] = field(default_factory=dict)
-
-    def add(
-        self, kd: kd_store.KnowledgeDatabase, boxes: ObjectBoxes, xy: np.ndarray, skip: int
-    ) -> None:
-        xy = np.asarray(xy[:2], dtype=np.float64)
-        reach = self.range_m + self.match_m
-        # by footprint, as entities are by position: an entity on the near face of a building
-        # whose centre lies beyond range_m is a detection of it, not a false one
-        t_dist = footprint_distance(
-            xy[None], boxes.centers[:, :2], boxes.sizes[:, :2], boxes.yaws
-        )[:, 0]  # fmt: skip
-        near = t_dist <= reach
-        t_c, t_id, t_scored = boxes.centers[near, :2], boxes.ids[near], t_dist[near] <= self.range_m
-        t_cls = [c for c, k in zip(boxes.classes, near, strict=True) if k]
-        region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), reach)
-        ids = [
-            int(i)
-            for i in kd.region(region, statuses=[Status.CONFIRMED], levels=[Level.OBJECT])
-            if int(i) != skip
-        ]
-        frames = [kd.get(i) for i in ids]
-        e_c = np.array([f.state.position_xyz[:2] for f in frames]).reshape(-1, 2)  # type: ignore[union-attr]
-        e_scored = np.hypot(*(e_c - xy).T) <= self.range_m
-        t_matched = np.zeros(len(t_c), dtype=bool)
-        e_matched = np.zeros(len(e_c), dtype=bool)
-        if len(e_c) and len(t_c):
-            d = footprint_distance(e_c, t_c, boxes.sizes[near, :2], boxes.yaws[near])
-            for flat in np.argsort(d, axis=None):
-                ti, ei = divmod(int(flat), len(e_c))
-                if d[ti, ei] > self.match_m:
-                    break
-                if t_matched[ti] or e_matched[ei]:
-                    continue
-                t_matched[ti] = e_matched[ei] = True
-                if not t_scored[ti]:
-                    continue  # its object lies beyond the scored range
-                self.tp += 1
-                lineage = kd.class_lineage(frames[ei].id)
-                self.class_right += int(t_cls[ti] in lineage)
-                prev = self._last_match.get(int(t_id[ti]))
-                self.id_switches += int(prev is not None and prev != frames[ei].id)
-                self._last_match[int(t_id[ti])] = frames[ei].id
-        self.fn += int(np.count_nonzero(t_scored & ~t_matched))
-        self.fp += int(np.count_nonzero(e_scored & ~e_matched))
-
-    def summary(self) -> dict[str, float]:
-        p = self.tp / (self.tp + self.fp) if self.tp + self.fp else float("nan")
-        r = self.tp / (self.tp + self.fn) if self.tp + self.fn else float("nan")
-        return {
-            "precision": p,
-            "recall": r,
-            "classification_accuracy": self.class_right / self.tp if self.tp else float("nan"),
-            "id_switches": self.id_switches,
-            "mota": 1.0 - (self.fp + self.fn + self.id_switches) / max(1, self.tp + self.fn),
-        }
