@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from core.errors import EngineError
 
-class KDError(ValueError):
+
+class KDError(EngineError, ValueError):
     """Input the KD refuses, or a KD file it cannot use.
 
     The message always names the offending value and the frame (entity, event, relation,

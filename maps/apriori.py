@@ -18,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.level import MapLevel
 
 
-class AprioriError(ValueError):
+class AprioriError(EngineError, ValueError):
     """A raster file or array that cannot be used as a priori terrain (names it)."""
 
 

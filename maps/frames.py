@@ -19,6 +19,8 @@ import math
 
 import numpy as np
 
+from core.errors import EngineError
+
 # Frame names used by the simulator, the log readers and the engine.
 WORLD = "world"  # fixed, gravity-aligned, z up
 ODOM = "odom"  # fixed, drifting odometry origin
@@ -29,7 +31,7 @@ CAMERA = "camera"  # optical frame: z forward, x right, y down (REP 103 "_optica
 NS_PER_S = 1_000_000_000
 
 
-class GeometryError(ValueError):
+class GeometryError(EngineError, ValueError):
     """A pose, rotation or quaternion that is not what its name promises."""
 
 

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from core.errors import EngineError
 from maps import kernels
 from maps.level import MapLevel
 
@@ -57,7 +58,7 @@ FUSION_LAYERS = (
 )
 
 
-class FusionError(ValueError):
+class FusionError(EngineError, ValueError):
     """Points, variances or labels that cannot be fused (names the offending value)."""
 
 

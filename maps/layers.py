@@ -13,8 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import EngineError
 
-class LayerError(ValueError):
+
+class LayerError(EngineError, ValueError):
     """An unknown layer name or a layer specification that cannot be built."""
 
 

@@ -24,11 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.layers import DEFAULT_LAYERS, LayerError, LayerSpec, layer_table
 from maps.tiles import TileStore
 
 
-class LevelError(ValueError):
+class LevelError(EngineError, ValueError):
     """A level configuration or an argument that the level cannot take (names the value)."""
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from core.errors import EngineError
 from maps.level import MapLevel
 
 NO_DATA_BGR = (48, 48, 48)
@@ -23,7 +24,7 @@ COLOUR_MAPS = {"elevation": cv2.COLORMAP_TURBO, "occupancy": cv2.COLORMAP_JET}
 LABEL_LAYERS = ("entity_id", "class_id")
 
 
-class PictureError(ValueError):
+class PictureError(EngineError, ValueError):
     """A picture request that cannot be drawn (names the value)."""
 
 

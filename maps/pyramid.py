@@ -31,6 +31,7 @@ from typing import NoReturn
 import cv2
 import numpy as np
 
+from core.errors import EngineError
 from maps import pyramid_kernels
 
 MIN_LEVEL_SIZE_PX = 8  # a pyramid level smaller than this per side carries no usable structure
@@ -43,7 +44,7 @@ FLAT_STD = 1e-9  # an image window with a smaller standard deviation has no text
 APERTURE_RATIO = 0.02  # least curvature of the peak along its flattest direction vs steepest
 
 
-class PyramidError(ValueError):
+class PyramidError(EngineError, ValueError):
     """An image, mask or search that the pyramid code cannot work with; names the value."""
 
 

@@ -18,13 +18,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.apriori import ElevationRaster, write_raster
 from maps.level import MapLevel
 from maps.pyramid import register
 from maps.terrain import step_heights
 
 
-class RegistrationError(ValueError):
+class RegistrationError(EngineError, ValueError):
     """Two maps that cannot be registered as asked (names what differs)."""
 
 

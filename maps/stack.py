@@ -1,8 +1,9 @@
 """The map stack: levels 2-5 of the reference model scrolling together around the vehicle.
 
-Default levels (reference 000, Table 2; DESIGN.md section 4): primitive 0.04 m, subsystem
-0.4 m, vehicle 4 m, section 30 m, each 256 x 256 cells centred on the vehicle. "At each level,
-maps have more resolution but less range than at the level above" (001, 4.4.7).
+Default levels (reference 000, Table 2; docs/architecture.md, map levels and tiles): primitive
+0.04 m, subsystem 0.4 m, vehicle 4 m, section 30 m, each 256 x 256 cells centred on the
+vehicle. "At each level, maps have more resolution but less range than at the level above"
+(001, 4.4.7).
 
 Fusion: every point is fused raw into the finest level whose window holds it; that level's
 per-cell sweep statistics (:class:`~maps.fusion.CellBatch`) are then handed to the next
@@ -20,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.apriori import ElevationRaster, write_raster
 from maps.fusion import (
     FusionConfig,
@@ -42,7 +44,7 @@ from maps.terrain import TerrainConfig, update_terrain
 from maps.tiles import InMemoryTileStore, TileStore
 
 
-class StackError(ValueError):
+class StackError(EngineError, ValueError):
     """A stack configuration or call the stack cannot take (names the value)."""
 
 

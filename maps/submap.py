@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.level import MapLevel
 
 
-class SubmapError(ValueError):
+class SubmapError(EngineError, ValueError):
     """A selection shape that is not what the function takes (names the value)."""
 
 

@@ -15,12 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.frames import check_pose, se3_inverse
 from sp.camera import PinholeCamera
 from sp.logs.types import CameraFrame
 
 
-class AppearanceError(ValueError):
+class AppearanceError(EngineError, ValueError):
     """Points, ids or camera pose of the wrong shape; names them."""
 
 

@@ -15,10 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import EngineError
 from sp.egosphere import EgosphereImage
 
 
-class AttributeImageError(ValueError):
+class AttributeImageError(EngineError, ValueError):
     """An image of the wrong shape or dtype, or an impossible time step; names the value."""
 
 

@@ -13,11 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.frames import check_pose, transform_points
 from sp.logs.types import CameraFrame
 
 
-class CameraError(ValueError):
+class CameraError(EngineError, ValueError):
     """Impossible intrinsics, a wrong-sized image or unusable points; names the value."""
 
 

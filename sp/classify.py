@@ -52,10 +52,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import EngineError
 from kd_store import ClassKind, ClassLibrary, ClassPrototype, Level
 
 
-class ClassifyError(ValueError):
+class ClassifyError(EngineError, ValueError):
     """A level with no prototypes or an attribute vector of the wrong kind; names it."""
 
 

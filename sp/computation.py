@@ -17,10 +17,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from core.errors import EngineError
 from sp.nan_ops import minimum as _minimum
 
 
-class ComputationError(ValueError):
+class ComputationError(EngineError, ValueError):
     """Inputs of mismatched shapes; names them."""
 
 

@@ -29,11 +29,12 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from core.errors import EngineError
 from maps.frames import check_pose, se3, transform_points
 from sp.logs.types import LadarScan
 
 
-class EgosphereError(ValueError):
+class EgosphereError(EngineError, ValueError):
     """A scan, configuration or transform the egosphere cannot use; names the value."""
 
 

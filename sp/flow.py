@@ -27,12 +27,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from core.errors import EngineError
 from maps.pyramid import build_pyramid
 
 MIN_COARSE_PX = 24  # the coarsest level keeps at least this many pixels a side
 
 
-class FlowError(ValueError):
+class FlowError(EngineError, ValueError):
     """Images or flows of the wrong size or dtype, or an impossible configuration."""
 
 

@@ -31,10 +31,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from core.errors import EngineError
 from sp.nan_ops import minimum as _nan_min
 
 
-class GroundError(ValueError):
+class GroundError(EngineError, ValueError):
     """An image or configuration the ground segmentation cannot use; names the value."""
 
 

@@ -20,13 +20,14 @@ from typing import TypeVar
 
 import numpy as np
 
+from core.errors import EngineError
 from kd_store import ClassLibrary
 
 VALUE_NAMES = ("cost", "risk", "worth_preserve")
 K = TypeVar("K")
 
 
-class ImageError(ValueError):
+class ImageError(EngineError, ValueError):
     """An entity id or class index out of range; names it."""
 
 

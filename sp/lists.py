@@ -37,8 +37,10 @@ import cv2
 import numba
 import numpy as np
 
+from core.errors import EngineError
 
-class ListError(ValueError):
+
+class ListError(EngineError, ValueError):
     """An image, mask or grid of the wrong shape or size; names it."""
 
 

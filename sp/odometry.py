@@ -1,8 +1,9 @@
 """LADAR odometry: a thin adapter over KISS-ICP giving ``T_world_body`` per sweep, fused with
 wheel odometry, with a quality figure and honest loss / recovery of track.
 
-Reference 001, 4.5 and DESIGN.md section 3 (the node cycle: "odometry (kiss-icp) --> self pose
-into KD"); the fusion follows the estimator form ``x(t|t) = x*(t|t-1) + K (y(t) - y*(t|t-1))``.
+Reference 001, 4.5 and docs/architecture.md, the node cycle (steps 1-2: the pose track, then the
+self state into the KD); the fusion follows the estimator form
+``x(t|t) = x*(t|t-1) + K (y(t) - y*(t|t-1))``.
 
 Per sweep (one :class:`~sp.logs.types.LadarScan`):
 
@@ -38,6 +39,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.frames import (
     check_pose,
     interpolate_pose,
@@ -50,7 +52,7 @@ from sp.logs.types import LadarScan, OdometryFrame
 from sp.voxels import first_per_voxel
 
 
-class OdometryError(ValueError):
+class OdometryError(EngineError, ValueError):
     """A configuration or input the odometry cannot use; names the value."""
 
 

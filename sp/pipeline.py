@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import kd_store
+from core.errors import EngineError
 from kd_store import Attribute, Level, StateBatch, Status
 from maps.frames import check_pose, interpolate_pose, matrix_to_quat, rot_z
 from sp.appearance import object_appearance
@@ -104,7 +105,7 @@ _STATUS = {
 }
 
 
-class PipelineError(ValueError):
+class PipelineError(EngineError, ValueError):
     """A sweep or pose the pipeline cannot use; names the value and the sweep's time."""
 
 

@@ -39,11 +39,12 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from core.errors import EngineError
 from sp.nan_ops import maximum as _maximum
 from sp.nan_ops import minimum as _minimum
 
 
-class SegmentError(ValueError):
+class SegmentError(EngineError, ValueError):
     """An image or configuration the grouping cannot use; names the value."""
 
 

@@ -12,8 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import EngineError
 
-class StereoError(ValueError):
+
+class StereoError(EngineError, ValueError):
     """A stereo pair or camera geometry that cannot give disparity or range; names the value."""
 
 

@@ -58,6 +58,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from core.errors import EngineError
 from sp.lists import PatchGrid
 from sp.tracking import TrackStatus
 
@@ -67,7 +68,7 @@ N_PLANE = 4  # the plane part of the state: normal (3) and offset
 GATE_CHI2_4DOF = 18.47  # 99.9 % of a chi-square with 4 degrees of freedom
 
 
-class SurfaceError(ValueError):
+class SurfaceError(EngineError, ValueError):
     """A patch grid or surface table that does not fit; names it."""
 
 

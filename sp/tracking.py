@@ -40,10 +40,12 @@ from enum import IntEnum
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from core.errors import EngineError
+
 GATE_CHI2_3DOF = 16.27  # 99.9 % of a chi-square with 3 degrees of freedom
 
 
-class TrackingError(ValueError):
+class TrackingError(EngineError, ValueError):
     """Measurements or configuration the filter cannot use; names the value."""
 
 

@@ -13,8 +13,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from core.errors import EngineError
 
-class VoxelError(ValueError):
+
+class VoxelError(EngineError, ValueError):
     """Points or a voxel size that cannot be thinned (names the value)."""
 
 

@@ -22,8 +22,10 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from core.errors import EngineError
 
-class WindowingError(ValueError):
+
+class WindowingError(EngineError, ValueError):
     """Window centres or sizes of the wrong shape; names them."""
 
 

@@ -26,44 +26,19 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import EngineError
+
 EXIT_USER_ERROR = 2
 
 
-class UserError(Exception):
+class UserError(EngineError):
     """A problem with what the user asked for; printed without a traceback."""
 
 
 def _user_error_types() -> tuple[type[BaseException], ...]:
-    """Exception types that describe bad input, each module's own (imported lazily)."""
-    from kd_store.errors import KDError
-    from maps.frames import GeometryError
-    from sp.logs.types import LogError
-    from wm.evaluation import EvaluationError
-    from wm.node import NodeError
-    from wm.tiles import TileError
-    from wm.whatif import WhatIfError
-    from wm.whatis import WhatIsError
-
-    types: list[type[BaseException]] = [
-        EvaluationError,
-        UserError,
-        LogError,
-        GeometryError,
-        KDError,
-        FileNotFoundError,
-        NodeError,
-        WhatIfError,
-        WhatIsError,
-        TileError,
-    ]
-    try:
-        from fixtures.scenario import ScenarioError
-        from fixtures.sensors import SensorError
-
-        types += [ScenarioError, SensorError]
-    except ImportError:
-        pass
-    return tuple(types)
+    """Exception types that describe bad input: every module's own (one base) and a missing
+    file."""
+    return (EngineError, FileNotFoundError)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

@@ -1,10 +1,10 @@
 """Typed configuration of the world-modeling node, with every default in one place.
 
-Levels are the map levels of DESIGN.md section 4 (reference 000, Table 2): ``primitive``
-(0.04 m), ``subsystem`` (0.4 m), ``vehicle`` (4 m), ``section`` (30 m). Each node level runs its
-slow work (terrain, value-judgment cost layer) at its own period: "the coarse levels need not
-run every sensor frame" (reference 001, 4.4.10: the planning horizon and replanning interval
-grow by about an order of magnitude per level).
+Levels are the map levels of docs/architecture.md, map levels and tiles (reference 000,
+Table 2): ``primitive`` (0.04 m), ``subsystem`` (0.4 m), ``vehicle`` (4 m), ``section`` (30 m).
+Each node level runs its slow work (terrain, value-judgment cost layer) at its own period:
+"the coarse levels need not run every sensor frame" (reference 001, 4.4.10: the planning
+horizon and replanning interval grow by about an order of magnitude per level).
 """
 
 from __future__ import annotations
@@ -150,7 +150,7 @@ class PlannerConfig:
 
 @dataclass(frozen=True)
 class NodeConfig:
-    """The node cycle (DESIGN.md section 3)."""
+    """The node cycle (docs/architecture.md, the node cycle)."""
 
     pose_source: PoseSource = PoseSource.ODOMETRY
     level_periods_s: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_LEVEL_PERIODS_S))

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from core.errors import EngineError
 from maps.frames import pose_from_xyz_quat, se3_inverse, transform_points
 from wm.poses import PoseTrack, deskew_to_world
 from wm.truth import CLASS_ALIASES, footprint_distance
@@ -37,7 +38,7 @@ OBJECT_LEVEL = 4
 SCORED_STATUSES = ("confirmed", "gone")
 
 
-class EvaluationError(ValueError):
+class EvaluationError(EngineError, ValueError):
     """A KD or log that cannot be scored (names the file and what is missing)."""
 
 
@@ -538,12 +539,32 @@ def _pair_figures(
         right += int(fd.ocls[oi] in classes.get(int(row.HId), frozenset()))
         if fd.ospeed[oi] < config.static_speed_mps and np.isfinite(fd.hspeed[hi]):
             speeds.append(float(fd.hspeed[hi]))
+    by_class = _recall_by_class(ev, kept)
     return {
+        **by_class,
         "tp_pairs": float(total),
         "classification_accuracy": right / total if total else math.nan,
         "static_pairs": float(len(speeds)),
         "static_speed_median_mps": float(np.median(speeds)) if speeds else math.nan,
     }
+
+
+def _recall_by_class(ev: Any, kept: list[tuple[FrameData, Filtered]]) -> dict[str, float]:
+    """``recall_<class>``: the fraction of scored box-frames of each true class that were
+    matched (motmetrics' MATCH or SWITCH events against its MISS events)."""
+    cls_of: dict[int, str] = {}
+    for fd, f in kept:
+        for i in f.o:
+            cls_of.setdefault(int(fd.oid[i]), fd.ocls[i])
+    hit: dict[str, int] = {}
+    n: dict[str, int] = {}
+    for typ, oid in zip(ev["Type"], ev["OId"], strict=True):
+        if typ not in ("MATCH", "SWITCH", "MISS"):
+            continue
+        c = cls_of.get(int(oid), "unknown")
+        n[c] = n.get(c, 0) + 1
+        hit[c] = hit.get(c, 0) + int(typ != "MISS")
+    return {f"recall_{c}": hit[c] / n[c] for c in sorted(n)}
 
 
 def hota(kept: list[tuple[FrameData, Filtered]], config: EvalConfig) -> float:

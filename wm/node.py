@@ -1,7 +1,7 @@
-"""The world-modeling node: one cycle per LADAR sweep (DESIGN.md section 3).
+"""The world-modeling node: one cycle per LADAR sweep (docs/architecture.md, the node cycle).
 
-Per sweep, in the order of DESIGN.md section 3 and reference 001, 4.2 (the WM keeps the KD
-current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
+Per sweep, in the order of docs/architecture.md, the node cycle, and reference 001, 4.2 (the WM
+keeps the KD current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every level):
 
 1. pose: LADAR odometry fused with wheel odometry (sp.odometry), or the log's ground truth;
    odometry never reads ground truth: its world starts at the first sweep, level with gravity
@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 import kd_store
+from core.errors import EngineError
 from kd_store import Level, State, Status
 from maps.frames import (
     BODY,
@@ -125,7 +126,7 @@ def level_from_ground(
     return se3(rpy_to_matrix(roll, pitch, 0.0))
 
 
-class NodeError(ValueError):
+class NodeError(EngineError, ValueError):
     """The node cannot run on what it was given (names what is missing and where)."""
 
 

@@ -17,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import EngineError
 from sp.logs.types import LadarScan, OdometryFrame
 
 RESULT_TIMEOUT_S = 120.0
 _NO_INTENSITY = np.zeros(0, dtype=np.float32)  # registration never reads intensities
 
 
-class OdometryWorkerError(RuntimeError):
+class OdometryWorkerError(EngineError, RuntimeError):
     """The odometry process failed or stopped answering (names the sweep and the cause)."""
 
 

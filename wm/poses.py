@@ -10,10 +10,11 @@ import bisect
 import numba
 import numpy as np
 
+from core.errors import EngineError
 from maps.frames import interpolate_pose, se3_inverse, transform_points
 
 
-class PoseError(ValueError):
+class PoseError(EngineError, ValueError):
     """A pose track asked for a time it cannot answer (names the time and the span)."""
 
 

@@ -1,8 +1,10 @@
-"""Predictions for the next cycle (reference 001, 4.2 item 2; DESIGN.md section 3, last step).
+"""Predictions for the next cycle (reference 001, 4.2 item 2; docs/architecture.md, the node
+cycle, step 6).
 
 * Expected entity states: each entity observed this cycle gets a short-term expectation queue
   (4.4.2) by a constant-velocity model, ``x*(t+dt) = F x(t)``, ``P* = F P F^T + Q dt``
-  (the ``x*(t|t-1)`` of the estimator ``x(t|t) = x*(t|t-1) + K (y - y*)``, DESIGN.md 3).
+  (the ``x*(t|t-1)`` of the estimator ``x(t|t) = x*(t|t-1) + K (y - y*)``, reference 001,
+  4.5.4).
 * A predicted range image for the next sweep pose, ray-cast (open3d) against the current
   elevation map (a height-field mesh) and entity boxes at their predicted positions.
   Compared with the observed sweep, the pixels that differ by more than ``mismatch_m`` are

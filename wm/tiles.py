@@ -2,7 +2,8 @@
 
 Reference 001, 4.4.11 (line 782: long-term memory contains maps; 784: local maps update the
 stored ones). Cells leaving a level's window go to the KD and come back when the vehicle
-returns, also in a later run over the same KD file (DESIGN.md section 5, memory tiers).
+returns, also in a later run over the same KD file (docs/architecture.md, map levels and tiles;
+the knowledge database, memory tiers).
 This is the adapter at the edge: maps knows only its two-method
 :class:`~maps.tiles.TileStore`, kd_store only named arrays under ``(level, tx, ty)``.
 
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import kd_store
+from core.errors import EngineError
 from maps.frames import pose_from_xyz_quat
 from maps.stack import MapStack, StackConfig
 from maps.tiles import Tile, TileKey
@@ -28,7 +30,7 @@ from maps.tiles import Tile, TileKey
 SELF_NAME = "self"  # the name the node gives the vehicle's own entity (wm.node)
 
 
-class TileError(ValueError):
+class TileError(EngineError, ValueError):
     """A KD that lacks what its stored maps need (names the KD file and what is missing)."""
 
 

@@ -14,12 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 
 import kd_store
+from core.errors import EngineError
 from kd_store import EntityFrame, Status, Value
 from maps.level import MapLevel
 from wm.config import VJConfig
 
 
-class VJError(ValueError):
+class VJError(EngineError, ValueError):
     """A value-judgment request that cannot be answered (names the value)."""
 
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import kd_store
+from core.errors import EngineError
 from kd_store import Level, Status
 from maps.stack import MapStack
 from wm.config import VehicleConfig, WhatIfConfig
@@ -27,7 +28,7 @@ from wm.shapes import EntityBoxes, boxes_of
 from wm.vj import entity_value
 
 
-class WhatIfError(ValueError):
+class WhatIfError(EngineError, ValueError):
     """A plan or request What If refuses (names the plan index and the offending value)."""
 
 

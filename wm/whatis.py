@@ -29,13 +29,14 @@ import numpy as np
 import pyarrow as pa
 
 import kd_store
+from core.errors import EngineError
 from kd_store import Box, Circle, State, Status
 from maps.frames import quat_to_matrix, se3, se3_inverse
 from maps.stack import MapStack
 from wm.poses import PoseError, PoseTrack
 
 
-class WhatIsError(ValueError):
+class WhatIsError(EngineError, ValueError):
     """A What Is query that cannot be answered (names the value and why)."""
 
 

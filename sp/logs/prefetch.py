@@ -30,6 +30,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from core.errors import EngineError
 from sp.logs.source import LogSource
 from sp.logs.types import Frame
 
@@ -37,7 +38,7 @@ _HEADER = struct.Struct("<Q")  # byte length of the pickled message that follows
 _CHILD = "from sp.logs.prefetch import _child_main; _child_main()"
 
 
-class PrefetchError(RuntimeError):
+class PrefetchError(EngineError, RuntimeError):
     """The decoding process stopped without finishing the log (names the log and the cause)."""
 
 

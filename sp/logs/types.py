@@ -13,8 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.errors import EngineError
 
-class LogError(Exception):
+
+class LogError(EngineError):
     """A log that cannot be read or written as asked: names the file and what is wrong."""
 
 
