@@ -160,6 +160,19 @@ def test_dont_care_boxes_and_hypotheses_are_neither_tp_fp_nor_fn():
     assert s["precision"] == pytest.approx(0.5)
 
 
+def test_a_pair_is_in_range_when_its_box_is():
+    # a 20 m deep building whose near face is 35 m away: the entity at its centre (45 m) is
+    # the building found (TP); an entity 45 m away on nothing takes no part
+    boxes = [(8, "building", (45.0, 0.0), (20.0, 12.0), 0.0)]
+    tracks = {
+        "building": (("building",), {k: ((45.0, 0.0), 0.0) for k in range(10)}),
+        "beyond": (("rock",), {k: ((0.0, 45.0), 0.0) for k in range(10)}),
+    }
+    s = _score(_truth(STILL, boxes, {8: 50}), _kd(STILL, tracks))
+    assert s["num_objects"] == 10 and s["num_detections"] == 10
+    assert s["num_false_positives"] == 0 and s["mota"] == pytest.approx(1.0)
+
+
 def _circle_poses(n: int) -> list[np.ndarray]:
     """A vehicle driving a 30 m radius circle at 8 m/s, heading along it (body x forward)."""
     out = []

@@ -454,10 +454,11 @@ def filter_dont_care(fd: FrameData, config: EvalConfig) -> Filtered:
     """Match all boxes and hypotheses first (min-cost assignment over footprint distances at
     most ``match_m``), then remove the don't-care ones: boxes beyond ``range_m`` or seen by
     fewer than ``min_points`` returns are removed with the hypothesis matched to them;
-    unmatched hypotheses beyond ``range_m`` are removed. Hypotheses beyond the band are never
-    considered."""
+    unmatched hypotheses beyond ``range_m`` are removed. A hypothesis matched to a scored box
+    counts wherever its own position lies (a building whose near face is in range has its
+    centre beyond it), so range is judged on the box's footprint for both sides of a pair."""
     h_range = np.hypot(fd.hxy[:, 0], fd.hxy[:, 1]) if len(fd.hxy) else np.zeros(0)
-    h_in = np.flatnonzero(h_range < config.range_m + config.dont_care_band_m)
+    h_in = np.arange(len(h_range))
     d = footprint_distance(fd.hxy[h_in], fd.oxy, fd.olw, fd.oyaw).reshape(len(fd.oid), len(h_in))
     allowed = d <= config.match_m
     seen = (fd.opoints < 0) | (fd.opoints >= config.min_points)
