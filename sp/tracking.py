@@ -27,6 +27,11 @@ innovation statistics: each hit moves it towards ``exp(-max(NIS - 3, 0) / 6)``, 
 towards 0; above ``confirm`` (after ``min_hits``) the hypothesis is confirmed, below ``deny``
 a hypothesized track is denied; a confirmed track not seen for ``max_misses`` cycles is gone,
 and so is one whose confidence falls below ``deny`` while it is still being measured.
+A measurement on the footprint of a confirmed track measured in the same sweep, smaller than
+it, is a piece of that object (a building's side seen edge-on, the part of a car an occluder
+cut off), whether it was free or went to a young track of its own; that young track then
+goes unmeasured and is denied. :func:`line_of_sight` tells, for a track not measured, whether
+the sweep saw through its place or something in front hid it.
 The covariance update is Joseph's form, symmetrised, so P stays symmetric positive definite
 even for degenerate measurements.
 """
@@ -441,6 +446,7 @@ class Tracker:
             raise TrackingError(f"non-finite measurement at t_ref_ns={t_ref_ns}")
         x_pred, P_pred = self.predicted(t_ref_ns)
         ti, mi = associate(x_pred, P_pred, meas, cfg, tr.status == TrackStatus.CONFIRMED)
+        ti, mi, part_pairs = self._parts_of_confirmed(ti, mi, meas)
         prev = tr.status.copy()
         # update the assigned tracks at each measurement's own time
         if ti.size:
@@ -480,6 +486,8 @@ class Tracker:
         free = np.ones(M, dtype=bool)
         free[mi] = False
         part_of = np.full(M, -1, dtype=np.int64)
+        part_of[part_pairs[1]] = part_pairs[0]
+        free[part_pairs[1]] = False
         if ti.size and free.any():
             fm0 = np.flatnonzero(free)
             inside = inside_footprint(meas.position_xyz[fm0, :2], tr.x[ti, :2], tr.w[ti], cfg)
@@ -508,6 +516,35 @@ class Tracker:
         track_of[part_of >= 0] = part_of[part_of >= 0]
         prev_all = np.concatenate([prev, np.full(fm.size, -1, np.int8)])
         return track_of, prev_all
+
+    def _parts_of_confirmed(
+        self, ti: np.ndarray, mi: np.ndarray, meas: Measurements
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """Take from the assignment (track ``ti``, measurement ``mi`` pairs) every measurement
+        of a track not confirmed that lies inside the footprint of a confirmed track measured
+        this cycle and is smaller than it: a piece of that object (the side of a building seen
+        edge-on, the front of a car cut off by a step in range), not an object of its own.
+        Returns the remaining pairs and (confirmed track, measurement) of the pieces."""
+        tr = self.tracks
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        young = tr.status[ti] != TrackStatus.CONFIRMED
+        big, mb = ti[~young], mi[~young]
+        if not young.any() or not big.size:
+            return ti, mi, none
+        my = mi[young]
+        p = meas.position_xyz[my, :2]
+        # on the confirmed track's footprint or on the one its measurement shows this sweep
+        inside = inside_footprint(p, tr.x[big, :2], tr.w[big], self.config)
+        inside |= inside_footprint(p, meas.position_xyz[mb, :2], meas.what[mb], self.config)
+        size = np.maximum(tr.w[big, :2].max(axis=1), meas.what[mb, :2].max(axis=1))
+        inside &= meas.what[my, :2].max(axis=1)[:, None] < size[None, :]
+        piece = inside.any(axis=1)
+        if not piece.any():
+            return ti, mi, none
+        keep = np.ones(ti.size, dtype=bool)
+        keep[np.flatnonzero(young)[piece]] = False
+        owner = big[np.argmax(inside[piece], axis=1)]
+        return ti[keep], mi[keep], (owner, my[piece])
 
     def _update_what(self, ti: np.ndarray, z: np.ndarray, dt_s: np.ndarray) -> None:
         cfg = self.config

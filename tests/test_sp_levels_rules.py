@@ -152,6 +152,48 @@ def test_piece_inside_a_footprint_is_a_part_and_a_duplicate_goes() -> None:
     assert len(tr.tracks) == 1 and track_of.tolist() == [0, 0]
 
 
+def test_a_young_track_on_a_confirmed_footprint_is_a_piece_of_it() -> None:
+    # a building face confirmed; a sliver of its side, seen edge-on, started its own track
+    # beyond the part margin, then the face's footprint grew over it
+    tr = Tracker()
+    for k in range(5):
+        t = k * SWEEP_NS
+        tr.step(Measurements(np.zeros((1, 3)), np.array([t]), _what(6.0)), t)
+    t = 5 * SWEEP_NS
+    both = Measurements(
+        np.array([[0.0, 0.0, 0.0], [4.2, 0.0, 0.0]]), np.array([t, t]),
+        np.vstack([_what(6.0), _what(0.6, 0.05)]),
+    )  # fmt: skip
+    track_of, _ = tr.step(both, t)
+    assert len(tr.tracks) == 2 and track_of.tolist() == [0, 1]  # beyond the margin: its own
+    young = tr.tracks.hits[1]
+    for k in range(6, 9):  # the face is now seen 10 m long; the sliver lies on it
+        t = k * SWEEP_NS
+        both = Measurements(
+            np.array([[2.0, 0.0, 0.0], [4.2, 0.0, 0.0]]), np.array([t, t]),
+            np.vstack([_what(10.0), _what(0.6, 0.05)]),
+        )  # fmt: skip
+        track_of, _ = tr.step(both, t)
+        assert track_of.tolist() == [0, 0]  # the sliver's measurement goes to the face
+    assert tr.tracks.status[0] == TrackStatus.CONFIRMED
+    # the sliver's own track got no more hits and was denied
+    assert tr.tracks.hits[1] == young and tr.tracks.status[1] == TrackStatus.DENIED
+
+
+def test_a_small_object_beside_a_confirmed_one_keeps_its_track() -> None:
+    # a person 2 m from a parked car's side: outside its footprint and margin
+    tr = Tracker()
+    for k in range(6):
+        t = k * SWEEP_NS
+        both = Measurements(
+            np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), np.array([t, t]),
+            np.vstack([_what(4.5, 1.8), _what(0.5, 0.5)]),
+        )  # fmt: skip
+        track_of, _ = tr.step(both, t)
+    assert track_of.tolist() == [0, 1]
+    assert (tr.tracks.status == TrackStatus.CONFIRMED).all()
+
+
 def test_partial_view_does_not_make_a_static_wall_move() -> None:
     # more of a static wall comes into view each sweep: its visible centre moves 1 m a sweep
     cfg = TrackerConfig()
