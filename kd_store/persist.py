@@ -56,12 +56,16 @@ _CELL = pa.struct([("map_level", pa.int32()), ("col", pa.int64()), ("row", pa.in
 _STATE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw", "vx", "vy", "vz")
 
 
-def connect(path: str | Path, read_only: bool = False) -> duckdb.DuckDBPyConnection:
-    """Open (creating if needed) a KD file, or ``":memory:"``; checks the schema version."""
+def connect(
+    path: str | Path, read_only: bool = False, settings: dict[str, object] | None = None
+) -> duckdb.DuckDBPyConnection:
+    """Open (creating if needed) a KD file, or ``":memory:"``; checks the schema version.
+    ``settings``: DuckDB configuration fixed when the connection opens."""
     where = f"KD file {path}"
     try:
-        con = duckdb.connect(str(path), read_only=read_only)
-        con.execute("SET enable_progress_bar = false")
+        con = duckdb.connect(str(path), read_only=read_only, config=dict(settings or {}))
+        if not (settings or {}).get("lock_configuration"):
+            con.execute("SET enable_progress_bar = false")
     except duckdb.Error as e:
         raise KDError(f"{where}: cannot open ({e})") from None
     has_meta = con.execute(

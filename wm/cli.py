@@ -103,21 +103,39 @@ def _cell(v: object) -> str:
 
 def cmd_query(args: argparse.Namespace) -> int:
     """Read-only SQL over a KD file's documented views (entities, entity_states, events, ...)."""
-    import kd_store
+    from kd_store.query import QueryLimits, query_file
 
     path = Path(args.kd)
     if not path.exists():
         raise FileNotFoundError(f"KD file {path} does not exist")
-    with kd_store.open(path, read_only=True) as kd:
-        table = kd.sql(args.sql)
-    if args.parquet:
+    out = _parquet_target(args.parquet, path) if args.parquet else None
+    limits = QueryLimits(memory_limit=args.memory_limit, timeout_s=args.timeout)
+    table = query_file(path, args.sql, limits)
+    if out is not None:
         import pyarrow.parquet as pq
 
-        pq.write_table(table, args.parquet)
-        print(f"wrote {table.num_rows} rows to {args.parquet}")
+        tmp = out.with_name(f".{out.name}.partial")
+        pq.write_table(table, tmp)
+        tmp.replace(out)  # whole or not at all
+        print(f"wrote {table.num_rows} rows to {out}")
     else:
         print(format_table(table, args.max_rows))
     return 0
+
+
+def _parquet_target(value: str, kd: Path) -> Path:
+    """The Parquet file ``--parquet`` names, refused when it is the KD itself, a folder, or a
+    file that is not Parquet (so a typo cannot overwrite a KD or a log)."""
+    out = Path(value)
+    if out.is_dir():
+        raise UserError(f"--parquet {out}: is a folder; give a file name ending in .parquet")
+    if out.exists() and out.resolve() == kd.resolve():
+        raise UserError(f"--parquet {out}: is the KD being queried; give another file")
+    if out.suffix != ".parquet":
+        raise UserError(f"--parquet {out}: give a file name ending in .parquet")
+    if not out.parent.is_dir():
+        raise UserError(f"--parquet {out}: folder {out.parent} does not exist")
+    return out
 
 
 def _node_config(args: argparse.Namespace):
@@ -377,7 +395,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("kd", help="KD file (DuckDB)")
     q.add_argument("sql", help="one SELECT over the views (entities, events, ...)")
     q.add_argument("--max-rows", type=int, default=50, help="rows to print (default 50)")
-    q.add_argument("--parquet", default=None, help="write the result to this Parquet file")
+    q.add_argument("--parquet", default=None, help="write the result to this .parquet file")
+    q.add_argument(
+        "--timeout", type=float, default=30.0, help="seconds before the query is stopped"
+    )
+    q.add_argument("--memory-limit", default="1GB", help="DuckDB memory limit (default 1GB)")
     q.set_defaults(func=cmd_query)
 
     def pose_flag(sp: argparse.ArgumentParser) -> None:

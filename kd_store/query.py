@@ -1,0 +1,71 @@
+"""SQL from outside the engine (a command line, a network client) over a KD file.
+
+The text is not trusted: the connection is opened read-only with DuckDB's external access off
+(no other file, directory, URL or extension can be reached: ``read_csv('/etc/passwd')``,
+``COPY ... TO``, ``ATTACH``, ``INSTALL``/``LOAD`` are refused by DuckDB itself, not by parsing),
+its configuration locked (``SET``, ``PRAGMA`` cannot lift the limits), a memory limit and a
+time limit; and one SELECT only (:func:`kd_store.store._read_only_query`). The views are those
+of docs/kd.md.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import pyarrow as pa
+
+from kd_store import persist
+from kd_store.errors import KDError
+
+
+@dataclass(frozen=True)
+class QueryLimits:
+    """What one untrusted query may use: DuckDB's ``memory_limit`` (e.g. ``"1GB"``), its
+    worker ``threads``, and ``timeout_s`` seconds of wall time before it is interrupted."""
+
+    memory_limit: str = "1GB"
+    threads: int = 2
+    timeout_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        if not self.timeout_s > 0 or self.threads < 1:
+            raise KDError(
+                f"query limits: timeout_s {self.timeout_s} must be > 0 and threads "
+                f"{self.threads} >= 1"
+            )
+
+
+def sandbox_settings(limits: QueryLimits) -> dict[str, object]:
+    """The DuckDB configuration of an untrusted query's connection."""
+    return {
+        "enable_external_access": False,
+        "autoinstall_known_extensions": False,
+        "autoload_known_extensions": False,
+        "memory_limit": limits.memory_limit,
+        "threads": limits.threads,
+        "lock_configuration": True,
+    }
+
+
+def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
+    """One read-only SELECT over the KD file ``path`` in a sandboxed connection; the result as
+    Arrow. Raises KDError naming the query for anything refused, failed or timed out."""
+    from kd_store.store import _read_only_query
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"KD file {p} does not exist")
+    con = persist.connect(p, read_only=True, settings=sandbox_settings(limits))
+    timer = threading.Timer(limits.timeout_s, con.interrupt)
+    timer.start()
+    try:
+        return _read_only_query(con, sql)
+    except KDError as e:
+        if not timer.is_alive():
+            raise KDError(f"SQL {sql!r}: stopped after the {limits.timeout_s:g} s limit") from None
+        raise e from None
+    finally:
+        timer.cancel()
+        con.close()
