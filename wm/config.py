@@ -167,6 +167,9 @@ class NodeConfig:
     odometry_ahead: int = 2
     # a sweep waits for wheel odometry past its end at most this long (ns of log time)
     wheel_wait_ns: int = 200_000_000
+    # a frame stamped more than this after the log's latest frame is skipped (a corrupted
+    # stamp would otherwise carry the self pose and every state far into the future)
+    max_time_jump_ns: int = 600_000_000_000
     # BLAS and OpenMP threads in the node's process during a run (None: the libraries' own
     # choice). One: the node's array operations are small, and the libraries' idle threads
     # spin on the core the odometry process needs (10 s default on 2 cores: main-process CPU

@@ -27,6 +27,7 @@ covering them have arrived; :meth:`WorldModelNode.finish` drains the rest at the
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ from maps.frames import (
     BODY,
     CAMERA,
     LADAR,
+    GeometryError,
     check_pose,
     matrix_to_quat,
     matrix_to_rpy,
@@ -65,6 +67,8 @@ from wm.odometry_worker import OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.truth import truth_boxes_to_world
 from wm.whatis import WhatIs
+
+log = logging.getLogger(__name__)
 
 
 def initial_pose(wheel: OdometryFrame) -> np.ndarray:
@@ -152,6 +156,7 @@ class NodeStats:
     stage_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     stage_cpu_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     odometry_status: Counter = field(default_factory=Counter)
+    skipped: Counter = field(default_factory=Counter)  # frames refused by feed, per reason
     notes: list[str] = field(default_factory=list)
     range_image_error_m: list[float] = field(default_factory=list)
     surprise_fraction: list[float] = field(default_factory=list)
@@ -196,6 +201,7 @@ class WorldModelNode:
         # where the odometry's world starts: level with gravity, never from ground truth
         self.T_world_body0: np.ndarray | None = None
         self.last_wheel_t_ns: int | None = None
+        self.last_sweep_t_ns: int | None = None  # the newest sweep taken
         self.pending: deque[LadarScan] = deque()
         self.inflight: deque[tuple[LadarScan, CameraFrame | None]] = deque()  # at the odometry
         self.camera: CameraFrame | None = None
@@ -218,8 +224,18 @@ class WorldModelNode:
     # --- frames in -------------------------------------------------------------------------
 
     def feed(self, frame: Frame) -> list[CycleResult]:
-        """Take one log frame; returns the cycles it let run (sweeps whose poses are in)."""
+        """Take one log frame; returns the cycles it let run (sweeps whose poses are in).
+
+        A frame the node cannot use (:meth:`_screen`: a non-finite or non-rigid odometry
+        pose, a sweep out of time order, far in the future or of the wrong shape) is logged
+        and counted in ``stats.skipped`` and changes nothing: one bad message never stops or
+        corrupts a run."""
         self.stats.frames[type(frame).__name__] += 1
+        why = self._screen(frame)
+        if why is not None:
+            self.stats.skipped[why.split(":")[0]] += 1
+            log.warning("skipped %s at t_ns=%s: %s", type(frame).__name__, frame.t_ns, why)
+            return []
         if isinstance(frame, TransformFrame):
             self._transform(frame)
         elif isinstance(frame, GroundTruthPose):
@@ -241,6 +257,34 @@ class WorldModelNode:
         while self.pending and self._ready(self.pending[0]):
             out += self._start(self.pending.popleft())
         return out
+
+    def _screen(self, frame: Frame) -> str | None:
+        """Why ``frame`` must be skipped ("reason: detail"), or None to take it."""
+        t = int(frame.t_ns)
+        last = self.last_t_ns
+        if last is not None and t > last + self.config.max_time_jump_ns:
+            return (
+                f"time jump: {(t - last) * 1e-9:.3g} s after the log's latest frame "
+                f"(limit {self.config.max_time_jump_ns * 1e-9:g} s)"
+            )
+        if isinstance(frame, OdometryFrame):
+            try:
+                check_pose(frame.T_parent_child, "odometry pose", atol=1e-4)
+            except GeometryError as e:
+                return f"bad odometry pose: {e}"
+            if self.last_wheel_t_ns is not None and t <= self.last_wheel_t_ns:
+                return f"odometry out of order: t_ns {t} <= {self.last_wheel_t_ns}"
+        elif isinstance(frame, LadarScan):
+            shape = np.shape(frame.points_xyz)
+            if len(shape) != 2 or shape[1] != 3:
+                return f"bad sweep: points_xyz of shape {shape}, not (N, 3)"
+            if np.shape(frame.t_offset_ns) not in ((shape[0],), (0,)):
+                return f"bad sweep: t_offset_ns of shape {np.shape(frame.t_offset_ns)}"
+            newest = self.pending[-1].t_ns if self.pending else self.last_sweep_t_ns
+            if newest is not None and t <= newest:
+                return f"sweep out of order: t_ns {t} <= {newest}"
+            self.last_sweep_t_ns = t
+        return None
 
     def finish(self) -> list[CycleResult]:
         """Run the sweeps still waiting (end of log) and stop the odometry process."""

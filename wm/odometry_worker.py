@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import gc
 import multiprocessing as mp
+import os
 import queue
+import threading
 import time
 from typing import Any
 
@@ -28,8 +30,23 @@ class OdometryWorkerError(EngineError, RuntimeError):
     """The odometry process failed or stopped answering (names the sweep and the cause)."""
 
 
-def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0) -> None:
+def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
+    """A thread that ends this process as soon as ``parent``, the node's process that
+    started it, is gone (killed): the main thread may be blocked anywhere, even on a request
+    the node was killed while writing, so it cannot be the one to notice. ``parent`` is taken
+    before the fork, since the node may die before this process gets here."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period_s)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="wm-odometry-watch", daemon=True).start()
+
+
+def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0, parent: int) -> None:
     """The child's loop: feed wheel odometry, register sweeps, answer each sweep in order."""
+    _exit_with_parent(parent)
     from sp.odometry import LadarOdometry, OdometryConfig
 
     # one registration thread: this process has the core the node's process leaves, and a
@@ -42,7 +59,10 @@ def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0) -> None:
         if kind == "stop":
             return
         if kind == "wheel":
-            odo.add_wheel_odometry(item)
+            try:
+                odo.add_wheel_odometry(item)
+            except Exception:  # the node screens wheel frames; never die on one
+                continue
             continue
         try:
             cpu = time.process_time()  # KISS-ICP's threads included
@@ -64,7 +84,7 @@ class OdometryWorker:
         self._results = ctx.Queue()
         self._proc = ctx.Process(
             target=_serve,
-            args=(self._requests, self._results, T_body_sensor, T_world_body0),
+            args=(self._requests, self._results, T_body_sensor, T_world_body0, os.getpid()),
             daemon=True,
             name="wm-odometry",
         )
@@ -110,8 +130,14 @@ class OdometryWorker:
         return out
 
     def close(self) -> None:
+        """Stop the process; never blocks on requests it will not read (a process that died
+        or is stopped mid-way leaves them queued, and their feeder thread must not be
+        waited for at exit)."""
         if self._proc.is_alive():
             self._requests.put(("stop", None))
             self._proc.join(timeout=5)
             if self._proc.is_alive():
                 self._proc.terminate()
+                self._proc.join(timeout=5)
+        self._requests.cancel_join_thread()
+        self._results.cancel_join_thread()

@@ -11,6 +11,7 @@ With a KD file, map tiles leaving the windows (and the last windows) are kept in
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import time
 from collections import Counter
@@ -32,6 +33,8 @@ from wm.node import WorldModelNode
 from wm.tiles import keep_windows, map_stack_over_kd
 from wm.truth import OdometryScore, RasterTruth, TerrainTruth, elevation_error
 
+log = logging.getLogger(__name__)
+
 
 @dataclass
 class RunReport:
@@ -50,6 +53,8 @@ class RunReport:
     events: dict[str, int]
     stage_ms_per_sweep: dict[str, float]
     odometry_status: dict[str, int]
+    #: frames the node refused (bad pose, out of order, time jump, bad shape), per reason
+    skipped: dict[str, int] = field(default_factory=dict)
     #: CPU ms per sweep: the node's stages (its thread), ``read`` (decoding the log),
     #: ``odometry`` (the odometry process, when it runs in one) and ``main_process`` (every
     #: thread of this process over the whole run, start-up included)
@@ -79,6 +84,8 @@ class RunReport:
             "CPU ms per sweep: "
             + _fmt_counts({k: f"{v:.1f}" for k, v in self.cpu_ms_per_sweep.items()}),
         ]
+        if self.skipped:
+            lines.append(f"skipped (logged): {_fmt_counts(self.skipped)}")
         for m in self.missing:
             lines.append(f"missing: {m}")
         for n in self.notes:
@@ -143,7 +150,9 @@ def run_log(
     source = open_log(Path(log_path))
     info = source.info()
     total = sum(t.count for t in info.topics)
-    terrain = TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
+    terrain = _safe_value(
+        lambda: TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
+    )  # the terrain truth only scores the run: a damaged one is left out, never fatal
     terrain = terrain or RasterTruth.from_folder(Path(log_path))
     if str(kd_path) != ":memory:":
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
@@ -159,15 +168,18 @@ def run_log(
         odo = OdometryScore()
         first_t, last_t = None, None
         frames = _cpu_timed(frames_in, read_cpu_s)
-        for frame in _progress(frames, total, progress, Path(log_path).name):
-            first_t = frame.t_ns if first_t is None else first_t
-            if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
-                break
-            last_t = frame.t_ns
-            for c in node.feed(frame):
+        try:
+            for frame in _progress(frames, total, progress, Path(log_path).name):
+                first_t = frame.t_ns if first_t is None else first_t
+                if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
+                    break
+                last_t = frame.t_ns
+                for c in node.feed(frame):
+                    _score(node, c, odo)
+            for c in node.finish():
                 _score(node, c, odo)
-        for c in node.finish():
-            _score(node, c, odo)
+        finally:
+            node.close()  # the odometry process stops on an error too (no orphan, no hang)
         if stack is not None:
             keep_windows(stack)  # the last windows too, for the next run over this KD
         wall = time.perf_counter() - t_start
@@ -229,6 +241,14 @@ def _cpu_timed(frames: Iterator[Frame], total_s: list[float]) -> Iterator[Frame]
             return
         total_s[0] += time.thread_time() - t
         yield frame
+
+
+def _safe_value(get) -> Any:
+    try:
+        return get()
+    except Exception as e:  # damaged scoring data in the log: the run goes on without it
+        log.warning("terrain truth in the log is unusable (%s); the run is not scored on it", e)
+        return None
 
 
 def _safe(get) -> dict:
@@ -299,6 +319,7 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
         events=dict(events),
         stage_ms_per_sweep={k: 1e3 * v / n for k, v in node.stats.stage_s.items()},
         odometry_status=dict(node.stats.odometry_status),
+        skipped=dict(node.stats.skipped),
     )
 
 
