@@ -156,6 +156,7 @@ class NodeConfig:
     level_periods_s: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_LEVEL_PERIODS_S))
     deskew_bins: int = 8  # pose slices per sweep when moving points to the world
     kd_advance_every: int = 10  # trim short-term memory every this many sweeps
+    kd_flush_every_ns: int = 1_000_000_000  # long-term memory to the file this often (log time)
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     vj: VJConfig = field(default_factory=VJConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)

@@ -202,6 +202,7 @@ class WorldModelNode:
         self.T_world_body0: np.ndarray | None = None
         self.last_wheel_t_ns: int | None = None
         self.last_sweep_t_ns: int | None = None  # the newest sweep taken
+        self._flushed_ns: int | None = None  # log time of the last KD flush
         self.pending: deque[LadarScan] = deque()
         self.inflight: deque[tuple[LadarScan, CameraFrame | None]] = deque()  # at the odometry
         self.camera: CameraFrame | None = None
@@ -429,9 +430,20 @@ class WorldModelNode:
         if self.stats.sweeps % self.config.kd_advance_every == 0:
             self.kd.advance(scan.t_ns)
         clock.lap("predict")
+        self._flush(scan.t_ns)
+        clock.lap("flush")
         self.stats.sweeps += 1
         self.stats.odometry_status[status] += 1
         return CycleResult(scan.t_ns, T_world_body, len(pts), t_mid, sp_result, status)
+
+    def _flush(self, t_ns: int) -> None:
+        """Long-term memory to the KD file every ``kd_flush_every_ns`` of log time, in one
+        transaction: what was written survives a killed process, and another reader of the
+        file sees the run up to then."""
+        if self._flushed_ns is not None and t_ns - self._flushed_ns < self.config.kd_flush_every_ns:
+            return
+        self.kd.flush()
+        self._flushed_ns = t_ns
 
     def _pose(self, scan: LadarScan) -> str:
         """Step 1: extend the pose track over this sweep; returns the odometry status."""
