@@ -3,8 +3,9 @@
 The text is not trusted: the connection is opened read-only with DuckDB's external access off
 (no other file, directory, URL or extension can be reached: ``read_csv('/etc/passwd')``,
 ``COPY ... TO``, ``ATTACH``, ``INSTALL``/``LOAD`` are refused by DuckDB itself, not by parsing),
-its configuration locked (``SET``, ``PRAGMA`` cannot lift the limits), a memory limit and a
-time limit; and one SELECT only (:func:`kd_store.store._read_only_query`). The views are those
+its configuration locked (``SET``, ``PRAGMA`` cannot lift the limits), a memory limit (it
+bounds DuckDB's operators: sorts, joins, aggregates; not one huge value in the result, such as
+``repeat('x', 2000000000)``, which DuckDB builds outside it) and a time limit; and one SELECT only (:func:`kd_store.store._read_only_query`). The views are those
 of docs/kd.md.
 """
 

@@ -72,9 +72,7 @@ def test_only_one_select_is_run(kd_file, sql):
     assert query_file(kd_file, "SELECT count(*) AS n FROM entities").to_pylist() == [{"n": 3}]
 
 
-def test_a_query_over_its_memory_or_time_stops_with_a_clear_error(kd_file):
-    with pytest.raises(KDError, match="SQL"):
-        query_file(kd_file, "SELECT repeat('x', 2000000000) AS s", QueryLimits("64MB"))
+def test_a_query_over_its_time_stops_with_a_clear_error(kd_file):
     slow = "SELECT count(*) FROM range(10000000000) a WHERE a.range % 7 = 3"
     with pytest.raises(KDError, match="limit"):
         query_file(kd_file, slow, QueryLimits(timeout_s=0.5))
