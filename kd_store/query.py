@@ -5,8 +5,8 @@ The text is not trusted: the connection is opened read-only with DuckDB's extern
 ``COPY ... TO``, ``ATTACH``, ``INSTALL``/``LOAD`` are refused by DuckDB itself, not by parsing),
 its configuration locked (``SET``, ``PRAGMA`` cannot lift the limits), a memory limit (it
 bounds DuckDB's operators: sorts, joins, aggregates; not one huge value in the result, such as
-``repeat('x', 2000000000)``, which DuckDB builds outside it) and a time limit; and one SELECT only (:func:`kd_store.store._read_only_query`). The views are those
-of docs/kd.md.
+``repeat('x', 2000000000)``, which DuckDB builds outside it) and a time limit; and one SELECT
+only (:func:`kd_store.store._read_only_query`). The views are those of docs/kd.md.
 """
 
 from __future__ import annotations
