@@ -130,6 +130,7 @@ class LogSource(ABC):
         self.stats = ReadStats()
         self._info: LogInfo | None = None
         self._static: dict[tuple[str, str], np.ndarray] | None = None
+        self._failed: set[str] = set()  # corrupt records counted (each problem names its place)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.path)!r})"
@@ -154,9 +155,13 @@ class LogSource(ABC):
         return []
 
     def fail(self, problem: str) -> None:
-        """A corrupt record: raise LogError, or count and note it when skipping corrupt input."""
+        """A corrupt record: raise LogError, or count and note it once when skipping corrupt
+        input."""
         if not self.skip_corrupt:
             raise LogError(f"{self.path}: {problem} (open with skip_corrupt=True to skip it)")
+        if problem in self._failed:  # met again on a later pass (info() and frames() both read)
+            return
+        self._failed.add(problem)
         self.stats.skipped_records += 1
         self.stats.note(f"{self.path.name}: skipped: {problem}")
 
