@@ -753,14 +753,15 @@ class KnowledgeDatabase:
 
     # ================================================================ long-term memory
 
-    def flush(self) -> int:
+    def flush(self, tiles: bool = True) -> int:
         """Promote what the rule admits and write every change of long-term frames since the
-        last flush, in one transaction. Returns the number of state rows written."""
+        last flush, in one transaction, with the pending map tiles unless ``tiles`` is False
+        (they then wait for a later flush). Returns the number of state rows written."""
         if self._read_only:
             return 0
         with self._lock:
             self._promote()
-            w = self._collect()
+            w = self._collect(tiles)
             if not w:
                 return 0
             persist.write(self._con, w)  # on failure nothing is cleared: the next flush retries
@@ -803,8 +804,8 @@ class KnowledgeDatabase:
         slot = self._slot.get(frame_id)
         return bool(self._cols.ltm[slot]) if slot is not None else frame_id in self._event_ltm
 
-    def _collect(self) -> persist.Write:
-        """Everything the next flush writes (promotion done)."""
+    def _collect(self, tiles: bool = True) -> persist.Write:
+        """Everything the next flush writes (promotion done); map tiles only if ``tiles``."""
         cols, n = self._cols, self._cols.n
         write_slots = np.flatnonzero(cols.alive[:n] & cols.ltm[:n] & cols.dirty[:n])
         has = cols.t_ns[write_slots] != NO_TIME
@@ -828,7 +829,7 @@ class KnowledgeDatabase:
             events=[self._events[i] for i in sorted(self._event_dirty & self._event_ltm)],
             relations=[r for r in rels if self._in_ltm(r.src) and self._in_ltm(r.dst)],
             classes=[self.classes.get(c) for c in self.classes.dirty if c in self.classes],
-            tiles=list(self.tiles.pending.values()),
+            tiles=list(self.tiles.pending.values()) if tiles else [],
             next_id=self._next_id,
         )
 

@@ -157,6 +157,7 @@ class NodeConfig:
     deskew_bins: int = 8  # pose slices per sweep when moving points to the world
     kd_advance_every: int = 10  # trim short-term memory every this many sweeps
     kd_flush_every_ns: int = 1_000_000_000  # long-term memory to the file this often (log time)
+    kd_tile_flush_every_ns: int = 10_000_000_000  # ... map tiles with it this often
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     vj: VJConfig = field(default_factory=VJConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)

@@ -203,6 +203,7 @@ class WorldModelNode:
         self.last_wheel_t_ns: int | None = None
         self.last_sweep_t_ns: int | None = None  # the newest sweep taken
         self._flushed_ns: int | None = None  # log time of the last KD flush
+        self._tiles_ns: int | None = None  # ... and of the last one with map tiles
         self.pending: deque[LadarScan] = deque()
         self.inflight: deque[tuple[LadarScan, CameraFrame | None]] = deque()  # at the odometry
         self.camera: CameraFrame | None = None
@@ -439,11 +440,15 @@ class WorldModelNode:
     def _flush(self, t_ns: int) -> None:
         """Long-term memory to the KD file every ``kd_flush_every_ns`` of log time, in one
         transaction: what was written survives a killed process, and another reader of the
-        file sees the run up to then."""
-        if self._flushed_ns is not None and t_ns - self._flushed_ns < self.config.kd_flush_every_ns:
+        file sees the run up to then. Map tiles go every ``kd_tile_flush_every_ns`` (their
+        compression is most of a flush's cost)."""
+        cfg = self.config
+        if self._flushed_ns is not None and t_ns - self._flushed_ns < cfg.kd_flush_every_ns:
             return
-        self.kd.flush()
+        tiles = self._tiles_ns is None or t_ns - self._tiles_ns >= cfg.kd_tile_flush_every_ns
+        self.kd.flush(tiles=tiles)
         self._flushed_ns = t_ns
+        self._tiles_ns = t_ns if tiles else self._tiles_ns
 
     def _pose(self, scan: LadarScan) -> str:
         """Step 1: extend the pose track over this sweep; returns the odometry status."""
