@@ -63,10 +63,10 @@ def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) 
     timer.start()
     try:
         return _read_only_query(con, sql)
-    except KDError as e:
+    except KDError:
         if not timer.is_alive():
             raise KDError(f"SQL {sql!r}: stopped after the {limits.timeout_s:g} s limit") from None
-        raise e from None
+        raise
     finally:
         timer.cancel()
         con.close()

@@ -81,13 +81,7 @@ from sp.surfaces import (
     plane_fit,
 )
 from sp.sweep_points import sweep_points
-from sp.tracking import (
-    Measurements,
-    Tracker,
-    TrackerConfig,
-    TrackStatus,
-    evident_speed,
-)
+from sp.tracking import Measurements, Tracker, TrackerConfig, TrackStatus, evident_speed
 from sp.windowing import WindowConfig, window_mask
 
 log = logging.getLogger(__name__)

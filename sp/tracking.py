@@ -30,8 +30,7 @@ and so is one whose confidence falls below ``deny`` while it is still being meas
 A measurement on the footprint of a confirmed track measured in the same sweep, smaller than
 it, is a piece of that object (a building's side seen edge-on, the part of a car an occluder
 cut off), whether it was free or went to a young track of its own; that young track then
-goes unmeasured and is denied. :func:`line_of_sight` tells, for a track not measured, whether
-the sweep saw through its place or something in front hid it.
+goes unmeasured and is denied.
 The covariance update is Joseph's form, symmetrised, so P stays symmetric positive definite
 even for degenerate measurements.
 """

@@ -7,12 +7,10 @@ import dataclasses
 
 import numpy as np
 import pytest
+from node_runs import self_poses
 
-import kd_store
 from sp.logs import open_log
 from sp.logs.types import LadarScan, OdometryFrame
-from wm.config import NodeConfig
-from wm.node import WorldModelNode
 
 
 @pytest.fixture(scope="module")
@@ -23,17 +21,6 @@ def frames(tmp_path_factory):
     return list(
         open_log(simulate_to_log("default", path, seconds=2.5, seed=43, progress=False)).frames()
     )
-
-
-def _run(frames) -> tuple[list[np.ndarray], WorldModelNode]:
-    kd = kd_store.open(":memory:")
-    node = WorldModelNode(kd, NodeConfig(use_sp=False))
-    poses = []
-    for f in frames:
-        poses += [c.T_world_body for c in node.feed(f)]
-    poses += [c.T_world_body for c in node.finish()]
-    kd.close()
-    return poses, node
 
 
 def _spoiled(frames) -> list:
@@ -69,8 +56,8 @@ def _spoiled(frames) -> list:
 
 
 def test_bad_messages_are_skipped_counted_and_change_nothing(frames) -> None:
-    clean, node0 = _run(frames)
-    spoiled, node = _run(_spoiled(frames))
+    clean, node0 = self_poses(frames)
+    spoiled, node = self_poses(_spoiled(frames))
     assert len(clean) == len(spoiled) >= 20
     for a, b in zip(clean, spoiled, strict=True):
         np.testing.assert_array_equal(a, b)

@@ -7,13 +7,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+from node_runs import self_poses
 
-import kd_store
 from maps.frames import matrix_to_rpy, rpy_to_matrix, se3
 from sp.logs import open_log
 from sp.logs.types import GroundTruthPose, ObjectBoxes, OdometryFrame
-from wm.config import NodeConfig
-from wm.node import WorldModelNode, initial_pose
+from wm.node import initial_pose
 from wm.poses import PoseTrack
 from wm.truth import OdometryScore
 
@@ -27,14 +26,7 @@ def log(tmp_path_factory):
 
 
 def _self_poses(frames) -> list[np.ndarray]:
-    kd = kd_store.open(":memory:")
-    node = WorldModelNode(kd, NodeConfig(use_sp=False))
-    poses = []
-    for f in frames:
-        poses += [c.T_world_body for c in node.feed(f)]
-    poses += [c.T_world_body for c in node.finish()]
-    kd.close()
-    return poses
+    return self_poses(frames)[0]
 
 
 def _falsified(f):

@@ -458,8 +458,7 @@ def filter_dont_care(fd: FrameData, config: EvalConfig) -> Filtered:
     counts wherever its own position lies (a building whose near face is in range has its
     centre beyond it), so range is judged on the box's footprint for both sides of a pair."""
     h_range = np.hypot(fd.hxy[:, 0], fd.hxy[:, 1]) if len(fd.hxy) else np.zeros(0)
-    h_in = np.arange(len(h_range))
-    d = footprint_distance(fd.hxy[h_in], fd.oxy, fd.olw, fd.oyaw).reshape(len(fd.oid), len(h_in))
+    d = footprint_distance(fd.hxy, fd.oxy, fd.olw, fd.oyaw).reshape(len(fd.oid), len(h_range))
     allowed = d <= config.match_m
     seen = (fd.opoints < 0) | (fd.opoints >= config.min_points)
     visible = (fd.orange <= config.range_m) & seen
@@ -469,15 +468,15 @@ def filter_dont_care(fd: FrameData, config: EvalConfig) -> Filtered:
         r, c = linear_sum_assignment(cost)
         ok = allowed[r, c]
         pair_o[r[ok]] = c[ok]
-    h_keep = np.ones(len(h_in), dtype=bool)
+    h_keep = np.ones(len(h_range), dtype=bool)
     h_keep[pair_o[~visible & (pair_o >= 0)]] = False  # matched to a don't-care box
-    h_paired = np.zeros(len(h_in), dtype=bool)
+    h_paired = np.zeros(len(h_range), dtype=bool)
     h_paired[pair_o[pair_o >= 0]] = True
-    h_keep &= h_paired | (h_range[h_in] <= config.range_m)  # unmatched in the band
+    h_keep &= h_paired | (h_range <= config.range_m)  # unmatched and out of range
     o = np.flatnonzero(visible)
     hc = np.flatnonzero(h_keep)
     dist = np.where(allowed[np.ix_(o, hc)], d[np.ix_(o, hc)], np.nan)
-    return Filtered(o, h_in[hc], dist, visible)
+    return Filtered(o, hc, dist, visible)
 
 
 # --- the figures ---------------------------------------------------------------------------

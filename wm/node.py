@@ -253,6 +253,7 @@ class WorldModelNode:
         elif isinstance(frame, ObjectBoxes):
             self.truth_boxes = self._boxes_in_world(frame)
         elif isinstance(frame, LadarScan):
+            self.last_sweep_t_ns = frame.t_ns
             self.pending.append(frame)
         self.last_t_ns = frame.t_ns if self.last_t_ns is None else max(self.last_t_ns, frame.t_ns)
         out = []
@@ -282,10 +283,8 @@ class WorldModelNode:
                 return f"bad sweep: points_xyz of shape {shape}, not (N, 3)"
             if np.shape(frame.t_offset_ns) not in ((shape[0],), (0,)):
                 return f"bad sweep: t_offset_ns of shape {np.shape(frame.t_offset_ns)}"
-            newest = self.pending[-1].t_ns if self.pending else self.last_sweep_t_ns
-            if newest is not None and t <= newest:
-                return f"sweep out of order: t_ns {t} <= {newest}"
-            self.last_sweep_t_ns = t
+            if self.last_sweep_t_ns is not None and t <= self.last_sweep_t_ns:
+                return f"sweep out of order: t_ns {t} <= {self.last_sweep_t_ns}"
         return None
 
     def finish(self) -> list[CycleResult]:

@@ -9,6 +9,7 @@ LadarOdometry` would; estimates come back in sweep order.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import multiprocessing as mp
 import os
@@ -59,10 +60,8 @@ def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0, parent: in
         if kind == "stop":
             return
         if kind == "wheel":
-            try:
+            with contextlib.suppress(Exception):  # the node screens wheel frames; never die
                 odo.add_wheel_odometry(item)
-            except Exception:  # the node screens wheel frames; never die on one
-                continue
             continue
         try:
             cpu = time.process_time()  # KISS-ICP's threads included

@@ -150,10 +150,7 @@ def run_log(
     source = open_log(Path(log_path))
     info = source.info()
     total = sum(t.count for t in info.topics)
-    terrain = _safe_value(
-        lambda: TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
-    )  # the terrain truth only scores the run: a damaged one is left out, never fatal
-    terrain = terrain or RasterTruth.from_folder(Path(log_path))
+    terrain = _terrain_truth(source) or RasterTruth.from_folder(Path(log_path))
     if str(kd_path) != ":memory:":
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
     t_start, cpu_start = time.perf_counter(), time.process_time()
@@ -243,10 +240,12 @@ def _cpu_timed(frames: Iterator[Frame], total_s: list[float]) -> Iterator[Frame]
         yield frame
 
 
-def _safe_value(get) -> Any:
+def _terrain_truth(source: LogSource) -> TerrainTruth | None:
+    """The log's terrain truth, or None. It only scores the run, so a damaged one is left out
+    with a warning, never fatal."""
     try:
-        return get()
-    except Exception as e:  # damaged scoring data in the log: the run goes on without it
+        return TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
+    except Exception as e:
         log.warning("terrain truth in the log is unusable (%s); the run is not scored on it", e)
         return None
 
