@@ -255,3 +255,62 @@ def test_fusion_keeps_the_wheels_along_a_direction_the_scene_does_not_constrain(
     icp_small = from_vector(np.array([1.02, 0.0, 0.0, 0.0, 0.0, 0.0]))
     fused = odo._fuse(pred, icp_small, 1.0, H)
     assert fused[0, 3] - 1.0 > 0.25 * 0.02  # at least a quarter of the registration's say
+
+
+def _tilted_wheel(t_ns: int, pitch: float, yaw: float, var: float) -> OdometryFrame:
+    from maps.frames import rpy_to_matrix
+
+    cov = np.diag([0.01, 0.01, 0.01, var, var, 0.01])
+    return OdometryFrame(
+        t_ns, "odom", "base_link", se3(rpy_to_matrix(0.0, pitch, yaw), [1.0, 2.0, 0.0]),
+        pose_covariance=cov,
+    )  # fmt: skip
+
+
+def _body_pose(odo: LadarOdometry, pitch: float, yaw: float) -> np.ndarray:
+    """``T_map_sensor`` of a body at pitch / yaw (world frame) over the odometry's map."""
+    from maps.frames import rpy_to_matrix
+
+    T_world_body = se3(rpy_to_matrix(0.0, pitch, yaw), [5.0, 1.0, 0.3])
+    return se3_inverse(odo.T_world_map) @ T_world_body @ odo.T_body_sensor
+
+
+def test_levelling_pulls_roll_and_pitch_toward_the_inertial_attitude_and_leaves_yaw() -> None:
+    """A fused pose 10 mrad off in pitch, with as much doubt as the wheel odometry's attitude,
+    moves half way to the attitude it reports; its heading (which no gravity reference
+    measures) and position stay."""
+    from maps.frames import matrix_to_rpy
+
+    odo = odometry()
+    for j in range(3):
+        odo.add_wheel_odometry(_tilted_wheel(j * 50_000_000, 0.02, 1.3, 1e-4))
+    odo.tilt_P = 1e-4
+    T = odo._level(_body_pose(odo, 0.03, 0.7), 50_000_000)
+    T_world_body = odo._T_world_body(T)
+    roll, pitch, yaw = matrix_to_rpy(T_world_body[:3, :3])
+    assert pitch == pytest.approx(0.025, abs=2e-4)
+    assert abs(roll) < 1e-4 and yaw == pytest.approx(0.7, abs=1e-4)
+    assert T_world_body[:3, 3] == pytest.approx([5.0, 1.0, 0.3], abs=1e-9)
+    assert odo.tilt_P == pytest.approx(0.5e-4)
+
+
+def test_levelling_bounds_a_steady_pitch_error_and_ignores_planar_odometry() -> None:
+    """Sweep after sweep a registration adds 1 mrad of pitch: chained, that is 60 mrad after
+    60 sweeps; with a gravity reference of 10 mrad the estimate stays within a few mrad of
+    it. A planar odometry (roll and pitch exactly zero) is no gravity reference: nothing is
+    levelled."""
+    from maps.frames import matrix_to_rpy
+
+    odo = odometry()
+    pitch = 0.0
+    for k in range(60):
+        odo.add_wheel_odometry(_tilted_wheel(k * 50_000_000, 0.01, 0.0, 1e-4))
+        odo.last_rotation_var = 1e-6
+        T = odo._level(_body_pose(odo, pitch + 0.001, 0.0), k * 50_000_000)
+        pitch = matrix_to_rpy(odo._T_world_body(T)[:3, :3])[1]
+    assert abs(pitch - 0.01) < 0.012
+    planar = odometry()
+    planar.add_wheel_odometry(OdometryFrame(0, "odom", "base_link", np.eye(4)))
+    planar.last_rotation_var = 1e-4
+    T0 = _body_pose(planar, 0.05, 0.2)
+    assert np.array_equal(planar._level(T0, 0), T0)
