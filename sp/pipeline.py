@@ -71,7 +71,13 @@ from sp.lists import (
     patch_grid,
 )
 from sp.logs.types import CameraFrame, LadarScan
-from sp.segments import SegmentConfig, label_objects, merge_collinear, range_edges
+from sp.segments import (
+    SegmentConfig,
+    label_objects,
+    merge_collinear,
+    range_edges,
+    split_by_predictions,
+)
 from sp.surfaces import (
     SurfaceConfig,
     SurfaceObservations,
@@ -126,6 +132,10 @@ class SPConfig:
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
     max_object_range_m: float = 120.0  # farther segments are left ungrouped
     min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)
+    # a segment holding two tracked people's predicted places (each within split_near_m of
+    # its returns, at least split_min_apart_m apart) is cut between them
+    split_near_m: float = 0.4
+    split_min_apart_m: float = 0.5
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 list entities (edges, vertices, patches)
@@ -361,6 +371,14 @@ class SensoryProcessor:
         if merged.size and merged.max() + 1 < len(attrs):
             labels = np.where(labels >= 0, merged[np.maximum(labels, 0)], -1)
             attrs = segment_attributes(labels, xyz_w, inten, rng0, t_off, gz)
+        # people walking side by side, joined by proximity, are cut where their tracks predict
+        split = split_by_predictions(
+            labels, xyz_w, self._predicted_people_xy(t_ns), cfg.split_near_m,
+            cfg.split_min_apart_m, seg_cfg.min_pixels,
+        )  # fmt: skip
+        if split is not labels:
+            labels = split
+            attrs = segment_attributes(labels, xyz_w, inten, rng0, t_off, gz)
         # too low to stand out of the terrain (bumps, ruts), or a gently sloping plane (a
         # hillside seen past a gap): ground, not objects
         low = (attrs.height_m < cfg.min_object_height_m) | terrain_patch(attrs, cfg)
@@ -469,6 +487,19 @@ class SensoryProcessor:
         return column_poses(img, t_ns, last[1], last[0], T_world_ladar, pose_t_ns)
 
     # ------------------------------------------------------------------ windowing
+
+    def _predicted_people_xy(self, t_ns: int) -> np.ndarray:
+        """World xy (C, 2) m of the confirmed tracks classified person, predicted to ``t_ns``."""
+        tr = self.tracker.tracks
+        if not len(tr):
+            return np.zeros((0, 2))
+        people = np.array(
+            [self.track_class.get(int(i), (None, 0.0))[0] == "person" for i in tr.id], dtype=bool
+        ) & (tr.status == TrackStatus.CONFIRMED)
+        if not people.any():
+            return np.zeros((0, 2))
+        x, _ = self.tracker.predicted(t_ns)
+        return x[people, :2]
 
     def _windows(
         self,

@@ -575,6 +575,57 @@ def _ranges(rng: np.ndarray, p: np.ndarray) -> np.ndarray:
         return np.where(np.isfinite(r) & (r > 0), r, np.nan)
 
 
+def split_by_predictions(
+    labels: np.ndarray,
+    points_world: np.ndarray,
+    centres_xy: np.ndarray,
+    near_m: float,
+    min_apart_m: float,
+    min_pixels: int,
+) -> np.ndarray:
+    """Cut a segment that holds the predicted places of two or more tracked people (walkers
+    side by side, whom proximity joins: ``join_m`` bridges the half metre between them):
+    each of its returns goes to the nearest prediction (in the horizontal plane). This is
+    grouping windowed by the world model's predictions (reference 001, 4.5.1: "predicted
+    entities ... to set windows"); a segment with one prediction, or whose predictions are
+    closer than ``min_apart_m``, stays whole, and so does one a part of which would be
+    smaller than ``min_pixels`` returns.
+
+    labels (H, W) int64 (-1 none, 0..K-1); points_world (H, W, 3) m; centres_xy (C, 2) world
+    xy of the predicted people, m; a prediction counts for a segment when one of its returns
+    lies within ``near_m`` of it. Returns new labels, the cut-off parts numbered from K on, or
+    ``labels`` itself when nothing was cut.
+    """
+    if len(centres_xy) < 2 or not (labels >= 0).any():
+        return labels
+    has = labels >= 0
+    lab = labels[has]
+    xy = points_world[has][:, :2]
+    d = np.linalg.norm(xy[:, None, :] - centres_xy[None, :, :], axis=2)  # (N, C)
+    near = np.zeros((int(lab.max()) + 1, len(centres_xy)), dtype=bool)
+    ii, cc = np.nonzero(d <= near_m)
+    near[lab[ii], cc] = True
+    out, next_label = labels, int(labels.max()) + 1
+    for k in np.flatnonzero(near.sum(axis=1) >= 2):
+        cs = np.flatnonzero(near[k])
+        c_xy = centres_xy[cs]
+        gaps = np.linalg.norm(c_xy[:, None] - c_xy[None], axis=2)[np.triu_indices(len(cs), 1)]
+        if gaps.min() < min_apart_m:
+            continue
+        pix = np.flatnonzero(lab == k)
+        part = np.argmin(d[np.ix_(pix, cs)], axis=1)
+        n = np.bincount(part, minlength=len(cs))
+        if n.min() < min_pixels:
+            continue
+        if out is labels:
+            out = labels.copy()
+        flat = np.flatnonzero(has.reshape(-1))[pix]
+        for j in range(1, len(cs)):
+            out.reshape(-1)[flat[part == j]] = next_label
+            next_label += 1
+    return out
+
+
 def merge_collinear(
     center_xy: np.ndarray,
     yaw_rad: np.ndarray,

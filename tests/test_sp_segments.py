@@ -292,3 +292,38 @@ def test_line_continuity_does_not_take_a_car_parked_along_the_wall() -> None:
     width = np.array([0.2, 1.8, 0.2])
     lab = merge_collinear(centers, np.zeros(3), length, width, np.full(3, 12.0))
     assert lab[1] not in (lab[0], lab[2])
+
+
+def _walkers(x_m: float = 12.0):
+    """Two bodies (0.25 x 0.5 x 1.8 m) shoulder to shoulder, one a step (0.3 m) behind."""
+    a = ((x_m, -0.6, -SENSOR_H), (x_m + 0.25, -0.1, 0.0))
+    b = ((x_m + 0.3, -0.1, -SENSOR_H), (x_m + 0.55, 0.4, 0.0))
+    return [a, b]
+
+
+def test_a_segment_holding_two_predicted_people_is_cut_between_them() -> None:
+    """Proximity joins two walkers side by side; their tracks' predicted places cut them
+    apart again, every return going to its own body."""
+    from sp.segments import split_by_predictions
+
+    xyz, rng, hit = cast(_walkers())
+    labels = label_objects(xyz, rng, hit >= 0, ROW_STEP, COL_STEP)
+    assert one_label(labels, hit >= 0) == 0  # joined
+    centres = np.array([[12.12, -0.35], [12.42, 0.15]])
+    out = split_by_predictions(labels, xyz, centres, 0.4, 0.5, 4)
+    assert apart(out, hit == 0, hit == 1)
+    assert np.unique(out[hit == 0]).size == 1 and np.unique(out[hit == 1]).size == 1
+
+
+def test_one_prediction_close_or_tiny_parts_leave_a_segment_whole() -> None:
+    """One predicted person, two predictions closer than min_apart_m (one walker tracked
+    twice), or a prediction that would take fewer than min_pixels returns: no cut."""
+    from sp.segments import split_by_predictions
+
+    xyz, rng, hit = cast(_walkers())
+    labels = label_objects(xyz, rng, hit >= 0, ROW_STEP, COL_STEP)
+    for centres in ([[12.12, -0.35]], [[12.12, -0.35], [12.2, -0.1]]):
+        out = split_by_predictions(labels, xyz, np.array(centres), 0.4, 0.5, 4)
+        assert out is labels
+    centres = np.array([[12.12, -0.35], [12.42, 0.15]])
+    assert split_by_predictions(labels, xyz, centres, 0.4, 0.5, 10_000) is labels
