@@ -50,6 +50,28 @@ def sandbox_settings(limits: QueryLimits) -> dict[str, object]:
     }
 
 
+def served_settings(limits: QueryLimits = QueryLimits()) -> dict[str, object]:
+    """The DuckDB configuration of a KD a live node writes while serving untrusted SQL over it
+    (:mod:`wm.serve`): external access off and the configuration locked as for
+    :func:`query_file`; the memory limit bounds the writer too, so it is not set here."""
+    return {k: v for k, v in sandbox_settings(limits).items() if k not in ("memory_limit",)}
+
+
+def query_reader(reader, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
+    """One read-only SELECT through ``reader`` (a :class:`kd_store.store.SQLReader` of a KD
+    opened with :func:`served_settings`), interrupted after ``limits.timeout_s``."""
+    timer = threading.Timer(limits.timeout_s, reader.interrupt)
+    timer.start()
+    try:
+        return reader.sql(sql)
+    except KDError:
+        if not timer.is_alive():
+            raise KDError(f"SQL {sql!r}: stopped after the {limits.timeout_s:g} s limit") from None
+        raise
+    finally:
+        timer.cancel()
+
+
 def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
     """One read-only SELECT over the KD file ``path`` in a sandboxed connection; the result as
     Arrow. Raises KDError naming the query for anything refused, failed or timed out."""

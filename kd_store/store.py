@@ -13,6 +13,7 @@ columns the first time it is read after an ingest.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
 from collections.abc import Iterable, Iterator, Mapping
@@ -970,7 +971,8 @@ def _new_where(kind: str, frame_id: int | None, name: str) -> str:
 
 def _cursor(con: duckdb.DuckDBPyConnection) -> duckdb.DuckDBPyConnection:
     cur = con.cursor()
-    cur.execute("SET enable_progress_bar = false")
+    with contextlib.suppress(duckdb.Error):  # a locked configuration keeps its own setting
+        cur.execute("SET enable_progress_bar = false")
     return cur
 
 
@@ -1002,6 +1004,10 @@ class SQLReader:
             self._in_tx = False
             self._cur.execute("ROLLBACK")
 
+    def interrupt(self) -> None:
+        """Stop the query running on this reader (from another thread)."""
+        self._cur.interrupt()
+
     def close(self) -> None:
         self._cur.close()
 
@@ -1028,14 +1034,19 @@ def _read_only_query(cur: duckdb.DuckDBPyConnection, query: str, own_tx: bool = 
 
 
 def open(
-    path: str | Path = ":memory:", config: KDConfig | None = None, read_only: bool = False
+    path: str | Path = ":memory:",
+    config: KDConfig | None = None,
+    read_only: bool = False,
+    settings: dict[str, object] | None = None,
 ) -> KnowledgeDatabase:
     """Open the KD in a DuckDB file (created if missing), or a throwaway one (``":memory:"``).
 
     ``read_only`` opens an existing file for reading (e.g. a notebook while no writer runs):
     changes stay in RAM and :meth:`KnowledgeDatabase.flush` writes nothing. A file written
-    by a newer engine (higher schema version) is refused with a KDError."""
-    con = persist.connect(path, read_only=read_only)
+    by a newer engine (higher schema version) is refused with a KDError. ``settings``: DuckDB
+    configuration fixed at opening (a KD that serves untrusted SQL is opened with
+    :func:`kd_store.query.served_settings`)."""
+    con = persist.connect(path, read_only=read_only, settings=settings)
     kd = KnowledgeDatabase(con, str(path), config or KDConfig())
     kd._read_only = read_only
     return kd

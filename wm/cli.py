@@ -10,6 +10,7 @@
     wm render LOG --out DIR [--seconds S]
     wm render --kd KD.duckdb OUT_DIR                    (the maps and entities a run stored)
     wm evaluate LOG KD.duckdb [--json OUT]             (scores of a KD against the log's truth)
+    wm serve --replay LOG [--rate 1.0] [--kd KD.duckdb] [--host 127.0.0.1] [--port 8765]
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -168,6 +169,27 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(report.text())
     if args.report:
         print(f"report {args.report}")
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """A live node replaying a log at its recorded pace, serving What Is over HTTP (wm.serve)."""
+    import os
+
+    from wm.serve import LiveNode, serve
+
+    token = os.environ.get(args.token_env) if args.token_env else None
+    if args.token_env and not token:
+        raise UserError(f"--token-env {args.token_env}: that environment variable is empty")
+    if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
+        print(f"warning: serving on {args.host} without a token", file=sys.stderr)
+    live = LiveNode(_check_log(args.replay), args.kd, _node_config(args), args.rate).start()
+    print(f"serving {args.replay} at {args.rate:g}x on http://{args.host}:{args.port}/v1 "
+          f"(schema: /openapi.json); KD {args.kd}; Ctrl-C stops")  # fmt: skip
+    try:
+        serve(live, args.host, args.port, token)
+    finally:
+        live.stop()
     return 0
 
 
@@ -460,6 +482,19 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("kd", help="KD file `wm run` wrote (DuckDB)")
     e.add_argument("--json", default=None, help="write the scores as JSON here")
     e.set_defaults(func=cmd_evaluate)
+
+    v = sub.add_parser("serve", help="a live node replaying a log, What Is over HTTP (/v1)")
+    v.add_argument("--replay", required=True, help="any supported log, fed at its own pace")
+    v.add_argument("--rate", type=float, default=1.0, help="replay speed (0: as fast as it can)")
+    v.add_argument("--kd", default="live.duckdb", help="KD file the node writes (DuckDB)")
+    v.add_argument("--host", default="127.0.0.1", help="address to bind (default: localhost)")
+    v.add_argument("--port", type=int, default=8765)
+    v.add_argument(
+        "--token-env", default=None,
+        help="name of an environment variable holding a bearer token every request must carry",
+    )  # fmt: skip
+    pose_flag(v)
+    v.set_defaults(func=cmd_serve)
 
     d = sub.add_parser("demo", help="simulate the default scenario and run the world model on it")
     d.add_argument("--out", default="out", help="folder for the demo's files (default: out/)")

@@ -1,0 +1,242 @@
+"""The live node and its HTTP API (wm.serve) over real HTTP on localhost (uvicorn), fed by a
+simulated log replayed at its recorded pace; answers checked against the simulator's truth and
+the KD file the node writes."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("fastapi")
+uvicorn = pytest.importorskip("uvicorn")
+
+TOKEN = "s3cret"
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory) -> Path:
+    from fixtures.simulate import simulate_to_log
+
+    path = tmp_path_factory.mktemp("serve") / "default.mcap"
+    return simulate_to_log("default", path, seconds=6.0, seed=46, progress=False)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def server(log: Path, tmp_path_factory):
+    """A live node replaying the log at twice real time, served on a free localhost port."""
+    from wm.serve import LiveNode, create_app
+
+    kd_path = tmp_path_factory.mktemp("serve-kd") / "live.duckdb"
+    live = LiveNode(log, kd_path, rate=2.0).start()
+    port = _free_port()
+    config = uvicorn.Config(
+        create_app(live, token=TOKEN), host="127.0.0.1", port=port, log_level="warning"
+    )
+    srv = uvicorn.Server(config)
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    deadline = time.time() + 30
+    while not srv.started and time.time() < deadline:
+        time.sleep(0.05)
+    assert srv.started, "uvicorn did not start"
+    yield live, f"http://127.0.0.1:{port}", kd_path
+    srv.should_exit = True
+    thread.join(10)
+    live.stop()
+
+
+def call(base: str, path: str, body: dict | None = None, token: str | None = TOKEN):
+    """(status, JSON) of one request."""
+    req = urllib.request.Request(
+        base + path,
+        data=None if body is None else json.dumps(body).encode(),
+        headers={"Content-Type": "application/json"}
+        | ({"Authorization": f"Bearer {token}"} if token else {}),
+    )
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"null")
+
+
+def _truth_xy(log: Path, t_ns: int) -> np.ndarray:
+    from wm.evaluation import load_truth
+
+    return load_truth(log).poses.at(t_ns)[:3, 3]
+
+
+def test_answers_come_while_the_node_runs_and_follow_it(server, log) -> None:
+    """While the log is replayed the API answers from the newest cycle: the cycle time moves
+    on between two answers, the lag behind the newest frame read stays under a second, and
+    the self position (odometry, whose world starts at the first pose) moves as the truth
+    does."""
+    live, base, _ = server
+    deadline = time.time() + 60
+    while live.status.cycles < 5 and time.time() < deadline:
+        time.sleep(0.1)
+    code, s1 = call(base, "/v1/self")
+    assert code == 200 and s1["frame"] == "world" and not live.status.done
+    time.sleep(1.0)
+    code, s2 = call(base, "/v1/self")
+    assert code == 200 and s2["cycle_t_ns"] > s1["cycle_t_ns"]
+    code, st = call(base, "/v1/status")
+    assert code == 200 and 0 <= st["lag_ns"] < 1_000_000_000 and st["cycles"] >= 5
+    moved = np.linalg.norm(np.subtract(s2["position"], s1["position"]))
+    truth = np.linalg.norm(_truth_xy(log, s2["t_ns"]) - _truth_xy(log, s1["t_ns"]))
+    assert truth > 2.0 and abs(moved - truth) < 0.1 * truth
+
+
+def test_region_lookup_and_events_match_the_kd(server) -> None:
+    """At the end of the log: every entity a circle query returns lies in the circle and is
+    the one the entity lookup and the SQL view give; events have their times in order."""
+    live, base, _ = server
+    assert live.wait(120) and not live.status.error
+    code, me = call(base, "/v1/self")
+    assert code == 200
+    x, y = me["position"][:2]
+    code, reg = call(base, f"/v1/entities?x={x}&y={y}&radius_m=100&level=4&status=confirmed")
+    assert code == 200 and reg["frame"] == "world"
+    ents = reg["entities"]
+    assert len(ents) >= 3
+    for e in ents:
+        assert math.hypot(e["position"][0] - x, e["position"][1] - y) <= 100.0 + 1e-6
+        assert e["status"] == "confirmed"
+        code, one = call(base, f"/v1/entities/{e['entity_id']}")
+        assert code == 200 and one["position"] == pytest.approx(e["position"])
+    ids = ",".join(str(e["entity_id"]) for e in ents)
+    code, rows = call(base, "/v1/sql", {"query": f"SELECT id FROM entities WHERE id IN ({ids})"})
+    assert code == 200 and sorted(r[0] for r in rows["rows"]) == sorted(
+        e["entity_id"] for e in ents
+    )
+    code, ev = call(base, f"/v1/events?t_from_ns=0&t_to_ns={me['cycle_t_ns']}")
+    assert code == 200 and ev["events"]
+    starts = [e["t_start_ns"] for e in ev["events"]]
+    assert starts == sorted(starts)
+
+
+@pytest.mark.parametrize(
+    ("path", "body", "code", "names"),
+    [
+        ("/v1/entities/987654321", None, 404, "987654321"),
+        ("/v1/self?frame=mars", None, 400, "mars"),
+        ("/v1/entities?x=1&y=2", None, 400, "radius_m"),
+        ("/v1/entities?x=nan&y=2&radius_m=3", None, 400, "nan"),
+        ("/v1/entities?x=0&y=0&radius_m=5&status=happy", None, 400, "happy"),
+        ("/v1/entities?x_min=5&y_min=0&x_max=1&y_max=9", None, 400, "x_min < x_max"),
+        ("/v1/events?t_from_ns=10&t_to_ns=5", None, 400, "ends before it starts"),
+        ("/v1/sql", {"query": "SELECT * FROM read_csv('/etc/passwd')"}, 400, "/etc/passwd"),
+        ("/v1/sql", {"query": "COPY entities TO '/tmp/x.csv'"}, 400, "COPY"),
+        ("/v1/sql", {"query": "SET enable_external_access = true"}, 400, "SET"),
+        ("/v1/sql", {"query": "SELECT 1; DROP TABLE entities"}, 400, "DROP"),
+        ("/v1/sql", {"query": "x" * 20_000}, 422, "query"),
+    ],
+)
+def test_bad_requests_get_a_4xx_naming_the_value(server, path, body, code, names) -> None:
+    _, base, _ = server
+    got, answer = call(base, path, body)
+    assert got == code, answer
+    assert names in json.dumps(answer)
+
+
+def test_a_token_is_required_when_set(server) -> None:
+    _, base, _ = server
+    assert call(base, "/v1/status", token=None)[0] == 401
+    assert call(base, "/v1/status", token="wrong")[0] == 401
+    assert call(base, "/v1/status")[0] == 200
+
+
+def test_the_python_client_reads_as_what_is(server) -> None:
+    """wm.client answers as the raw API does, and raises ClientError with the server's words."""
+    from wm.client import Client, ClientError
+
+    live, base, _ = server
+    assert live.wait(120)
+    c = Client(base, token=TOKEN)
+    me = c.self_state()
+    assert me == call(base, "/v1/self")[1]
+    x, y = me["position"][:2]
+    reg = c.region(x=x, y=y, radius_m=100, levels=[4], statuses=["confirmed"])
+    raw = call(base, f"/v1/entities?x={x}&y={y}&radius_m=100&level=4&status=confirmed")[1]
+    assert [e["entity_id"] for e in reg["entities"]] == [e["entity_id"] for e in raw["entities"]]
+    assert c.sql("SELECT count(*) AS n FROM entities")["rows"][0][0] >= len(reg["entities"])
+    with pytest.raises(ClientError, match="987654321") as err:
+        c.entity(987654321)
+    assert err.value.status == 404
+    with pytest.raises(ClientError) as err:
+        Client(base).status()
+    assert err.value.status == 401
+
+
+def test_the_kd_file_holds_what_the_api_served(server) -> None:
+    """After the node stops, the KD file (written by the live node, flushed as it went) holds
+    the confirmed entities the API listed, at the positions it gave."""
+    import kd_store
+
+    live, base, kd_path = server
+    assert live.wait(120)
+    _, me = call(base, "/v1/self")
+    x, y = me["position"][:2]
+    _, reg = call(base, f"/v1/entities?x={x}&y={y}&radius_m=100&level=4&status=confirmed")
+    live.stop()
+    with kd_store.open(kd_path, read_only=True) as kd:
+        for e in reg["entities"]:
+            f = kd.get(e["entity_id"])
+            assert f.state.position_xyz == pytest.approx(e["position"])
+
+
+def test_wm_serve_runs_as_its_own_process_and_stops_cleanly(log, tmp_path) -> None:
+    """``wm serve`` in another process, as a controller would meet it: it answers over HTTP
+    while replaying, and an interrupt (Ctrl-C) ends it with status 0 and a KD that holds the
+    confirmed entities it served."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import kd_store
+
+    port = _free_port()
+    kd_path = tmp_path / "served.duckdb"
+    env = os.environ | {"WM_TOKEN": TOKEN}
+    cmd = [sys.executable, "-m", "wm.cli", "serve", "--replay", str(log), "--rate", "0",
+           "--kd", str(kd_path), "--port", str(port), "--token-env", "WM_TOKEN"]  # fmt: skip
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline, st = time.time() + 120, None
+        while time.time() < deadline:
+            try:
+                code, st = call(base, "/v1/status")
+                if code == 200 and st["done"]:
+                    break
+            except OSError:  # not listening yet
+                pass
+            time.sleep(0.2)
+        assert st is not None and st["done"] and not st["error"], st
+        _, reg = call(base, "/v1/entities?x_min=-1e4&y_min=-1e4&x_max=1e4&y_max=1e4&level=4")
+        confirmed = {e["entity_id"] for e in reg["entities"] if e["status"] == "confirmed"}
+        assert len(confirmed) >= 3
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    with kd_store.open(kd_path, read_only=True) as kd:
+        stored = kd.sql("SELECT id, status FROM entities").to_pydict()
+    held = {i for i, s in zip(stored["id"], stored["status"], strict=True) if s == "confirmed"}
+    assert confirmed <= held

@@ -1,0 +1,103 @@
+"""A Python client of the live node's HTTP API (:mod:`wm.serve`), for controllers and notebooks
+in other processes. Its methods carry the names of :class:`~wm.whatis.WhatIs`'s and return
+plain dictionaries (the JSON the API sends; positions as lists of metres), so code written
+against What Is in-process reads the same against a server.
+
+    from wm.client import Client
+    c = Client("http://127.0.0.1:8765", token=None)
+    c.self_state()["position"]; c.region(x=10, y=0, radius_m=20, classes=["person"])
+
+Only the standard library is used (``urllib``). A 4xx or 5xx answer raises :class:`ClientError`
+with the server's ``detail``, which names the offending value.
+"""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.parse
+import urllib.request
+from typing import Any
+
+from core.errors import EngineError
+
+
+class ClientError(EngineError, RuntimeError):
+    """The server refused a request (``status`` is the HTTP code) or could not be reached."""
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class Client:
+    """Calls to one server at ``base_url`` (e.g. ``http://127.0.0.1:8765``), with the bearer
+    ``token`` if the server wants one; ``timeout_s`` per request."""
+
+    def __init__(self, base_url: str, token: str | None = None, timeout_s: float = 30.0) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.token, self.timeout_s = token, timeout_s
+
+    def _call(self, path: str, params: dict | None = None, body: dict | None = None) -> Any:
+        query = urllib.parse.urlencode(
+            {k: v for k, v in (params or {}).items() if v is not None}, doseq=True
+        )
+        url = f"{self.base_url}{path}" + (f"?{query}" if query else "")
+        headers = {"Content-Type": "application/json"}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
+        data = None if body is None else json.dumps(body).encode()
+        req = urllib.request.Request(url, data=data, headers=headers)
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout_s) as r:
+                return json.loads(r.read())
+        except urllib.error.HTTPError as e:
+            try:
+                detail = json.loads(e.read() or b"null")
+                detail = detail.get("detail", detail) if isinstance(detail, dict) else detail
+            except ValueError:
+                detail = e.reason
+            raise ClientError(f"{path}: HTTP {e.code}: {detail}", e.code) from None
+        except urllib.error.URLError as e:
+            raise ClientError(f"{url}: cannot reach the server ({e.reason})") from None
+
+    def status(self) -> dict:
+        """Cycles, the newest cycle's time, lag, cycle time, frames read and skipped."""
+        return self._call("/v1/status")
+
+    def self_state(self, t_ns: int | None = None, frame: str = "world") -> dict:
+        return self._call("/v1/self", {"t_ns": t_ns, "frame": frame})
+
+    def entity(self, entity_id: int, t_ns: int | None = None, frame: str = "world") -> dict:
+        return self._call(f"/v1/entities/{int(entity_id)}", {"t_ns": t_ns, "frame": frame})
+
+    def region(
+        self,
+        x: float | None = None,
+        y: float | None = None,
+        radius_m: float | None = None,
+        box: tuple[float, float, float, float] | None = None,
+        classes: list[str] | None = None,
+        statuses: list[str] | None = None,
+        min_confidence: float = 0.0,
+        levels: list[int] | None = None,
+    ) -> dict:
+        """Entities in a circle (x, y, radius_m) or a ``box`` (x_min, y_min, x_max, y_max),
+        world metres, passing the filters."""
+        params: dict[str, Any] = {"x": x, "y": y, "radius_m": radius_m}
+        if box is not None:
+            params.update(zip(("x_min", "y_min", "x_max", "y_max"), box, strict=True))
+        params.update(
+            {"class": classes, "status": statuses, "min_confidence": min_confidence,
+             "level": levels}
+        )  # fmt: skip
+        return self._call("/v1/entities", params)
+
+    def events(self, t_from_ns: int, t_to_ns: int, class_name: str | None = None) -> dict:
+        return self._call(
+            "/v1/events", {"t_from_ns": t_from_ns, "t_to_ns": t_to_ns, "class_name": class_name}
+        )
+
+    def sql(self, query: str) -> dict:
+        """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns"}``."""
+        return self._call("/v1/sql", body={"query": query})

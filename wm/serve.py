@@ -1,0 +1,413 @@
+"""The live node and its network API: one world-model node kept current from a log replayed at
+its recorded pace, answering What Is over HTTP while it runs (reference 001, 4.2 item 3: "The WM
+answers What Is? queries from BG and other modules"; docs/architecture.md, the node cycle).
+
+    wm serve --replay LOG [--rate 1.0] [--kd KD.duckdb] [--host 127.0.0.1] [--port 8765]
+
+:class:`LiveNode` feeds the log's frames to a :class:`~wm.node.WorldModelNode` in a thread of its
+own, paced by their stamps (``rate`` times real time; 0: as fast as it can), and flushes the KD
+as ``wm run`` does. A query takes the node's lock, so it sees the KD between two cycles, never
+in the middle of one: an answer is at most one cycle behind the newest fused sweep, and says
+which (``cycle_t_ns``).
+
+:func:`create_app` is the HTTP API (FastAPI; OpenAPI schema at ``/openapi.json``), versioned
+under ``/v1``. Every answer carries the time of the cycle it comes from (``cycle_t_ns``, int64
+ns, log time) and the frame its positions are in. Bad parameters (an unknown entity, frame or
+region, an interval that ends before it starts, a statement that is not one read-only SELECT or
+reaches outside the KD) get a 4xx whose ``detail`` names the value. SQL runs on the KD's own
+database, opened with DuckDB's external access off and its configuration locked
+(:func:`kd_store.query.served_settings`), with a time limit. The server binds to 127.0.0.1
+unless told otherwise; a bearer token, when set, is required on every request.
+
+This module imports FastAPI; the command line imports it only for ``wm serve``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import Depends, FastAPI, HTTPException, Query, Request
+from pydantic import BaseModel, Field
+
+from core.errors import EngineError
+
+NS_PER_S = 1_000_000_000
+MAX_SQL_CHARS = 10_000
+MAX_SQL_ROWS = 100_000
+
+
+class ServeError(EngineError, ValueError):
+    """A live node or server that cannot start or answer (names the value)."""
+
+
+@dataclass
+class LiveStatus:
+    """What the live node has done so far (times int64 ns of log time, -1 before any)."""
+
+    cycles: int = 0
+    cycle_t_ns: int = -1  # the newest cycle's sweep time
+    newest_frame_t_ns: int = -1  # the newest frame read from the log
+    cycle_ms: float = math.nan  # wall time of the newest cycle
+    frames: int = 0
+    skipped: int = 0
+    done: bool = False
+    error: str = ""
+    started_wall_s: float = field(default_factory=time.time)
+
+
+class LiveNode:
+    """A world-model node fed from a log in a thread of its own (see the module docstring).
+
+    ``log_path``: any log :func:`sp.logs.open_log` reads; ``kd_path``: the KD file it writes
+    (``":memory:"`` for none); ``rate``: replay speed against the log's stamps (1.0 real time,
+    0 as fast as possible)."""
+
+    def __init__(
+        self,
+        log_path: str | Path,
+        kd_path: str | Path = ":memory:",
+        config: Any | None = None,
+        rate: float = 1.0,
+    ) -> None:
+        if not (math.isfinite(rate) and rate >= 0):
+            raise ServeError(f"replay rate {rate}: need a finite number >= 0")
+        if not Path(log_path).exists():
+            raise FileNotFoundError(f"log {log_path} does not exist")
+        self.log_path, self.kd_path, self.rate = Path(log_path), str(kd_path), rate
+        self.config = config
+        self.lock = threading.Lock()
+        self.status = LiveStatus()
+        self.node: Any | None = None
+        self.kd: Any | None = None
+        self.closed = False
+        self._ready = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="live-node", daemon=True)
+
+    def start(self, timeout_s: float = 60.0) -> LiveNode:
+        """Open the log and the KD and start replaying; returns once queries can be served."""
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise ServeError(f"the live node did not start within {timeout_s} s")
+        if self.status.error and self.node is None:
+            raise ServeError(f"the live node could not start: {self.status.error}")
+        return self
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Stop replaying, finish the node and close the KD (what it committed stays); the
+        API then answers 503."""
+        self._stop.set()
+        self._thread.join(timeout_s)
+        with self.lock:
+            if self.kd is not None and not self.closed:
+                self.kd.close()
+            self.closed = True
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Wait for the end of the log; True when the replay is done."""
+        self._thread.join(timeout_s)
+        return self.status.done
+
+    def _run(self) -> None:
+        import kd_store
+        from kd_store.query import served_settings
+        from sp.logs import open_log
+        from wm.config import NodeConfig
+        from wm.node import WorldModelNode
+        from wm.tiles import map_stack_over_kd
+
+        try:
+            source = open_log(self.log_path)
+            if self.kd_path != ":memory:":
+                Path(self.kd_path).parent.mkdir(parents=True, exist_ok=True)
+            self.kd = kd_store.open(self.kd_path, settings=served_settings())
+            stack = map_stack_over_kd(self.kd) if self.kd_path != ":memory:" else None
+            self.node = WorldModelNode(self.kd, self.config or NodeConfig(), stack)
+        except Exception as e:  # reported by start()
+            self.status.error = f"{type(e).__name__}: {e}"
+            self._ready.set()
+            return
+        self._ready.set()
+        try:
+            self._replay(source)
+        except Exception as e:  # the API keeps answering from what was committed
+            self.status.error = f"{type(e).__name__}: {e}"
+        finally:
+            with self.lock:
+                self.node.close()
+                self.kd.flush()
+            self.status.done = True
+
+    def _replay(self, source: Any) -> None:
+        t0_log, t0_wall = None, time.perf_counter()
+        for frame in source.frames():
+            if self._stop.is_set():
+                return
+            t0_log = frame.t_ns if t0_log is None else t0_log
+            if self.rate > 0:  # pace by the stamps
+                ahead = (frame.t_ns - t0_log) / NS_PER_S / self.rate - (
+                    time.perf_counter() - t0_wall
+                )
+                if ahead > 0 and self._stop.wait(ahead):
+                    return
+            self._feed(frame)
+        with self.lock:
+            cycles = self.node.finish()
+        self._account(cycles, 0.0)
+
+    def _feed(self, frame: Any) -> None:
+        t = time.perf_counter()
+        with self.lock:
+            cycles = self.node.feed(frame)
+        self.status.frames += 1
+        self.status.newest_frame_t_ns = max(self.status.newest_frame_t_ns, int(frame.t_ns))
+        self._account(cycles, time.perf_counter() - t)
+
+    def _account(self, cycles: list, wall_s: float) -> None:
+        if cycles:
+            self.status.cycles += len(cycles)
+            self.status.cycle_t_ns = int(cycles[-1].t_ns)
+            self.status.cycle_ms = 1e3 * wall_s / len(cycles)
+        self.status.skipped = int(sum(self.node.stats.skipped.values()))
+
+    def what_is(self) -> Any:
+        if self.node is None or self.closed:
+            raise ServeError("the live node is not running (not started, or stopped)")
+        return self.node.whatis()
+
+
+# --- the HTTP API ----------------------------------------------------------------------------
+
+
+def _vec(a: np.ndarray) -> list[float]:
+    return [float(x) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
+
+
+def _entity_json(ans: Any, cycle_t_ns: int) -> dict:
+    return {
+        "entity_id": int(ans.entity_id),
+        "t_ns": int(ans.t_ns),
+        "cycle_t_ns": cycle_t_ns,
+        "frame": ans.frame,
+        "position": _vec(ans.position),
+        "velocity": _vec(ans.velocity),
+        "status": ans.status,
+        "confidence": float(ans.confidence),
+        "class_name": ans.class_name,
+        "source": ans.source,
+        "note": ans.note,
+    }
+
+
+def _event_json(e: Any) -> dict:
+    return {
+        "event_id": int(e.id),
+        "name": e.name,
+        "class_name": e.class_name,
+        "t_start_ns": int(e.t_start_ns),
+        "t_end_ns": None if e.t_end_ns is None else int(e.t_end_ns),
+        "level": int(e.level),
+        "confidence": float(e.confidence),
+    }
+
+
+def _json_value(v: Any) -> Any:
+    """A value of a SQL result as JSON has it (NaN and infinities as null)."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, bytes):
+        return v.hex()
+    if isinstance(v, list):
+        return [_json_value(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _json_value(x) for k, x in v.items()}
+    return v
+
+
+class SQLRequest(BaseModel):
+    """One read-only SELECT over the KD's views."""
+
+    query: str = Field(..., min_length=1, max_length=MAX_SQL_CHARS)
+
+
+def create_app(live: LiveNode, token: str | None = None) -> Any:
+    """The FastAPI application over ``live`` (module docstring); ``token``: the bearer token
+    every request must carry (None: none needed)."""
+    import kd_store
+    from kd_store.errors import KDError
+    from kd_store.query import QueryLimits, query_reader
+    from wm.whatis import WhatIsError
+
+    def authorised(request: Request) -> None:
+        if token is not None and request.headers.get("authorization") != f"Bearer {token}":
+            raise HTTPException(401, "a bearer token is required (Authorization: Bearer ...)")
+
+    app = FastAPI(
+        title="World-model node",
+        version="1",
+        description="What Is over a live world-model node (docs/architecture.md).",
+        dependencies=[Depends(authorised)],
+    )
+
+    def bad(e: Exception, code: int = 400) -> HTTPException:
+        return HTTPException(code, str(e))
+
+    def ask(fn: Any) -> Any:
+        """Run ``fn(what_is)`` between two cycles; What Is errors become a 4xx."""
+        with live.lock:
+            try:
+                return fn(live.what_is()), live.status.cycle_t_ns
+            except ServeError as e:
+                raise bad(e, 503) from None
+            except (WhatIsError, KDError) as e:
+                raise bad(e, 404 if "unknown id" in str(e) else 400) from None
+
+    @app.get("/v1/status")
+    def status() -> dict:
+        """Cycles run, the newest cycle's sweep time, the lag of the answers behind the newest
+        frame read, the newest cycle's wall time, frames read and skipped."""
+        s = live.status
+        lag = s.newest_frame_t_ns - s.cycle_t_ns if s.cycle_t_ns >= 0 else None
+        return {
+            "cycles": s.cycles,
+            "cycle_t_ns": s.cycle_t_ns,
+            "newest_frame_t_ns": s.newest_frame_t_ns,
+            "lag_ns": lag,
+            "cycle_ms": None if math.isnan(s.cycle_ms) else s.cycle_ms,
+            "frames": s.frames,
+            "skipped": s.skipped,
+            "done": s.done,
+            "error": s.error,
+            "log": str(live.log_path),
+        }
+
+    @app.get("/v1/self")
+    def self_state(t_ns: int | None = None, frame: str = "world") -> dict:
+        """The vehicle's own state as of ``t_ns`` (default: now) in ``frame``."""
+
+        def go(w: Any) -> Any:
+            if w.self_id is None:
+                raise WhatIsError("no self state yet: no sweep has been fused")
+            return w.entity(w.self_id, t_ns, frame)
+
+        ans, cycle = ask(go)
+        return _entity_json(ans, cycle)
+
+    @app.get("/v1/entities/{entity_id}")
+    def entity(entity_id: int, t_ns: int | None = None, frame: str = "world") -> dict:
+        """Entity ``entity_id`` as of ``t_ns`` (default: now) in ``frame``: world, base_link,
+        ladar, egosphere or map:<level>."""
+        ans, cycle = ask(lambda w: w.entity(entity_id, t_ns, frame))
+        return _entity_json(ans, cycle)
+
+    @app.get("/v1/entities")
+    def region(
+        x: float | None = None,
+        y: float | None = None,
+        radius_m: Annotated[float | None, Query(gt=0, le=1e5)] = None,
+        x_min: float | None = None,
+        y_min: float | None = None,
+        x_max: float | None = None,
+        y_max: float | None = None,
+        cls: Annotated[list[str] | None, Query(alias="class")] = None,
+        status: Annotated[list[str] | None, Query()] = None,
+        min_confidence: Annotated[float, Query(ge=0.0, le=1.0)] = 0.0,
+        level: Annotated[list[int] | None, Query()] = None,
+    ) -> dict:
+        """Entities whose current position lies in a circle (x, y, radius_m) or a box (x_min,
+        y_min, x_max, y_max), world frame, passing the class, status, confidence and level
+        filters."""
+        circle = (x, y, radius_m)
+        box = (x_min, y_min, x_max, y_max)
+        if all(v is not None for v in circle) and all(v is None for v in box):
+            vals = circle
+            shape = kd_store.Circle("world", (float(x), float(y)), float(radius_m))
+        elif all(v is not None for v in box) and all(v is None for v in circle):
+            vals = box
+            if not (x_min < x_max and y_min < y_max):
+                raise HTTPException(400, f"box {box}: need x_min < x_max and y_min < y_max")
+            shape = kd_store.Box("world", (x_min, y_min, -math.inf), (x_max, y_max, math.inf))
+        else:
+            raise HTTPException(
+                400, f"give a circle (x, y, radius_m) or a box (x_min, y_min, x_max, y_max), "
+                f"got circle {circle}, box {box}",
+            )  # fmt: skip
+        if not all(math.isfinite(v) for v in vals):
+            raise HTTPException(400, f"region {vals}: values must be finite")
+        try:
+            statuses = [kd_store.Status(s) for s in status] if status else None
+        except ValueError:
+            raise HTTPException(
+                400, f"status {status}: known are {[s.value for s in kd_store.Status]}"
+            ) from None
+
+        def go(w: Any) -> list[dict]:
+            ans = w.region(shape, cls, statuses, min_confidence, level)
+            out = []
+            for i, t in zip(ans.ids.tolist(), ans.t_state_ns.tolist(), strict=True):
+                f = w.kd.get(int(i))
+                out.append({
+                    "entity_id": int(i), "t_ns": int(t), "name": f.name,
+                    "class_name": f.most_specific_class, "status": f.status.value,
+                    "confidence": float(f.confidence), "position": _vec(f.state.position_xyz),
+                    "velocity": _vec(f.state.velocity_xyz),
+                })  # fmt: skip
+            return out
+
+        ents, cycle = ask(go)
+        return {"cycle_t_ns": cycle, "frame": "world", "entities": ents}
+
+    @app.get("/v1/events")
+    def events(t_from_ns: int, t_to_ns: int, class_name: str | None = None) -> dict:
+        """Events overlapping [t_from_ns, t_to_ns], in start-time order."""
+
+        def go(w: Any) -> list[dict]:
+            return [_event_json(e) for e in w.events(t_from_ns, t_to_ns, class_name)]
+
+        evs, cycle = ask(go)
+        return {"cycle_t_ns": cycle, "events": evs}
+
+    limits = QueryLimits(timeout_s=10.0)
+
+    @app.post("/v1/sql")
+    def sql(req: SQLRequest) -> dict:
+        """One read-only SELECT over the KD's views (docs/kd.md); JSON columns and rows (at
+        most 100 000 rows; ``truncated`` says when there were more)."""
+        with live.lock:
+            if live.kd is None or live.closed:
+                raise HTTPException(503, "the KD is not open (not started, or stopped)")
+            live.kd.flush()  # the views show long-term memory up to this cycle
+            reader = live.kd.reader()
+            cycle = live.status.cycle_t_ns
+        try:
+            table = query_reader(reader, req.query, limits)
+        except KDError as e:
+            raise bad(e) from None
+        finally:
+            reader.close()
+        truncated = table.num_rows > MAX_SQL_ROWS
+        table = table.slice(0, MAX_SQL_ROWS)
+        rows = [[_json_value(v) for v in r.values()] for r in table.to_pylist()]
+        return {
+            "cycle_t_ns": cycle,
+            "columns": table.column_names,
+            "rows": rows,
+            "truncated": truncated,
+        }
+
+    return app
+
+
+def serve(
+    live: LiveNode, host: str = "127.0.0.1", port: int = 8765, token: str | None = None
+) -> None:
+    """Run the API over ``live`` with uvicorn until interrupted."""
+    import uvicorn
+
+    uvicorn.run(create_app(live, token), host=host, port=port, log_level="warning")
