@@ -106,7 +106,7 @@ def test_region_lookup_and_events_match_the_kd(server) -> None:
     """At the end of the log: every entity a circle query returns lies in the circle and is
     the one the entity lookup and the SQL view give; events have their times in order."""
     live, base, _ = server
-    assert live.wait(120) and not live.status.error
+    assert live.wait(600) and not live.status.error
     code, me = call(base, "/v1/self")
     assert code == 200
     x, y = me["position"][:2]
@@ -166,7 +166,7 @@ def test_the_python_client_reads_as_what_is(server) -> None:
     from wm.client import Client, ClientError
 
     live, base, _ = server
-    assert live.wait(120)
+    assert live.wait(600)
     c = Client(base, token=TOKEN)
     me = c.self_state()
     assert me == call(base, "/v1/self")[1]
@@ -183,13 +183,61 @@ def test_the_python_client_reads_as_what_is(server) -> None:
     assert err.value.status == 401
 
 
+def test_what_if_judges_many_plans_and_says_why(server) -> None:
+    """Two plans from the present: stand still, or drive at 3 m/s straight through a
+    confirmed object the KD holds. The second collides with that object (its id in the
+    answer and in the words of ``why``), carries the collision risk, and is not the best."""
+    live, base, _ = server
+    assert live.wait(600)
+    _, me = call(base, "/v1/self")
+    x, y = me["position"][:2]
+    _, reg = call(base, f"/v1/entities?x={x}&y={y}&radius_m=40&level=4&status=confirmed")
+    objs = [e for e in reg["entities"] if e["name"] != "self" and e["entity_id"] != me["entity_id"]]
+    assert objs, "no confirmed object within 40 m to drive into"
+    target = min(objs, key=lambda e: math.hypot(e["position"][0] - x, e["position"][1] - y))
+    tx, ty = target["position"][:2]
+    d = math.hypot(tx - x, ty - y)
+    beyond = (x + (tx - x) * (d + 5) / d, y + (ty - y) * (d + 5) / d)
+    plans = [
+        {"name": "stay", "t_s": [0.0, 10.0], "speed_mps": [0.0, 0.0], "curvature_1pm": [0, 0]},
+        {"name": "through", "t_s": [0.0, (d + 5) / 3.0], "xy": [[x, y], list(beyond)]},
+    ]
+    code, ans = call(base, "/v1/whatif", {"plans": plans, "horizon_s": (d + 5) / 3.0})
+    assert code == 200, ans
+    from wm.client import Client
+
+    assert Client(base, TOKEN).simulate(plans, horizon_s=(d + 5) / 3.0)["plans"] == ans["plans"]
+    stay, through = ans["plans"]
+    assert stay["collision_entity"] is None and "clear" in stay["why"]
+    assert through["collision_entity"] is not None
+    assert f"entity {through['collision_entity']}" in through["why"]
+    assert through["risk"] > stay["risk"] and ans["best"] == 0
+
+
+@pytest.mark.parametrize(
+    ("plans", "extra", "code", "names"),
+    [
+        ([{"t_s": [0.0, 2.0, 1.0], "xy": [[0, 0], [1, 0], [2, 0]]}], {}, 400, "t_s[1]=2.0"),
+        ([{"t_s": [0.0, 1.0], "xy": [[0, 0], [1, float("nan")]]}], {}, 422, "xy"),
+        ([{"t_s": [0.0, 1.0], "xy": [[0, 0], [1, 0]]}], {"level": "galaxy"}, 400, "galaxy"),
+        ([{"t_s": [0.0, 1.0]}], {}, 400, "not neither"),
+        ([{"t_s": [0.0], "xy": [[0, 0]]}] * 101, {}, 422, "plans"),
+    ],
+)
+def test_bad_plans_get_a_4xx_naming_the_value(server, plans, extra, code, names) -> None:
+    _, base, _ = server
+    got, answer = call(base, "/v1/whatif", {"plans": plans, **extra})
+    assert got == code, answer
+    assert names in json.dumps(answer)
+
+
 def test_the_kd_file_holds_what_the_api_served(server) -> None:
     """After the node stops, the KD file (written by the live node, flushed as it went) holds
     the confirmed entities the API listed, at the positions it gave."""
     import kd_store
 
     live, base, kd_path = server
-    assert live.wait(120)
+    assert live.wait(600)
     _, me = call(base, "/v1/self")
     x, y = me["position"][:2]
     _, reg = call(base, f"/v1/entities?x={x}&y={y}&radius_m=100&level=4&status=confirmed")
@@ -219,7 +267,7 @@ def test_wm_serve_runs_as_its_own_process_and_stops_cleanly(log, tmp_path) -> No
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline, st = time.time() + 120, None
+        deadline, st = time.time() + 600, None
         while time.time() < deadline:
             try:
                 code, st = call(base, "/v1/status")

@@ -98,6 +98,21 @@ class Client:
             "/v1/events", {"t_from_ns": t_from_ns, "t_to_ns": t_to_ns, "class_name": class_name}
         )
 
+    def simulate(
+        self,
+        plans: list[dict],
+        level: str = "subsystem",
+        horizon_s: float | None = None,
+        goal_xy: tuple[float, float] | None = None,
+    ) -> dict:
+        """What If with value judgment (``POST /v1/whatif``): ``plans`` as dictionaries, each
+        ``{"name", "t_s", "xy"}`` (waypoints, world m) or ``{"name", "t_s", "speed_mps",
+        "curvature_1pm"}`` (controls); per plan cost, risk, benefit, score, first collision,
+        why, and the rolled-out path; ``best`` the highest score's index."""
+        body = {"plans": plans, "level": level, "horizon_s": horizon_s,
+                "goal_xy": None if goal_xy is None else list(goal_xy)}  # fmt: skip
+        return self._call("/v1/whatif", body=body)
+
     def sql(self, query: str) -> dict:
         """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns"}``."""
         return self._call("/v1/sql", body={"query": query})
