@@ -92,9 +92,14 @@ def test_answers_come_while_the_node_runs_and_follow_it(server, log) -> None:
         time.sleep(0.1)
     code, s1 = call(base, "/v1/self")
     assert code == 200 and s1["frame"] == "world" and not live.status.done
-    time.sleep(1.0)
-    code, s2 = call(base, "/v1/self")
-    assert code == 200 and s2["cycle_t_ns"] > s1["cycle_t_ns"]
+    deadline = time.time() + 120  # a loaded host may run the replay slower than its rate
+    while True:
+        code, s2 = call(base, "/v1/self")
+        assert code == 200
+        if s2["t_ns"] - s1["t_ns"] >= 1_000_000_000 or time.time() > deadline:
+            break
+        time.sleep(0.2)
+    assert s2["cycle_t_ns"] > s1["cycle_t_ns"]
     code, st = call(base, "/v1/status")
     assert code == 200 and 0 <= st["lag_ns"] < 1_000_000_000 and st["cycles"] >= 5
     moved = np.linalg.norm(np.subtract(s2["position"], s1["position"]))
