@@ -373,7 +373,8 @@ class SensoryProcessor:
             attrs = segment_attributes(labels, xyz_w, inten, rng0, t_off, gz)
         # people walking side by side, joined by proximity, are cut where their tracks predict
         split = split_by_predictions(
-            labels, xyz_w, self._predicted_people_xy(t_ns), cfg.split_near_m,
+            labels, xyz_w, self._predicted_people_xy(t_ns), attrs.center_xyz[:, :2],
+            0.5 * np.hypot(attrs.length_m, attrs.width_m), cfg.split_near_m,
             cfg.split_min_apart_m, seg_cfg.min_pixels,
         )  # fmt: skip
         if split is not labels:

@@ -579,6 +579,8 @@ def split_by_predictions(
     labels: np.ndarray,
     points_world: np.ndarray,
     centres_xy: np.ndarray,
+    seg_center_xy: np.ndarray,
+    seg_radius_m: np.ndarray,
     near_m: float,
     min_apart_m: float,
     min_pixels: int,
@@ -592,36 +594,37 @@ def split_by_predictions(
     smaller than ``min_pixels`` returns.
 
     labels (H, W) int64 (-1 none, 0..K-1); points_world (H, W, 3) m; centres_xy (C, 2) world
-    xy of the predicted people, m; a prediction counts for a segment when one of its returns
-    lies within ``near_m`` of it. Returns new labels, the cut-off parts numbered from K on, or
-    ``labels`` itself when nothing was cut.
+    xy of the predicted people, m; seg_center_xy (K, 2) and seg_radius_m (K,) each segment's
+    footprint centre and half diagonal (only segments reaching two predictions are looked
+    at); a prediction counts for a segment when one of its returns lies within ``near_m`` of
+    it. Returns new labels, the cut-off parts numbered from K on, or ``labels`` itself when
+    nothing was cut.
     """
-    if len(centres_xy) < 2 or not (labels >= 0).any():
+    if len(centres_xy) < 2 or len(seg_center_xy) == 0:
         return labels
-    has = labels >= 0
-    lab = labels[has]
-    xy = points_world[has][:, :2]
-    d = np.linalg.norm(xy[:, None, :] - centres_xy[None, :, :], axis=2)  # (N, C)
-    near = np.zeros((int(lab.max()) + 1, len(centres_xy)), dtype=bool)
-    ii, cc = np.nonzero(d <= near_m)
-    near[lab[ii], cc] = True
+    reach = np.linalg.norm(seg_center_xy[:, None, :] - centres_xy[None, :, :], axis=2)
+    reach = reach <= seg_radius_m[:, None] + near_m  # (K, C)
     out, next_label = labels, int(labels.max()) + 1
-    for k in np.flatnonzero(near.sum(axis=1) >= 2):
-        cs = np.flatnonzero(near[k])
+    for k in np.flatnonzero(reach.sum(axis=1) >= 2):
+        rows, cols = np.nonzero(labels == k)
+        xy = points_world[rows, cols, :2]
+        cs = np.flatnonzero(reach[k])
+        d = np.linalg.norm(xy[:, None, :] - centres_xy[cs][None, :, :], axis=2)  # (n, c)
+        cs_in = d.min(axis=0) <= near_m
+        if cs_in.sum() < 2:
+            continue
+        cs, d = cs[cs_in], d[:, cs_in]
         c_xy = centres_xy[cs]
         gaps = np.linalg.norm(c_xy[:, None] - c_xy[None], axis=2)[np.triu_indices(len(cs), 1)]
         if gaps.min() < min_apart_m:
             continue
-        pix = np.flatnonzero(lab == k)
-        part = np.argmin(d[np.ix_(pix, cs)], axis=1)
-        n = np.bincount(part, minlength=len(cs))
-        if n.min() < min_pixels:
+        part = np.argmin(d, axis=1)
+        if np.bincount(part, minlength=len(cs)).min() < min_pixels:
             continue
         if out is labels:
             out = labels.copy()
-        flat = np.flatnonzero(has.reshape(-1))[pix]
         for j in range(1, len(cs)):
-            out.reshape(-1)[flat[part == j]] = next_label
+            out[rows[part == j], cols[part == j]] = next_label
             next_label += 1
     return out
 

@@ -294,6 +294,17 @@ def test_line_continuity_does_not_take_a_car_parked_along_the_wall() -> None:
     assert lab[1] not in (lab[0], lab[2])
 
 
+def _footprints(labels: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each segment's xy centre (K, 2) and half diagonal (K,), m."""
+    K = int(labels.max()) + 1
+    c, r = np.zeros((K, 2)), np.zeros(K)
+    for k in range(K):
+        p = xyz[labels == k][:, :2]
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        c[k], r[k] = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
+    return c, r
+
+
 def _walkers(x_m: float = 12.0):
     """Two bodies (0.25 x 0.5 x 1.8 m) shoulder to shoulder, one a step (0.3 m) behind."""
     a = ((x_m, -0.6, -SENSOR_H), (x_m + 0.25, -0.1, 0.0))
@@ -310,7 +321,7 @@ def test_a_segment_holding_two_predicted_people_is_cut_between_them() -> None:
     labels = label_objects(xyz, rng, hit >= 0, ROW_STEP, COL_STEP)
     assert one_label(labels, hit >= 0) == 0  # joined
     centres = np.array([[12.12, -0.35], [12.42, 0.15]])
-    out = split_by_predictions(labels, xyz, centres, 0.4, 0.5, 4)
+    out = split_by_predictions(labels, xyz, centres, *_footprints(labels, xyz), 0.4, 0.5, 4)
     assert apart(out, hit == 0, hit == 1)
     assert np.unique(out[hit == 0]).size == 1 and np.unique(out[hit == 1]).size == 1
 
@@ -323,7 +334,10 @@ def test_one_prediction_close_or_tiny_parts_leave_a_segment_whole() -> None:
     xyz, rng, hit = cast(_walkers())
     labels = label_objects(xyz, rng, hit >= 0, ROW_STEP, COL_STEP)
     for centres in ([[12.12, -0.35]], [[12.12, -0.35], [12.2, -0.1]]):
-        out = split_by_predictions(labels, xyz, np.array(centres), 0.4, 0.5, 4)
+        out = split_by_predictions(
+            labels, xyz, np.array(centres), *_footprints(labels, xyz), 0.4, 0.5, 4
+        )
         assert out is labels
     centres = np.array([[12.12, -0.35], [12.42, 0.15]])
-    assert split_by_predictions(labels, xyz, centres, 0.4, 0.5, 10_000) is labels
+    foot = _footprints(labels, xyz)
+    assert split_by_predictions(labels, xyz, centres, *foot, 0.4, 0.5, 10_000) is labels
