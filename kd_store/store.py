@@ -940,6 +940,31 @@ class KnowledgeDatabase:
         with self._lock:
             return _read_only_query(_cursor(self._con), query)
 
+    def current_columns(self) -> dict[str, np.ndarray]:
+        """Copies of every live entity's current state and filter keys (N rows, slot order),
+        for a reader in another thread that must not wait for the writer: ``id`` (N,) int64,
+        ``t_ns`` (N,) int64 (the current state's time, int64 min without one), ``frame`` (N,)
+        object (its frame name, None without a state), ``position`` and ``velocity`` (N, 3)
+        m and m/s in that frame, ``status`` (N,) object (names), ``level`` (N,) int8,
+        ``confidence`` (N,), ``class_name`` (N,) object (the most specific class, or None).
+        Call it from the writer's thread (between two of its changes)."""
+        c, n = self._cols, self._cols.n
+        live = np.flatnonzero(c.alive[:n])
+        frames = np.array([None, *self._frame_names], object)
+        classes = np.array([None, *sorted(self._class_code, key=self._class_code.get)], object)
+        statuses = np.array([s.value for s in Status], object)
+        return {
+            "id": c.id[live].copy(),
+            "t_ns": c.t_ns[live].copy(),
+            "frame": frames[c.frame[live] + 1],
+            "position": c.pos[live].copy(),
+            "velocity": c.vel[live].copy(),
+            "status": statuses[c.status[live]],
+            "level": c.level[live].copy(),
+            "confidence": c.confidence[live].copy(),
+            "class_name": classes[c.klass[live] + 1],
+        }
+
     def reader(self) -> SQLReader:
         """A reader for another thread: its own cursor, a consistent snapshot per query."""
         with self._lock:

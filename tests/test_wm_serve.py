@@ -124,6 +124,17 @@ def test_region_lookup_and_events_match_the_kd(server) -> None:
         assert e["status"] == "confirmed"
         code, one = call(base, f"/v1/entities/{e['entity_id']}")
         assert code == 200 and one["position"] == pytest.approx(e["position"])
+        # as of its state's time: What Is under the node's lock, not the cycle's copy
+        code, then = call(base, f"/v1/entities/{e['entity_id']}?t_ns={e['t_ns']}")
+        assert code == 200 and then["position"] == pytest.approx(e["position"])
+        assert then["class_name"] == e["class_name"] and then["status"] == e["status"]
+    for name in {e["class_name"] for e in ents if e["class_name"]}:
+        q = f"/v1/entities?x={x}&y={y}&radius_m=100&level=4&status=confirmed&class={name}"
+        code, by_class = call(base, q.replace(" ", "%20"))
+        assert code == 200
+        assert {e["entity_id"] for e in by_class["entities"]} >= {
+            e["entity_id"] for e in ents if e["class_name"] == name
+        }
     ids = ",".join(str(e["entity_id"]) for e in ents)
     code, rows = call(base, "/v1/sql", {"query": f"SELECT id FROM entities WHERE id IN ({ids})"})
     assert code == 200 and sorted(r[0] for r in rows["rows"]) == sorted(
@@ -197,7 +208,7 @@ def test_what_if_judges_many_plans_and_says_why(server) -> None:
     _, me = call(base, "/v1/self")
     x, y = me["position"][:2]
     _, reg = call(base, f"/v1/entities?x={x}&y={y}&radius_m=40&level=4&status=confirmed")
-    objs = [e for e in reg["entities"] if e["name"] != "self" and e["entity_id"] != me["entity_id"]]
+    objs = [e for e in reg["entities"] if e["entity_id"] != me["entity_id"]]
     assert objs, "no confirmed object within 40 m to drive into"
     target = min(objs, key=lambda e: math.hypot(e["position"][0] - x, e["position"][1] - y))
     tx, ty = target["position"][:2]

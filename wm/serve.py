@@ -8,7 +8,10 @@ answers What Is? queries from BG and other modules"; docs/architecture.md, the n
 own, paced by their stamps (``rate`` times real time; 0: as fast as it can), and flushes the KD
 as ``wm run`` does. A query takes the node's lock, so it sees the KD between two cycles, never
 in the middle of one: an answer is at most one cycle behind the newest fused sweep, and says
-which (``cycle_t_ns``).
+which (``cycle_t_ns``). Lookups of the present in the world frame (self, an entity, a region
+without a class filter) are answered from a copy of the KD's entity columns the node takes at
+the end of each cycle (:class:`CycleSnapshot`), without waiting for the cycle in progress;
+SQL reads the KD file as of the node's last flush (each second of log time).
 
 :func:`create_app` is the HTTP API (FastAPI; OpenAPI schema at ``/openapi.json``), versioned
 under ``/v1``. Every answer carries the time of the cycle it comes from (``cycle_t_ns``, int64
@@ -56,11 +59,38 @@ class LiveStatus:
     cycle_t_ns: int = -1  # the newest cycle's sweep time
     newest_frame_t_ns: int = -1  # the newest frame read from the log
     cycle_ms: float = math.nan  # wall time of the newest cycle
+    feed_s: float = 0.0  # wall time spent feeding the node (all cycles), s
     frames: int = 0
     skipped: int = 0
     done: bool = False
     error: str = ""
     started_wall_s: float = field(default_factory=time.time)
+
+
+@dataclass(frozen=True)
+class CycleSnapshot:
+    """The KD's entities as one cycle left them (:meth:`KnowledgeDatabase.current_columns`),
+    so lookups and region queries are answered without waiting for the cycle in progress."""
+
+    cycle_t_ns: int
+    self_id: int | None
+    cols: dict[str, np.ndarray]
+    row: dict[int, int]
+
+    @classmethod
+    def of(cls, kd: Any, self_id: int | None, cycle_t_ns: int) -> CycleSnapshot:
+        cols = kd.current_columns()
+        return cls(cycle_t_ns, self_id, cols, {int(i): k for k, i in enumerate(cols["id"])})
+
+    def entity(self, k: int) -> dict:
+        c = self.cols
+        return {
+            "entity_id": int(c["id"][k]), "t_ns": int(c["t_ns"][k]),
+            "cycle_t_ns": self.cycle_t_ns, "frame": c["frame"][k],
+            "position": _vec(c["position"][k]), "velocity": _vec(c["velocity"][k]),
+            "status": c["status"][k], "confidence": float(c["confidence"][k]),
+            "class_name": c["class_name"][k], "source": "current", "note": "",
+        }  # fmt: skip
 
 
 class LiveNode:
@@ -87,6 +117,7 @@ class LiveNode:
         self.status = LiveStatus()
         self.node: Any | None = None
         self.kd: Any | None = None
+        self.snapshot: CycleSnapshot | None = None
         self.closed = False
         self._ready = threading.Event()
         self._stop = threading.Event()
@@ -161,13 +192,18 @@ class LiveNode:
             self._feed(frame)
         with self.lock:
             cycles = self.node.finish()
+            if cycles:
+                self.snapshot = CycleSnapshot.of(self.kd, self.node.self_id, int(cycles[-1].t_ns))
         self._account(cycles, 0.0)
 
     def _feed(self, frame: Any) -> None:
         t = time.perf_counter()
         with self.lock:
             cycles = self.node.feed(frame)
+            if cycles:
+                self.snapshot = CycleSnapshot.of(self.kd, self.node.self_id, int(cycles[-1].t_ns))
         self.status.frames += 1
+        self.status.feed_s += time.perf_counter() - t
         self.status.newest_frame_t_ns = max(self.status.newest_frame_t_ns, int(frame.t_ns))
         self._account(cycles, time.perf_counter() - t)
 
@@ -363,6 +399,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
             "newest_frame_t_ns": s.newest_frame_t_ns,
             "lag_ns": lag,
             "cycle_ms": None if math.isnan(s.cycle_ms) else s.cycle_ms,
+            "mean_cycle_ms": 1e3 * s.feed_s / s.cycles if s.cycles else None,
             "frames": s.frames,
             "skipped": s.skipped,
             "done": s.done,
@@ -373,6 +410,11 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
     @app.get("/v1/self")
     def self_state(t_ns: int | None = None, frame: str = "world") -> dict:
         """The vehicle's own state as of ``t_ns`` (default: now) in ``frame``."""
+        snap = live.snapshot
+        if t_ns is None and frame == "world" and snap is not None and snap.self_id is not None:
+            k = snap.row.get(int(snap.self_id))
+            if k is not None and snap.cols["frame"][k] == "world":
+                return snap.entity(k)
 
         def go(w: Any) -> Any:
             if w.self_id is None:
@@ -386,6 +428,11 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
     def entity(entity_id: int, t_ns: int | None = None, frame: str = "world") -> dict:
         """Entity ``entity_id`` as of ``t_ns`` (default: now) in ``frame``: world, base_link,
         ladar, egosphere or map:<level>."""
+        snap = live.snapshot
+        if t_ns is None and frame == "world" and snap is not None:
+            k = snap.row.get(int(entity_id))
+            if k is not None and snap.cols["frame"][k] == "world":
+                return snap.entity(k)
         ans, cycle = ask(lambda w: w.entity(entity_id, t_ns, frame))
         return _entity_json(ans, cycle)
 
@@ -430,18 +477,23 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
                 400, f"status {status}: known are {[s.value for s in kd_store.Status]}"
             ) from None
 
+        snap = live.snapshot
+        if not cls and snap is not None:  # class filters need the class library: the lock
+            c = snap.cols
+            keep = (c["frame"] == "world") & (c["confidence"] >= min_confidence)
+            keep &= shape.contains(c["position"]) if len(c["id"]) else keep
+            if statuses:
+                keep &= np.isin(c["status"], [s.value for s in statuses])
+            if level:
+                keep &= np.isin(c["level"], level)
+            rows = np.flatnonzero(keep)
+            rows = rows[np.argsort(c["id"][rows])]
+            return {"cycle_t_ns": snap.cycle_t_ns, "frame": "world",
+                    "entities": [snap.entity(int(k)) for k in rows]}  # fmt: skip
+
         def go(w: Any) -> list[dict]:
             ans = w.region(shape, cls, statuses, min_confidence, level)
-            out = []
-            for i, t in zip(ans.ids.tolist(), ans.t_state_ns.tolist(), strict=True):
-                f = w.kd.get(int(i))
-                out.append({
-                    "entity_id": int(i), "t_ns": int(t), "name": f.name,
-                    "class_name": f.most_specific_class, "status": f.status.value,
-                    "confidence": float(f.confidence), "position": _vec(f.state.position_xyz),
-                    "velocity": _vec(f.state.velocity_xyz),
-                })  # fmt: skip
-            return out
+            return [_entity_json(w.entity(int(i)), live.status.cycle_t_ns) for i in ans.ids]
 
         ents, cycle = ask(go)
         return {"cycle_t_ns": cycle, "frame": "world", "entities": ents}
@@ -460,14 +512,15 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
 
     @app.post("/v1/sql")
     def sql(req: SQLRequest) -> dict:
-        """One read-only SELECT over the KD's views (docs/kd.md); JSON columns and rows (at
-        most 100 000 rows; ``truncated`` says when there were more)."""
-        with live.lock:
-            if live.kd is None or live.closed:
-                raise HTTPException(503, "the KD is not open (not started, or stopped)")
-            live.kd.flush()  # the views show long-term memory up to this cycle
-            reader = live.kd.reader()
-            cycle = live.status.cycle_t_ns
+        """One read-only SELECT over the KD's views (docs/kd.md) as of the node's last flush
+        (at most a second of log time before ``cycle_t_ns``); JSON columns and rows (at most
+        100 000 rows; ``truncated`` says when there were more)."""
+        if live.kd is None or live.closed:
+            raise HTTPException(503, "the KD is not open (not started, or stopped)")
+        # the views as of the node's last flush (at most a second of log time old): a reader
+        # needs only the KD's own lock, not the node's, so SQL never waits for a cycle
+        reader = live.kd.reader()
+        cycle = live.status.cycle_t_ns
         try:
             table = query_reader(reader, req.query, limits)
         except KDError as e:
