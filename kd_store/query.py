@@ -60,10 +60,16 @@ def served_settings(limits: QueryLimits = QueryLimits()) -> dict[str, object]:
 def query_reader(reader, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
     """One read-only SELECT through ``reader`` (a :class:`kd_store.store.SQLReader` of a KD
     opened with :func:`served_settings`), interrupted after ``limits.timeout_s``."""
-    timer = threading.Timer(limits.timeout_s, reader.interrupt)
+    return _time_limited(sql, limits, lambda: reader.sql(sql), reader.interrupt)
+
+
+def _time_limited(sql: str, limits: QueryLimits, run, interrupt) -> pa.Table:
+    """``run()`` with ``interrupt()`` called after ``limits.timeout_s``; a query stopped so
+    raises KDError saying it was the time limit."""
+    timer = threading.Timer(limits.timeout_s, interrupt)
     timer.start()
     try:
-        return reader.sql(sql)
+        return run()
     except KDError:
         if not timer.is_alive():
             raise KDError(f"SQL {sql!r}: stopped after the {limits.timeout_s:g} s limit") from None
@@ -81,14 +87,7 @@ def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) 
     if not p.is_file():
         raise FileNotFoundError(f"KD file {p} does not exist")
     con = persist.connect(p, read_only=True, settings=sandbox_settings(limits))
-    timer = threading.Timer(limits.timeout_s, con.interrupt)
-    timer.start()
     try:
-        return _read_only_query(con, sql)
-    except KDError:
-        if not timer.is_alive():
-            raise KDError(f"SQL {sql!r}: stopped after the {limits.timeout_s:g} s limit") from None
-        raise
+        return _time_limited(sql, limits, lambda: _read_only_query(con, sql), con.interrupt)
     finally:
-        timer.cancel()
         con.close()

@@ -78,6 +78,22 @@ def test_a_query_over_its_time_stops_with_a_clear_error(kd_file):
         query_file(kd_file, slow, QueryLimits(timeout_s=0.5))
 
 
+def test_a_served_kd_stops_a_reader_query_over_its_time(tmp_path):
+    """The live node's SQL path: a KD opened with the served settings, queried through a
+    reader of another thread, is interrupted at the limit and still answers afterwards."""
+    import kd_store
+    from kd_store.query import query_reader, served_settings
+
+    with kd_store.open(tmp_path / "served.duckdb", settings=served_settings()) as kd:
+        kd.flush()
+        reader = kd.reader()
+        slow = "SELECT count(*) FROM range(10000000000) a WHERE a.range % 7 = 3"
+        with pytest.raises(KDError, match="limit"):
+            query_reader(reader, slow, QueryLimits(timeout_s=0.5))
+        assert query_reader(reader, "SELECT count(*) AS n FROM entities").to_pylist() == [{"n": 0}]
+        reader.close()
+
+
 def wm(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "wm.cli", *args], cwd=cwd, capture_output=True, text=True,

@@ -258,6 +258,7 @@ def test_the_kd_file_holds_what_the_api_served(server) -> None:
     x, y = me["position"][:2]
     _, reg = call(base, f"/v1/entities?x={x}&y={y}&radius_m=100&level=4&status=confirmed")
     live.stop()
+    assert call(base, "/v1/self")[0] == 503  # stopped: no answers from the last cycle's copy
     with kd_store.open(kd_path, read_only=True) as kd:
         for e in reg["entities"]:
             f = kd.get(e["entity_id"])

@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -64,7 +64,6 @@ class LiveStatus:
     skipped: int = 0
     done: bool = False
     error: str = ""
-    started_wall_s: float = field(default_factory=time.time)
 
 
 @dataclass(frozen=True)
@@ -141,6 +140,7 @@ class LiveNode:
             if self.kd is not None and not self.closed:
                 self.kd.close()
             self.closed = True
+            self.snapshot = None
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Wait for the end of the log; True when the replay is done."""
@@ -190,22 +190,24 @@ class LiveNode:
                 if ahead > 0 and self._stop.wait(ahead):
                     return
             self._feed(frame)
-        with self.lock:
-            cycles = self.node.finish()
-            if cycles:
-                self.snapshot = CycleSnapshot.of(self.kd, self.node.self_id, int(cycles[-1].t_ns))
-        self._account(cycles, 0.0)
+        self._account(self._cycle(self.node.finish), 0.0)
 
     def _feed(self, frame: Any) -> None:
         t = time.perf_counter()
-        with self.lock:
-            cycles = self.node.feed(frame)
-            if cycles:
-                self.snapshot = CycleSnapshot.of(self.kd, self.node.self_id, int(cycles[-1].t_ns))
+        cycles = self._cycle(lambda: self.node.feed(frame))
         self.status.frames += 1
         self.status.feed_s += time.perf_counter() - t
         self.status.newest_frame_t_ns = max(self.status.newest_frame_t_ns, int(frame.t_ns))
         self._account(cycles, time.perf_counter() - t)
+
+    def _cycle(self, step: Any) -> list:
+        """Run ``step()`` (feed or finish) under the lock; when it ran cycles, copy the
+        entities the last one left for the lock-free lookups."""
+        with self.lock:
+            cycles = step()
+            if cycles:
+                self.snapshot = CycleSnapshot.of(self.kd, self.node.self_id, int(cycles[-1].t_ns))
+        return cycles
 
     def _account(self, cycles: list, wall_s: float) -> None:
         if cycles:
@@ -255,31 +257,21 @@ def _event_json(e: Any) -> dict:
     }
 
 
-def _json_safe(v: Any) -> Any:
-    """``v`` with every non-finite float written as a string ("nan", "inf"), and anything
-    JSON cannot hold as its ``str``."""
+def _json_value(v: Any) -> Any:
+    """``v`` as JSON can hold it: NaN and infinities as null, bytes as hex, containers
+    walked, anything else unknown as its ``str`` (for the echoed input of a validation
+    error and the values of a SQL result)."""
     if isinstance(v, float):
-        return v if math.isfinite(v) else str(v)
+        return v if math.isfinite(v) else None
+    if isinstance(v, bytes):
+        return v.hex()
     if isinstance(v, dict):
-        return {str(k): _json_safe(x) for k, x in v.items()}
+        return {str(k): _json_value(x) for k, x in v.items()}
     if isinstance(v, list | tuple):
-        return [_json_safe(x) for x in v]
+        return [_json_value(x) for x in v]
     if v is None or isinstance(v, str | int | bool):
         return v
     return str(v)
-
-
-def _json_value(v: Any) -> Any:
-    """A value of a SQL result as JSON has it (NaN and infinities as null)."""
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, bytes):
-        return v.hex()
-    if isinstance(v, list):
-        return [_json_value(x) for x in v]
-    if isinstance(v, dict):
-        return {k: _json_value(x) for k, x in v.items()}
-    return v
 
 
 class SQLRequest(BaseModel):
@@ -372,7 +364,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
     @app.exception_handler(RequestValidationError)
     def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         # the errors echo the input, which may hold NaN or inf: JSON has no words for them
-        return JSONResponse(status_code=422, content={"detail": _json_safe(exc.errors())})
+        return JSONResponse(status_code=422, content={"detail": _json_value(exc.errors())})
 
     def bad(e: Exception, code: int = 400) -> HTTPException:
         return HTTPException(code, str(e))
@@ -407,14 +399,19 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
             "log": str(live.log_path),
         }
 
+    def present(entity_id: int | None, t_ns: int | None, frame: str) -> dict | None:
+        """The entity as the last cycle left it, when that is what was asked (now, world)."""
+        snap = live.snapshot
+        if t_ns is not None or frame != "world" or snap is None:
+            return None
+        k = snap.row.get(snap.self_id if entity_id is None else int(entity_id), -1)
+        return snap.entity(k) if k >= 0 and snap.cols["frame"][k] == "world" else None
+
     @app.get("/v1/self")
     def self_state(t_ns: int | None = None, frame: str = "world") -> dict:
         """The vehicle's own state as of ``t_ns`` (default: now) in ``frame``."""
-        snap = live.snapshot
-        if t_ns is None and frame == "world" and snap is not None and snap.self_id is not None:
-            k = snap.row.get(int(snap.self_id))
-            if k is not None and snap.cols["frame"][k] == "world":
-                return snap.entity(k)
+        if now := present(None, t_ns, frame):  # ``entity_id`` None: the self entity
+            return now
 
         def go(w: Any) -> Any:
             if w.self_id is None:
@@ -428,11 +425,8 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
     def entity(entity_id: int, t_ns: int | None = None, frame: str = "world") -> dict:
         """Entity ``entity_id`` as of ``t_ns`` (default: now) in ``frame``: world, base_link,
         ladar, egosphere or map:<level>."""
-        snap = live.snapshot
-        if t_ns is None and frame == "world" and snap is not None:
-            k = snap.row.get(int(entity_id))
-            if k is not None and snap.cols["frame"][k] == "world":
-                return snap.entity(k)
+        if now := present(entity_id, t_ns, frame):
+            return now
         ans, cycle = ask(lambda w: w.entity(entity_id, t_ns, frame))
         return _entity_json(ans, cycle)
 
@@ -481,7 +475,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
         if not cls and snap is not None:  # class filters need the class library: the lock
             c = snap.cols
             keep = (c["frame"] == "world") & (c["confidence"] >= min_confidence)
-            keep &= shape.contains(c["position"]) if len(c["id"]) else keep
+            keep &= shape.contains(c["position"])
             if statuses:
                 keep &= np.isin(c["status"], [s.value for s in statuses])
             if level:
