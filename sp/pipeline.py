@@ -75,6 +75,7 @@ from sp.segments import (
     SegmentConfig,
     label_objects,
     merge_collinear,
+    merge_grazing,
     range_edges,
     split_by_predictions,
 )
@@ -363,6 +364,14 @@ class SensoryProcessor:
         rng0 = np.where(valid, img.range_first, 0.0)
         t_off = img.t_offset_ns[..., 0]
         attrs = segment_attributes(labels, xyz_w, inten, rng0, t_off, gz)
+        # a face seen at a grazing angle breaks into strips along the line of sight: one face
+        grazed = merge_grazing(
+            attrs.center_xyz[:, :2], attrs.width_m, attrs.ground_z_m + attrs.height_m,
+            T_world_ladar[:2, 3], 2 * math.pi / W, seg_cfg,
+        )  # fmt: skip
+        if grazed.size and grazed.max() + 1 < len(attrs):
+            labels = np.where(labels >= 0, grazed[np.maximum(labels, 0)], -1)
+            attrs = segment_attributes(labels, xyz_w, inten, rng0, t_off, gz)
         # continuity: pieces of one wall or fence cut by occluders are one object
         merged = merge_collinear(
             attrs.center_xyz[:, :2], attrs.yaw_rad, attrs.length_m, attrs.width_m,

@@ -73,6 +73,12 @@ class SegmentConfig:
                      fewer returns than ``near_pixels`` whose points come closer than ``near_m``
                      (metres, 3D) are one piece.
     edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
+    graze_*:         a face seen at a grazing angle: thin pieces (at most ``graze_thick_m``
+                     across) at most ``graze_cols`` columns apart in azimuth, whose centres
+                     lie along the line of sight (within ``graze_max_deg`` of it) at most
+                     ``graze_gap_m + graze_gap_per_m * range`` apart, and whose tops differ by
+                     at most ``graze_dz_m``, are one piece, as long as all the pieces' centres
+                     stay within ``graze_thick_m`` of one line.
     """
 
     join_m: float = 0.6
@@ -90,6 +96,12 @@ class SegmentConfig:
     line_thick_m: float = 0.4
     step_m: float = 0.2
     step_frac: float = 0.01
+    graze_thick_m: float = 0.15
+    graze_cols: float = 3.0
+    graze_max_deg: float = 20.0
+    graze_gap_m: float = 0.5
+    graze_gap_per_m: float = 0.1
+    graze_dz_m: float = 1.0
     row_gap: int = 2
     near_pixels: int = 10
     near_m: float = 0.4
@@ -672,6 +684,78 @@ def merge_collinear(
     roots = np.array([_root(parent, k) for k in range(K)])
     _, new = np.unique(roots, return_inverse=True)
     return new.astype(np.int64)
+
+
+def merge_grazing(
+    center_xy: np.ndarray,
+    width_m: np.ndarray,
+    top_z_m: np.ndarray,
+    sensor_xy: np.ndarray,
+    col_step_rad: float,
+    config: SegmentConfig | None = None,
+) -> np.ndarray:
+    """Faces seen at a grazing angle: (K,) int64 new label of each of K segments (0..K'-1, in
+    order of first appearance), the pieces of one such face sharing a label.
+
+    Along a row the returns of a face at incidence ``a`` lie ``r * dtheta / sin(a)`` apart, so
+    below about 10 degrees neighbouring columns are too far apart to join and the face breaks
+    into narrow vertical strips, each a column or two of returns, that follow each other along
+    the line of sight. Strips that are thin, next to each other in azimuth and displaced along
+    the ray are one face. A person or a car in front of a wall is not thin, and a post in
+    front of one is a single strip whose top differs from the wall's.
+
+    center_xy (K, 2) world m footprint centres, width_m (K,) extents across their long axes,
+    top_z_m (K,) highest points (world z, m), sensor_xy (2,) world m, col_step_rad the
+    egosphere's column step (rad).
+    """
+    cfg = config or SegmentConfig()
+    K = center_xy.shape[0]
+    parent = np.arange(K)
+    thin = np.flatnonzero(width_m <= cfg.graze_thick_m)
+    if thin.size < 2:
+        return parent.astype(np.int64)
+    c = center_xy[thin] - sensor_xy[None, :]
+    r = np.hypot(c[:, 0], c[:, 1])
+    az = np.arctan2(c[:, 1], c[:, 0])
+    d_az = np.abs((az[:, None] - az[None, :] + np.pi) % (2 * np.pi) - np.pi)
+    d = c[None, :, :] - c[:, None, :]  # (T, T, 2) from a to b
+    dist = np.hypot(d[..., 0], d[..., 1])
+    mid = 0.5 * (c[:, None, :] + c[None, :, :])
+    ray = mid / np.maximum(np.hypot(mid[..., 0], mid[..., 1]), 1e-9)[..., None]
+    along = np.abs((d * ray).sum(axis=-1))
+    near = np.minimum(r[:, None], r[None, :])
+    ok = (
+        (d_az <= cfg.graze_cols * col_step_rad)
+        & (along >= np.cos(np.radians(cfg.graze_max_deg)) * dist)
+        & (dist <= cfg.graze_gap_m + cfg.graze_gap_per_m * near)
+        & (np.abs(top_z_m[thin, None] - top_z_m[None, thin]) <= cfg.graze_dz_m)
+    )
+    # nearest pairs first; a join stands only if the face stays one line (a chain of strips
+    # must not wander off the face onto whatever lies behind it along the same rays)
+    a_i, b_i = np.nonzero(np.triu(ok, 1))
+    members = {int(k): [int(k)] for k in thin}
+    for n in np.argsort(dist[a_i, b_i], kind="stable"):
+        ra, rb = _root(parent, int(thin[a_i[n]])), _root(parent, int(thin[b_i[n]]))
+        if ra == rb:
+            continue
+        joined = members[ra] + members[rb]
+        if _off_line_m(center_xy[joined]) > cfg.graze_thick_m:
+            continue
+        lo, hi = min(ra, rb), max(ra, rb)
+        parent[hi] = lo
+        members[lo] = joined
+    roots = np.array([_root(parent, k) for k in range(K)])
+    _, new = np.unique(roots, return_inverse=True)
+    return new.astype(np.int64)
+
+
+def _off_line_m(xy: np.ndarray) -> float:
+    """Largest distance (m) of the points ``xy`` (N, 2) from their best-fitting line."""
+    d = xy - xy.mean(axis=0)
+    if len(d) < 3:
+        return 0.0
+    _, _, vt = np.linalg.svd(d, full_matrices=False)
+    return float(np.abs(d @ vt[1]).max())
 
 
 def _root(parent: np.ndarray, k: int) -> int:

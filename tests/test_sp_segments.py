@@ -19,6 +19,7 @@ from sp.segments import (
     _range_step,
     label_objects,
     merge_collinear,
+    merge_grazing,
 )
 
 H, W = 64, 1024
@@ -341,3 +342,70 @@ def test_one_prediction_close_or_tiny_parts_leave_a_segment_whole() -> None:
     centres = np.array([[12.12, -0.35], [12.42, 0.15]])
     foot = _footprints(labels, xyz)
     assert split_by_predictions(labels, xyz, centres, *foot, 0.4, 0.5, 10_000) is labels
+
+
+# ---------------------------------------------------------------- faces at a grazing angle
+
+
+def _grazing_merge(boxes, collinear: bool = True):
+    """label_objects, then merge_grazing and (``collinear``) merge_collinear on the segments'
+    attributes, as the pipeline runs them (sensor at the origin, ground at z = -SENSOR_H);
+    returns (labels before, labels after, hit)."""
+    from sp.computation import segment_attributes
+
+    xyz, rng, hit = cast(boxes)
+    labels = label_objects(xyz, rng, hit >= 0, ROW_STEP, COL_STEP)
+    zeros = np.zeros((H, W), dtype=np.float32)
+    rng0, t_off = np.where(np.isfinite(rng), rng, 0.0), np.zeros((H, W), np.int64)
+    ground_z = np.full((H, W), -SENSOR_H)
+
+    def attrs(lab):
+        return segment_attributes(lab, xyz, zeros, rng0, t_off, ground_z)
+
+    def relabel(lab, new):
+        return np.where(lab >= 0, new[np.maximum(lab, 0)], -1)
+
+    a = attrs(labels)
+    top = a.ground_z_m + a.height_m
+    out = relabel(labels, merge_grazing(a.center_xyz[:, :2], a.width_m, top, np.zeros(2), COL_STEP))
+    if not collinear:
+        return labels, out, hit
+    a = attrs(out)
+    out = relabel(
+        out, merge_collinear(a.center_xyz[:, :2], a.yaw_rad, a.length_m, a.width_m, a.range_m)
+    )
+    return labels, out, hit
+
+
+def _share_of_largest(labels: np.ndarray, where: np.ndarray) -> float:
+    u, n = np.unique(labels[where], return_counts=True)
+    return float(n[u >= 0].max() / where.sum())
+
+
+def test_a_face_seen_at_a_grazing_angle_is_one_segment_again() -> None:
+    # a building side running away from the sensor 3 m to its left: seen at 6-17 degrees
+    side = ((10.0, 3.0, -SENSOR_H), (28.0, 3.3, 4.0))
+    before, after, hit = _grazing_merge([side])
+    face = hit == 0
+    assert np.unique(before[face & (before >= 0)]).size >= 4  # strips along the line of sight
+    assert _share_of_largest(after, face) >= 0.9
+
+
+def test_grazing_pieces_do_not_take_a_person_or_a_post_before_them() -> None:
+    side = ((10.0, 3.0, -SENSOR_H), (28.0, 3.3, 4.0))
+    walker = ((14.0, 2.2, -SENSOR_H), (14.3, 2.7, 0.0))  # 0.3 m off the face, 0.5 m wide
+    post = ((20.0, 2.5, -SENSOR_H), (20.1, 2.6, -0.6))  # 0.1 m thick, 1.2 m tall
+    _, after, hit = _grazing_merge([side, walker, post], collinear=False)
+    for k in (1, 2):
+        assert not set(after[hit == k].tolist()) & set(after[hit == 0].tolist()), k
+
+
+def test_strips_side_by_side_across_the_line_of_sight_stay_apart() -> None:
+    # two poles at the same range, a column apart in azimuth but not along the ray
+    centers = np.array([[20.0, 0.0], [20.0, 0.12]])
+    lab = merge_grazing(centers, np.full(2, 0.05), np.full(2, 2.0), np.zeros(2), COL_STEP)
+    assert lab[0] != lab[1]
+    # the same two strips one behind the other along the ray are one face
+    centers = np.array([[20.0, 0.0], [21.5, 0.0]])
+    lab = merge_grazing(centers, np.full(2, 0.05), np.full(2, 2.0), np.zeros(2), COL_STEP)
+    assert lab[0] == lab[1]
