@@ -60,12 +60,16 @@ def connect(
     path: str | Path, read_only: bool = False, settings: dict[str, object] | None = None
 ) -> duckdb.DuckDBPyConnection:
     """Open (creating if needed) a KD file, or ``":memory:"``; checks the schema version.
-    ``settings``: DuckDB configuration fixed when the connection opens."""
+    ``settings``: DuckDB configuration fixed when the connection opens (``lock_configuration``
+    is applied last, so the connection's own progress-bar setting can still be made)."""
     where = f"KD file {path}"
+    config = dict(settings or {})
+    lock = bool(config.pop("lock_configuration", False))
     try:
-        con = duckdb.connect(str(path), read_only=read_only, config=dict(settings or {}))
-        if not (settings or {}).get("lock_configuration"):
-            con.execute("SET enable_progress_bar = false")
+        con = duckdb.connect(str(path), read_only=read_only, config=config)
+        con.execute("SET enable_progress_bar = false")
+        if lock:
+            con.execute("SET lock_configuration = true")
     except duckdb.Error as e:
         raise KDError(f"{where}: cannot open ({e})") from None
     has_meta = con.execute(

@@ -38,16 +38,23 @@ class QueryLimits:
             )
 
 
-def sandbox_settings(limits: QueryLimits) -> dict[str, object]:
-    """The DuckDB configuration of an untrusted query's connection."""
+def kd_settings() -> dict[str, object]:
+    """The DuckDB configuration every KD is opened with (:func:`kd_store.open`): its SQL
+    reaches the KD's own tables and views only, never another file, directory, URL or
+    extension, and the configuration is locked so nothing run later lifts that. The engine
+    needs nothing outside: its writes register Arrow tables, and Parquet export and import go
+    through pyarrow, not DuckDB."""
     return {
         "enable_external_access": False,
         "autoinstall_known_extensions": False,
         "autoload_known_extensions": False,
-        "memory_limit": limits.memory_limit,
-        "threads": limits.threads,
         "lock_configuration": True,
     }
+
+
+def sandbox_settings(limits: QueryLimits) -> dict[str, object]:
+    """The DuckDB configuration of an untrusted query's connection."""
+    return {**kd_settings(), "memory_limit": limits.memory_limit, "threads": limits.threads}
 
 
 def served_settings(limits: QueryLimits = QueryLimits()) -> dict[str, object]:

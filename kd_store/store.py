@@ -43,6 +43,7 @@ from kd_store.frames import (
     check_state,
 )
 from kd_store.memory import ImmediateExperience, ShortTermMemory
+from kd_store.query import kd_settings
 from kd_store.relations import Relation, RelationGraph, RelationKind
 from kd_store.spatial import Box, GridIndex, Region, check_region
 from kd_store.states import StateBatch, StateColumns, check_batch
@@ -934,7 +935,9 @@ class KnowledgeDatabase:
 
     def sql(self, query: str, flush: bool = True) -> pa.Table:
         """Run one read-only SELECT over the documented views (docs/kd.md); returns Arrow.
-        Flushes first by default, so the views show long-term memory up to now."""
+        Flushes first by default, so the views show long-term memory up to now. Nothing
+        outside the KD can be reached (:func:`open`): reading a file, a URL or an extension
+        raises KDError."""
         if flush:
             self.flush()
         with self._lock:
@@ -1051,6 +1054,11 @@ def _read_only_query(cur: duckdb.DuckDBPyConnection, query: str, own_tx: bool = 
         cur.execute("BEGIN TRANSACTION")
     try:
         return cur.sql(query).to_arrow_table()
+    except duckdb.PermissionException as e:
+        raise KDError(
+            f"SQL {query!r}: refused, a KD's SQL reads the KD's own views only (docs/kd.md), "
+            f"no file, URL or extension outside it ({e})"
+        ) from None
     except duckdb.Error as e:
         raise KDError(f"SQL {query!r}: {e}") from None
     finally:
@@ -1069,9 +1077,11 @@ def open(
     ``read_only`` opens an existing file for reading (e.g. a notebook while no writer runs):
     changes stay in RAM and :meth:`KnowledgeDatabase.flush` writes nothing. A file written
     by a newer engine (higher schema version) is refused with a KDError. ``settings``: DuckDB
-    configuration fixed at opening (a KD that serves untrusted SQL is opened with
-    :func:`kd_store.query.served_settings`)."""
-    con = persist.connect(path, read_only=read_only, settings=settings)
+    configuration fixed at opening, over :func:`kd_store.query.kd_settings` (external access
+    off, configuration locked: :meth:`KnowledgeDatabase.sql` cannot read or write outside the
+    KD); a KD that serves untrusted SQL is opened with
+    :func:`kd_store.query.served_settings`."""
+    con = persist.connect(path, read_only=read_only, settings={**kd_settings(), **(settings or {})})
     kd = KnowledgeDatabase(con, str(path), config or KDConfig())
     kd._read_only = read_only
     return kd

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import duckdb
 import pytest
 
 import kd_store
@@ -115,3 +116,96 @@ def test_wm_query_parquet_never_overwrites_the_kd_or_a_folder(kd_file, tmp_path)
     assert query_file(kd_file, "SELECT count(*) AS n FROM entities").to_pylist() == [{"n": 3}]
     r = wm("query", str(kd_file), "SELECT * FROM read_csv('/etc/passwd')", cwd=tmp_path)
     assert r.returncode == 2 and "file system operations are disabled" in r.stderr
+
+
+def test_wm_query_parquet_replaces_an_existing_file_only_with_overwrite(kd_file, tmp_path):
+    import pyarrow.parquet as pq
+
+    out = tmp_path / "earlier.parquet"
+    out.write_bytes(b"an earlier result")
+    r = wm("query", str(kd_file), "SELECT id FROM entities", "--parquet", str(out), cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "exists" in r.stderr and "--overwrite" in r.stderr and str(out) in r.stderr
+    assert out.read_bytes() == b"an earlier result"
+    r = wm("query", str(kd_file), "SELECT id FROM entities", "--parquet", str(out),
+           "--overwrite", cwd=tmp_path)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert pq.read_table(out).num_rows == 3
+    fresh = tmp_path / "new.parquet"
+    r = wm("query", str(kd_file), "SELECT id FROM entities", "--parquet", str(fresh), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert pq.read_table(fresh).num_rows == 3
+
+
+# --- kd.sql, the KD's own SQL in a Python program -------------------------------------------
+
+
+@pytest.fixture(params=["memory", "file"])
+def open_kd(request, tmp_path):
+    """A KD with three trees, in memory or in a file, open for writing."""
+    kd = kd_store.open(":memory:" if request.param == "memory" else tmp_path / "own.kd")
+    for i, x in enumerate((1.0, 2.0, 5.0)):
+        kd.add_entity(
+            f"tree{i}", Level.OBJECT, status=Status.CONFIRMED, confidence=0.9,
+            generic_classes=("tree",),
+            state=State(t_ns=1_000, frame="world", position_xyz=(x, 0.0, 0.0)),
+        )  # fmt: skip
+    yield kd
+    kd.close()
+
+
+@pytest.mark.parametrize(
+    "sql",
+    [
+        "SELECT * FROM read_text('/etc/hostname')",
+        "SELECT * FROM read_csv('/etc/passwd')",
+        "SELECT * FROM glob('/etc/*')",
+        "SELECT * FROM read_blob('/etc/hostname')",
+        "SELECT * FROM read_json('/etc/passwd')",
+        "SELECT * FROM read_parquet('https://example.com/x.parquet')",
+    ],
+)
+def test_kd_sql_reads_nothing_outside_the_kd(open_kd, sql):
+    with pytest.raises(KDError, match=r"refused.*own views only") as e:
+        open_kd.sql(sql)
+    assert sql in str(e.value)
+    with pytest.raises(KDError, match="refused"):
+        open_kd.reader().sql(sql)  # another thread's reader: the same connection's walls
+
+
+@pytest.mark.parametrize(
+    "template",
+    [
+        "COPY (SELECT * FROM entities) TO '{out}'",
+        "ATTACH '{out}' AS other",
+        "INSTALL sqlite",
+        "LOAD sqlite",
+        "SET enable_external_access = true",
+    ],
+)
+def test_kd_sql_writes_nothing_and_loads_nothing(open_kd, template, tmp_path):
+    out = tmp_path / "leak.csv"
+    with pytest.raises(KDError, match="SQL"):
+        open_kd.sql(template.format(out=out))
+    assert not out.exists()
+    # and not by the back door of the connection either: DuckDB refuses it
+    with pytest.raises(duckdb.Error, match=r"disabled|locked"):
+        open_kd._con.execute(f"COPY (SELECT 1) TO '{out}'")
+    assert not out.exists()
+
+
+def test_kd_sql_still_answers_over_the_views_and_the_kd_still_writes(open_kd, tmp_path):
+    t = open_kd.sql(
+        "SELECT class_name, count(*) AS n, sum(x) AS sx FROM entities GROUP BY 1"
+    ).to_pylist()
+    assert t == [{"class_name": "tree", "n": 3, "sx": 8.0}]
+    a = open_kd.sql("SELECT * FROM entity_states_as_of(2000) ORDER BY entity_id")
+    assert a.num_rows == 3
+    # the engine's own file work (flush, Parquet export and import) is not held back
+    open_kd.observe(0, State(t_ns=2_000, frame="world", position_xyz=(1.5, 0.0, 0.0)))
+    assert open_kd.flush() >= 1
+    files = open_kd.export_parquet(tmp_path / "pq")
+    assert files and all(f.is_file() for f in files)
+    with kd_store.open(":memory:") as copy:
+        copy.import_parquet(tmp_path / "pq")
+        assert copy.sql("SELECT count(*) AS n FROM entity_states").to_pylist() == [{"n": 4}]

@@ -2,7 +2,7 @@
 
     wm simulate SCENARIO --out LOG.mcap [--seconds S] [--seed N]
     wm log-info LOG [--skip-corrupt] [--check]
-    wm query KD.duckdb "SELECT ..." [--parquet OUT]
+    wm query KD.duckdb "SELECT ..." [--parquet OUT [--overwrite]]
     wm run LOG --kd KD.duckdb [--report report.json] [--render DIR] [--poses odometry|truth]
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
     wm whatif LOG [--kd KD.duckdb] --waypoints "t,x,y;t,x,y;..." [--seconds S]
@@ -109,7 +109,7 @@ def cmd_query(args: argparse.Namespace) -> int:
     path = Path(args.kd)
     if not path.exists():
         raise FileNotFoundError(f"KD file {path} does not exist")
-    out = _parquet_target(args.parquet, path) if args.parquet else None
+    out = _parquet_target(args.parquet, path, args.overwrite) if args.parquet else None
     limits = QueryLimits(memory_limit=args.memory_limit, timeout_s=args.timeout)
     table = query_file(path, args.sql, limits)
     if out is not None:
@@ -124,14 +124,17 @@ def cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parquet_target(value: str, kd: Path) -> Path:
-    """The Parquet file ``--parquet`` names, refused when it is the KD itself, a folder, or a
-    file that is not Parquet (so a typo cannot overwrite a KD or a log)."""
+def _parquet_target(value: str, kd: Path, overwrite: bool = False) -> Path:
+    """The Parquet file ``--parquet`` names, refused when it is the KD itself, a folder, a
+    file that is not Parquet, or (unless ``overwrite``) any file that exists already: a typo
+    cannot overwrite a KD, a log or an earlier result."""
     out = Path(value)
     if out.is_dir():
         raise UserError(f"--parquet {out}: is a folder; give a file name ending in .parquet")
     if out.exists() and out.resolve() == kd.resolve():
         raise UserError(f"--parquet {out}: is the KD being queried; give another file")
+    if (out.exists() or out.is_symlink()) and not overwrite:
+        raise UserError(f"--parquet {out}: the file exists; give --overwrite to replace it")
     if out.suffix != ".parquet":
         raise UserError(f"--parquet {out}: give a file name ending in .parquet")
     if not out.parent.is_dir():
@@ -417,7 +420,10 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("kd", help="KD file (DuckDB)")
     q.add_argument("sql", help="one SELECT over the views (entities, events, ...)")
     q.add_argument("--max-rows", type=int, default=50, help="rows to print (default 50)")
-    q.add_argument("--parquet", default=None, help="write the result to this .parquet file")
+    q.add_argument("--parquet", default=None, help="write the result to this new .parquet file")
+    q.add_argument(
+        "--overwrite", action="store_true", help="let --parquet replace a file that exists"
+    )
     q.add_argument(
         "--timeout", type=float, default=30.0, help="seconds before the query is stopped"
     )

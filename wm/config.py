@@ -169,9 +169,13 @@ class NodeConfig:
     odometry_ahead: int = 2
     # a sweep waits for wheel odometry past its end at most this long (ns of log time)
     wheel_wait_ns: int = 200_000_000
-    # a frame stamped more than this after the log's latest frame is skipped (a corrupted
-    # stamp would otherwise carry the self pose and every state far into the future)
+    # a frame stamped more than this after the log's latest frame is held back, not taken (a
+    # corrupted stamp would otherwise carry the self pose and every state far into the future)
     max_time_jump_ns: int = 600_000_000_000
+    # ... and this many such frames in a row, each within max_time_jump_ns of the one before,
+    # are a real gap in the log (the recording paused): the node starts a new segment there
+    # and takes them; fewer, followed by a frame in time, were corrupted stamps and are skipped
+    segment_confirm_frames: int = 3
     # BLAS and OpenMP threads in the node's process during a run (None: the libraries' own
     # choice). One: the node's array operations are small, and the libraries' idle threads
     # spin on the core the odometry process needs (10 s default on 2 cores: main-process CPU
@@ -182,6 +186,9 @@ class NodeConfig:
         if not (isinstance(self.odometry_ahead, int) and self.odometry_ahead >= 1):
             raise ValueError(f"NodeConfig.odometry_ahead must be an int >= 1, got "
                              f"{self.odometry_ahead!r}")  # fmt: skip
+        if not (isinstance(self.segment_confirm_frames, int) and self.segment_confirm_frames >= 2):
+            raise ValueError(f"NodeConfig.segment_confirm_frames must be an int >= 2, got "
+                             f"{self.segment_confirm_frames!r}")  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,21 @@ keeps the KD current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every
    sweeps, a predicted range image compared with the next observed one.
 
 Sweeps wait until the log has passed their last point's time, so the poses (odometry or truth)
-covering them have arrived; :meth:`WorldModelNode.finish` drains the rest at the end.
+covering them have arrived; :meth:`WorldModelNode.finish` drains the rest at the end and
+flushes the KD file. Used as a context manager (``with WorldModelNode(kd) as node:``) the node
+finishes when the block ends, and an error inside the block still flushes what the KD holds
+and stops the odometry process before it propagates.
+
+Time jumps: a frame stamped more than ``NodeConfig.max_time_jump_ns`` after the log's latest
+one is held back. A frame in time after it shows it was a corrupted stamp: it is skipped
+(``stats.skipped["time jump"]``). ``segment_confirm_frames`` such frames in a row, each within
+the bound of the one before, are a real gap (the recording paused): the node ends the segment
+before the gap (its sweeps run, the KD is flushed), starts a new one
+(``stats.events["time_jump_new_segment"]``) and takes the held frames. Nothing integrates
+across the gap: the odometry starts again from the last pose before it (a fresh registration
+map and wheel history, zero velocity), the pose track and the range-image prediction start
+empty. SP's tracks are kept; their prediction uncertainty grows with the gap like any other
+interval, so static objects keep their entities and movers are found anew.
 """
 
 from __future__ import annotations
@@ -157,6 +171,8 @@ class NodeStats:
     stage_cpu_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     odometry_status: Counter = field(default_factory=Counter)
     skipped: Counter = field(default_factory=Counter)  # frames refused by feed, per reason
+    # what the node did about the log on its own, per named reason (time_jump_new_segment)
+    events: Counter = field(default_factory=Counter)
     notes: list[str] = field(default_factory=list)
     range_image_error_m: list[float] = field(default_factory=list)
     surprise_fraction: list[float] = field(default_factory=list)
@@ -209,6 +225,7 @@ class WorldModelNode:
         self.camera: CameraFrame | None = None
         self.truth_boxes: ObjectBoxes | None = None
         self.last_t_ns: int | None = None
+        self.held: list[Frame] = []  # frames beyond a time jump, not taken yet (module docstring)
         self.level_due_ns = {lvl.name: -(2**62) for lvl in self.stack.levels}
         self.attention_world_xyz: np.ndarray | None = None
         self.plan_xy: np.ndarray | None = None  # the controller's current plan (set_plan)
@@ -225,18 +242,41 @@ class WorldModelNode:
 
     # --- frames in -------------------------------------------------------------------------
 
+    def __enter__(self) -> WorldModelNode:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, e: BaseException | None, tb: Any) -> None:
+        """A clean exit finishes (the last sweeps run, the KD file flushed, the odometry
+        stopped); an error flushes what the KD holds and stops the odometry, then propagates."""
+        if et is None:
+            self.finish()
+            return
+        try:
+            self.flush()
+        except Exception as flush_error:  # the error in the block is the one to report
+            log.error("KD flush after %s failed: %s", et.__name__, flush_error)
+        finally:
+            self.close()
+
     def feed(self, frame: Frame) -> list[CycleResult]:
         """Take one log frame; returns the cycles it let run (sweeps whose poses are in).
 
         A frame the node cannot use (:meth:`_screen`: a non-finite or non-rigid odometry
-        pose, a sweep out of time order, far in the future or of the wrong shape) is logged
-        and counted in ``stats.skipped`` and changes nothing: one bad message never stops or
-        corrupts a run."""
+        pose, a sweep out of time order or of the wrong shape; :meth:`_hold`: far in the
+        future) is logged and counted in ``stats.skipped`` and changes nothing: one bad
+        message never stops or corrupts a run. A run of frames far in the future is a gap in
+        the log: a new segment starts (module docstring)."""
         self.stats.frames[type(frame).__name__] += 1
+        if self._beyond_jump(frame):
+            return self._hold(frame)
+        self._skip_held()
+        return self._take(frame)
+
+    def _take(self, frame: Frame) -> list[CycleResult]:
+        """A frame in time: screened, then taken (:meth:`feed`)."""
         why = self._screen(frame)
         if why is not None:
-            self.stats.skipped[why.split(":")[0]] += 1
-            log.warning("skipped %s at t_ns=%s: %s", type(frame).__name__, frame.t_ns, why)
+            self._skipped(frame, why)
             return []
         if isinstance(frame, TransformFrame):
             self._transform(frame)
@@ -245,7 +285,7 @@ class WorldModelNode:
         elif isinstance(frame, OdometryFrame):
             self.last_wheel_t_ns = max(self.last_wheel_t_ns or frame.t_ns, frame.t_ns)
             if self._uses_odometry():
-                if self.odometry is None:
+                if self.odometry is None and self.T_world_body0 is None:
                     self.T_world_body0 = initial_pose(frame)
                 self._odometry().add_wheel_odometry(frame)
         elif isinstance(frame, CameraFrame):
@@ -261,15 +301,77 @@ class WorldModelNode:
             out += self._start(self.pending.popleft())
         return out
 
+    def _beyond_jump(self, frame: Frame) -> bool:
+        """The frame is stamped more than ``max_time_jump_ns`` after the log's latest one."""
+        last = self.last_t_ns
+        return last is not None and int(frame.t_ns) > last + self.config.max_time_jump_ns
+
+    def _hold(self, frame: Frame) -> list[CycleResult]:
+        """Hold a frame beyond a time jump; once ``segment_confirm_frames`` held frames agree
+        (each within the bound of the one before), start a new segment with them. A frame
+        that does not agree with those held replaces them (they are skipped)."""
+        bound = self.config.max_time_jump_ns
+        if self.held and abs(int(frame.t_ns) - int(self.held[-1].t_ns)) > bound:
+            self._skip_held()
+        self.held.append(frame)
+        if len(self.held) < self.config.segment_confirm_frames:
+            return []
+        return self._new_segment()
+
+    def _skip_held(self) -> None:
+        """The held frames were outliers (corrupted stamps): skip and count each."""
+        for f in self.held:
+            self._skipped(f, self._jump_reason(int(f.t_ns)))
+        self.held = []
+
+    def _jump_reason(self, t_ns: int) -> str:
+        gap_s = (t_ns - (self.last_t_ns or 0)) * 1e-9
+        return (
+            f"time jump: {gap_s:.3g} s after the log's latest frame "
+            f"(limit {self.config.max_time_jump_ns * 1e-9:g} s)"
+        )
+
+    def _skipped(self, frame: Frame, why: str) -> None:
+        self.stats.skipped[why.split(":")[0]] += 1
+        log.warning("skipped %s at t_ns=%s: %s", type(frame).__name__, frame.t_ns, why)
+
+    def _new_segment(self) -> list[CycleResult]:
+        """A real gap in the log: end the segment before it (its sweeps run, the KD file is
+        flushed), drop what integrates across time (module docstring) and take the held
+        frames as the start of the next segment."""
+        held, self.held = self.held, []
+        last = self.last_t_ns
+        out = self._drain()
+        self.flush()
+        self._restart_continuity()
+        self.stats.events["time_jump_new_segment"] += 1
+        note = (
+            f"new segment at t_ns={held[0].t_ns}: the log jumped "
+            f"{(int(held[0].t_ns) - (last or 0)) * 1e-9:.4g} s after t_ns={last}; "
+            f"odometry restarted from the last pose"
+        )
+        self.stats.notes.append(note)
+        log.warning("%s", note)
+        self.last_t_ns = None  # the held frames set it anew
+        for f in held:
+            out += self._take(f)
+        return out
+
+    def _restart_continuity(self) -> None:
+        """Forget what integrates across time: the odometry (restarted lazily, from the last
+        pose of the track), the pose track and last cycle's range-image prediction."""
+        if self._uses_odometry():
+            if self.track.t_ns:
+                self.T_world_body0 = self.track.poses[-1].copy()
+            self.close()
+            self.odometry = None
+            self.track = PoseTrack()
+        self.prediction = None
+        self.attention_world_xyz = None
+
     def _screen(self, frame: Frame) -> str | None:
         """Why ``frame`` must be skipped ("reason: detail"), or None to take it."""
         t = int(frame.t_ns)
-        last = self.last_t_ns
-        if last is not None and t > last + self.config.max_time_jump_ns:
-            return (
-                f"time jump: {(t - last) * 1e-9:.3g} s after the log's latest frame "
-                f"(limit {self.config.max_time_jump_ns * 1e-9:g} s)"
-            )
         if isinstance(frame, OdometryFrame):
             try:
                 check_pose(frame.T_parent_child, "odometry pose", atol=1e-4)
@@ -288,13 +390,29 @@ class WorldModelNode:
         return None
 
     def finish(self) -> list[CycleResult]:
-        """Run the sweeps still waiting (end of log) and stop the odometry process."""
+        """End of log: run the sweeps still waiting, flush the KD (:meth:`flush`) and stop
+        the odometry process. Frames still held beyond a time jump are skipped. Calling it
+        again does nothing more."""
+        try:
+            self._skip_held()
+            out = self._drain()
+            self.flush()
+        finally:
+            self.close()
+        return out
+
+    def flush(self) -> None:
+        """Long-term memory and pending map tiles to the KD file now, in one transaction (a
+        throwaway or read-only KD keeps them in RAM)."""
+        self.kd.flush(tiles=True)
+
+    def _drain(self) -> list[CycleResult]:
+        """Run every sweep still waiting for its poses or at the odometry process."""
         out = []
         while self.pending:
             out += self._start(self.pending.popleft())
         while self.inflight:
             out.append(self.cycle(*self.inflight.popleft()))
-        self.close()
         return out
 
     def whatis(self) -> WhatIs:

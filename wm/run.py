@@ -55,6 +55,8 @@ class RunReport:
     odometry_status: dict[str, int]
     #: frames the node refused (bad pose, out of order, time jump, bad shape), per reason
     skipped: dict[str, int] = field(default_factory=dict)
+    #: what the node did about the log on its own, per named reason (time_jump_new_segment)
+    node_events: dict[str, int] = field(default_factory=dict)
     #: CPU ms per sweep: the node's stages (its thread), ``read`` (decoding the log),
     #: ``odometry`` (the odometry process, when it runs in one) and ``main_process`` (every
     #: thread of this process over the whole run, start-up included)
@@ -86,6 +88,8 @@ class RunReport:
         ]
         if self.skipped:
             lines.append(f"skipped (logged): {_fmt_counts(self.skipped)}")
+        if self.node_events:
+            lines.append(f"node events: {_fmt_counts(self.node_events)}")
         for m in self.missing:
             lines.append(f"missing: {m}")
         for n in self.notes:
@@ -165,7 +169,9 @@ def run_log(
         odo = OdometryScore()
         first_t, last_t = None, None
         frames = _cpu_timed(frames_in, read_cpu_s)
-        try:
+        # on an error (a bad log, Ctrl-C) the node flushes what the KD holds before the KD
+        # closes, and its odometry process stops (no orphan, no hang)
+        with node:
             for frame in _progress(frames, total, progress, Path(log_path).name):
                 first_t = frame.t_ns if first_t is None else first_t
                 if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
@@ -175,8 +181,6 @@ def run_log(
                     _score(node, c, odo)
             for c in node.finish():
                 _score(node, c, odo)
-        finally:
-            node.close()  # the odometry process stops on an error too (no orphan, no hang)
         if stack is not None:
             keep_windows(stack)  # the last windows too, for the next run over this KD
         wall = time.perf_counter() - t_start
@@ -319,6 +323,7 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
         stage_ms_per_sweep={k: 1e3 * v / n for k, v in node.stats.stage_s.items()},
         odometry_status=dict(node.stats.odometry_status),
         skipped=dict(node.stats.skipped),
+        node_events=dict(node.stats.events),
     )
 
 
@@ -359,13 +364,16 @@ def run_node(
     stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
     node = WorldModelNode(kd, config, stack)
     first_t = None
-    with compute_threads(config.compute_threads):
-        for frame in source.frames():
-            first_t = frame.t_ns if first_t is None else first_t
-            if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
-                break
-            node.feed(frame)
-        node.finish()
+    try:
+        with compute_threads(config.compute_threads), node:  # finishes, or flushes on an error
+            for frame in source.frames():
+                first_t = frame.t_ns if first_t is None else first_t
+                if seconds is not None and frame.t_ns - first_t > seconds * NS_PER_S:
+                    break
+                node.feed(frame)
+    except BaseException:
+        kd.close()  # the caller gets no node to close it through
+        raise
     if stack is not None:
         keep_windows(stack)
         kd.flush()
