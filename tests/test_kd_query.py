@@ -18,16 +18,21 @@ from kd_store.query import QueryLimits, query_file
 REPO = Path(__file__).resolve().parents[1]
 
 
+def _three_trees(kd: kd_store.KnowledgeDatabase) -> None:
+    """Three confirmed trees at x = 1, 2 and 5 m on the world x axis."""
+    for i, x in enumerate((1.0, 2.0, 5.0)):
+        kd.add_entity(
+            f"tree{i}", Level.OBJECT, status=Status.CONFIRMED, confidence=0.9,
+            generic_classes=("tree",),
+            state=State(t_ns=1_000, frame="world", position_xyz=(x, 0.0, 0.0)),
+        )  # fmt: skip
+
+
 @pytest.fixture(scope="module")
 def kd_file(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("kd") / "run.kd"
     with kd_store.open(path) as kd:
-        for i, x in enumerate((1.0, 2.0, 5.0)):
-            kd.add_entity(
-                f"tree{i}", Level.OBJECT, status=Status.CONFIRMED, confidence=0.9,
-                generic_classes=("tree",),
-                state=State(t_ns=1_000, frame="world", position_xyz=(x, 0.0, 0.0)),
-            )  # fmt: skip
+        _three_trees(kd)
     return path
 
 
@@ -144,12 +149,7 @@ def test_wm_query_parquet_replaces_an_existing_file_only_with_overwrite(kd_file,
 def open_kd(request, tmp_path):
     """A KD with three trees, in memory or in a file, open for writing."""
     kd = kd_store.open(":memory:" if request.param == "memory" else tmp_path / "own.kd")
-    for i, x in enumerate((1.0, 2.0, 5.0)):
-        kd.add_entity(
-            f"tree{i}", Level.OBJECT, status=Status.CONFIRMED, confidence=0.9,
-            generic_classes=("tree",),
-            state=State(t_ns=1_000, frame="world", position_xyz=(x, 0.0, 0.0)),
-        )  # fmt: skip
+    _three_trees(kd)
     yield kd
     kd.close()
 

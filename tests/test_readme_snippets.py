@@ -11,8 +11,8 @@ import sys
 from pathlib import Path
 
 import pytest
+from node_runs import in_file
 
-import kd_store
 from sp.logs import LadarScan, open_log
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,16 +62,8 @@ def test_readme_node_snippet_runs_and_its_kd_file_is_complete(k, short_log, tmp_
     assert r.returncode == 0, r.stderr[-3000:]
 
     last_sweep = max(f.t_ns for f in open_log(short_log).frames(kinds=(LadarScan,)))
-    with kd_store.open(tmp_path / kd_in_code, read_only=True) as kd:
-        objects = kd.sql(
-            "SELECT count(*) AS n FROM entities WHERE status = 'confirmed' AND level = 4 "
-            "AND name <> 'self'"
-        )["n"][0].as_py()
-        me = kd.sql(
-            "SELECT count(*) AS n, max(s.t_ns) AS t FROM entity_states s "
-            "JOIN entities e ON e.id = s.entity_id WHERE e.name = 'self'"
-        ).to_pylist()[0]
-    assert objects >= 3
-    assert me["n"] >= 0.8 * SECONDS * 10  # a self state per sweep (10 Hz)
+    got = in_file(tmp_path / kd_in_code)
+    assert got["objects"] >= 3
+    assert got["self_states"] >= 0.8 * SECONDS * 10  # a self state per sweep (10 Hz)
     # the last sweeps are in the file too (the self state is at a sweep's middle)
-    assert me["t"] >= last_sweep - 150_000_000
+    assert got["self_t_ns"] >= last_sweep - 150_000_000

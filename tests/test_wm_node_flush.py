@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from node_runs import in_file
 
 import kd_store
 from sp.logs import LadarScan, LogError, open_log
@@ -32,21 +33,6 @@ def log_path(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def frames(log_path):
     return list(open_log(log_path).frames())
-
-
-def in_file(path: Path) -> dict:
-    """What the KD file holds: confirmed objects, and the self entity's states (count and
-    newest time, ns)."""
-    with kd_store.open(path, read_only=True) as kd:
-        objects = kd.sql(
-            "SELECT count(*) AS n FROM entities WHERE status = 'confirmed' AND level = 4 "
-            "AND name <> 'self'"
-        )["n"][0].as_py()
-        me = kd.sql(
-            "SELECT count(*) AS n, max(s.t_ns) AS t FROM entity_states s "
-            "JOIN entities e ON e.id = s.entity_id WHERE e.name = 'self'"
-        ).to_pylist()[0]
-    return {"objects": objects, "self_states": me["n"], "self_t_ns": me["t"]}
 
 
 def test_finish_flushes_everything_to_the_file(frames, tmp_path) -> None:
