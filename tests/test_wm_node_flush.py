@@ -3,10 +3,12 @@
 
 The periodic flush is pushed out of reach (``kd_flush_every_ns``), so only the first cycle's
 flush and the exit path under test can have written the file; the KD is closed without a
-flush of its own and read back from the file."""
+flush of its own and read back from the file. And the run report's ``kd_flush``: how far the
+file lagged behind the log between periodic flushes."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,7 @@ from node_runs import in_file
 
 import kd_store
 from sp.logs import LadarScan, LogError, open_log
-from wm.config import NodeConfig
+from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
 from wm.run import run_log
 
@@ -94,3 +96,38 @@ def test_run_log_flushes_what_it_has_when_the_log_breaks(frames, tmp_path) -> No
     # every cycle run (24 sweeps, less the few waiting for their poses), not only the first
     assert got["self_states"] >= 18
     assert got["self_t_ns"] >= 18 * 100_000_000
+
+
+# ---------------------------------------------------------------- how far the file lags
+
+
+def _flush_report(log_path: Path, tmp_path: Path, config: NodeConfig) -> dict:
+    """``kd_flush`` of the JSON report a 2 s run (maps only, no SP) writes to a KD file."""
+    report = tmp_path / f"r{config.kd_flush_every_ns}{config.pose_source}.json"
+    kd = tmp_path / f"k{config.kd_flush_every_ns}{config.pose_source}.duckdb"
+    run_log(log_path, kd, config=config, report_path=report, progress=False, seconds=2.0)
+    return json.loads(report.read_text())["kd_flush"]
+
+
+def test_the_report_says_how_far_the_kd_file_lagged_behind_the_log(
+    log_path, frames, tmp_path
+) -> None:
+    # a sweep's cycle runs once the log has passed its last point (one sweep period after
+    # its start), and flushes once its time is an interval past the last flushed sweep's:
+    # the file is behind the log by at most the interval plus one cycle
+    sweeps = [f.t_ns for f in frames if isinstance(f, LadarScan)]
+    period_s = float(np.max(np.diff(sweeps))) / 1e9
+    truth = dict(use_sp=False, pose_source=PoseSource.TRUTH)
+    every_1s = _flush_report(log_path, tmp_path, NodeConfig(**truth))
+    assert every_1s["interval_s"] == 1.0
+    assert 1.0 <= every_1s["max_lag_s"] <= 1.0 + period_s + 1e-6
+    # 2 s of log: the first cycle, one every second after it, and the final flush
+    assert every_1s["flushes"] == 4
+    often = _flush_report(log_path, tmp_path, NodeConfig(**truth, kd_flush_every_ns=300_000_000))
+    assert often["interval_s"] == 0.3
+    assert 0.3 <= often["max_lag_s"] <= 0.3 + period_s + 1e-6
+    assert often["flushes"] > every_1s["flushes"]
+    # with the odometry process, `odometry_ahead` sweeps wait there too: the lag grows by them
+    cfg = NodeConfig(use_sp=False, pose_source=PoseSource.ODOMETRY)
+    odo = _flush_report(log_path, tmp_path, cfg)
+    assert 1.0 <= odo["max_lag_s"] <= 1.0 + (1 + cfg.odometry_ahead) * period_s + 1e-6

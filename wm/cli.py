@@ -3,7 +3,9 @@
     wm simulate SCENARIO --out LOG.mcap [--seconds S] [--seed N]
     wm log-info LOG [--skip-corrupt] [--check]
     wm query KD.duckdb "SELECT ..." [--parquet OUT [--overwrite]]
-    wm run LOG --kd KD.duckdb [--report report.json] [--render DIR] [--poses odometry|truth]
+    wm run LOG --kd KD.duckdb [--overwrite] [--report report.json] [--render DIR]
+           [--poses odometry|truth]                   (an existing KD only with --overwrite)
+    wm check KD.duckdb                                 (integrity: rows point at frames)
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
     wm whatif LOG [--kd KD.duckdb] --waypoints "t,x,y;t,x,y;..." [--seconds S]
     wm whatif --kd KD.duckdb --waypoints "t,x,y;..."   (the maps and entities a run stored)
@@ -155,13 +157,63 @@ def _check_log(path: str) -> Path:
     return p
 
 
+def _kd_target(value: str, overwrite: bool, log: Path) -> str:
+    """The KD file ``wm run --kd`` writes: refused when it exists (a rerun would mix a second
+    run into the first one's frames, with no run id to tell them apart) unless ``overwrite``,
+    which removes it and its write-ahead log first (a stale ``.wal`` left beside a new file
+    would be replayed into it). Even then a file that is not a DuckDB database (the log, by
+    a slip of the shell) is never removed."""
+    path = Path(value)
+    if value == ":memory:":
+        return value
+    if path.is_dir():
+        raise UserError(f"--kd {path}: is a folder; give a file name")
+    if not (path.exists() or path.is_symlink()):
+        return value
+    if not overwrite:
+        raise UserError(f"--kd {path}: the file exists; give --overwrite to replace it")
+    if path.exists() and (path.resolve() == log.resolve() or not _is_duckdb(path)):
+        raise UserError(f"--kd {path}: not a DuckDB file; --overwrite replaces only a KD")
+    for stale in (path, Path(f"{path}.wal")):
+        stale.unlink(missing_ok=True)
+    return value
+
+
+def _is_duckdb(path: Path) -> bool:
+    """The file is empty or starts with DuckDB's header (magic ``DUCK`` at byte 8)."""
+    with path.open("rb") as f:
+        head = f.read(12)
+    return not head or head[8:12] == b"DUCK"
+
+
+def _produced_nothing(report, log: Path) -> str | None:
+    """What a finished run's log lacked, when the run made nothing of it: no LADAR sweep, no
+    vehicle pose, or no entity in the KD; None for a run that produced something."""
+    if not report.sweeps and report.frames.get("LadarScan"):
+        skipped = ", ".join(f"{k}={v}" for k, v in report.skipped.items()) or "none"
+        return f"{log}: no usable LADAR sweep of {report.frames['LadarScan']} (skipped: {skipped})"
+    if not report.sweeps:
+        from sp.logs import open_log
+
+        topics = ", ".join(f"{t.name} ({t.msgtype})" for t in open_log(log).info().topics)
+        return f"{log}: no PointCloud2 sweep on any topic; topics are: {topics or 'none'}"
+    if not report.self_states:
+        return f"{log}: {report.sweeps} sweeps but no vehicle pose came of them"
+    if not report.kd_entities:
+        return f"{log}: {report.sweeps} sweeps but the KD {report.kd} holds no entity"
+    return None
+
+
 def cmd_run(args: argparse.Namespace) -> int:
-    """The main job: a log through the world-modeling node into a KD, summary and report."""
+    """The main job: a log through the world-modeling node into a KD, summary and report.
+    A run that produced nothing (no sweep, pose or entity) is a user error: one line on what
+    the log lacked, exit status 2, though the report is still written."""
     from wm.run import run_log
 
+    log = _check_log(args.log)
     report = run_log(
-        _check_log(args.log),
-        args.kd,
+        log,
+        _kd_target(args.kd, getattr(args, "overwrite", False), log),
         config=_node_config(args),
         report_path=args.report,
         render_dir=args.render,
@@ -172,6 +224,27 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(report.text())
     if args.report:
         print(f"report {args.report}")
+    lacked = _produced_nothing(report, log)
+    if lacked is not None:
+        raise UserError(lacked)
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """Integrity of a KD file (kd_store.check): rows per table, then each defect; exit status
+    2 when there is one (or the file is not a KD), 0 when the file is sound."""
+    from kd_store.check import check_file
+
+    result = check_file(args.kd)
+    print(f"KD {result.path}: schema version {result.schema_version}")
+    for table, n in result.counts.items():
+        print(f"  {table}: {n} rows")
+    for d in result.defects:
+        print(f"defect: {d.text()}")
+    if not result.ok:
+        print(f"wm check: {len(result.defects)} kinds of defect in {result.path}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    print("ok: every state, relation and event points at an existing frame; positions finite")
     return 0
 
 
@@ -380,13 +453,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return rc
     print()
     kd = Path(args.out) / "default.duckdb"
-    for stale in (kd, Path(str(kd) + ".wal")):
-        stale.unlink(missing_ok=True)
     rc = cmd_run(
         argparse.Namespace(
             log=str(out), kd=str(kd), report=str(Path(args.out) / "report.json"),
             render=str(Path(args.out) / "pictures"), poses=args.poses, no_progress=False,
-            seconds=None,
+            seconds=None, overwrite=True,  # the demo's own KD of an earlier demo
         )
     )  # fmt: skip
     print(f"\nKD: {kd} (try: wm query {kd} \"SELECT class_name, status, count(*) FROM entities"
@@ -438,7 +509,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="the main job: a log through the world model into a KD")
     r.add_argument("log", help="any supported log (see log-info)")
-    r.add_argument("--kd", required=True, help="KD file to write (DuckDB)")
+    r.add_argument("--kd", required=True, help="KD file to write (DuckDB); must not exist")
+    r.add_argument("--overwrite", action="store_true", help="replace the --kd file if it exists")
     r.add_argument("--report", default=None, help="write the summary as JSON here")
     r.add_argument("--render", default=None, help="write pictures of every map level here")
     r.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
@@ -449,6 +521,10 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     pose_flag(r)
     r.set_defaults(func=cmd_run)
+
+    c = sub.add_parser("check", help="integrity of a KD file: every row points at a frame")
+    c.add_argument("kd", help="KD file (DuckDB), opened read-only")
+    c.set_defaults(func=cmd_check)
 
     w = sub.add_parser("whatis", help="What Is over a KD file: self state or an entity")
     w.add_argument("kd", help="KD file (DuckDB)")

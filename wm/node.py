@@ -174,6 +174,10 @@ class NodeStats:
     # what the node did about the log on its own, per named reason (time_jump_new_segment)
     events: Counter = field(default_factory=Counter)
     notes: list[str] = field(default_factory=list)
+    kd_flushes: int = 0  # KD flushes to the file, periodic and final
+    # the longest the KD file stayed behind the log: log time (newest frame) minus the sweep
+    # time of the last flush (or the log's start before the first), ns, just before a flush
+    kd_flush_max_lag_ns: int = 0
     range_image_error_m: list[float] = field(default_factory=list)
     surprise_fraction: list[float] = field(default_factory=list)
 
@@ -219,6 +223,8 @@ class WorldModelNode:
         self.last_wheel_t_ns: int | None = None
         self.last_sweep_t_ns: int | None = None  # the newest sweep taken
         self._flushed_ns: int | None = None  # log time of the last KD flush
+        self._log_start_ns: int | None = None  # the first frame taken: the lag's origin
+        self._flushed_at: tuple[int, int | None] | None = None  # (sweeps, last_t_ns) flushed
         self._tiles_ns: int | None = None  # ... and of the last one with map tiles
         self.pending: deque[LadarScan] = deque()
         self.inflight: deque[tuple[LadarScan, CameraFrame | None]] = deque()  # at the odometry
@@ -296,6 +302,8 @@ class WorldModelNode:
             self.last_sweep_t_ns = frame.t_ns
             self.pending.append(frame)
         self.last_t_ns = frame.t_ns if self.last_t_ns is None else max(self.last_t_ns, frame.t_ns)
+        if self._log_start_ns is None:
+            self._log_start_ns = int(frame.t_ns)
         out = []
         while self.pending and self._ready(self.pending[0]):
             out += self._start(self.pending.popleft())
@@ -343,6 +351,9 @@ class WorldModelNode:
         last = self.last_t_ns
         out = self._drain()
         self.flush()
+        # the gap is the recording's pause, not the file falling behind: the lag and the
+        # flush period start again with the new segment (its first cycle flushes)
+        self._flushed_ns = self._log_start_ns = None
         self._restart_continuity()
         self.stats.events["time_jump_new_segment"] += 1
         note = (
@@ -404,7 +415,20 @@ class WorldModelNode:
     def flush(self) -> None:
         """Long-term memory and pending map tiles to the KD file now, in one transaction (a
         throwaway or read-only KD keeps them in RAM)."""
+        again = (self.stats.sweeps, self.last_t_ns) == self._flushed_at  # finish() twice
+        self._note_lag()
         self.kd.flush(tiles=True)
+        self.stats.kd_flushes += 0 if again else 1
+        self._flushed_at = (self.stats.sweeps, self.last_t_ns)
+        if self.last_t_ns is not None:  # everything taken so far is in the file now
+            self._flushed_ns = self.last_t_ns
+
+    def _note_lag(self) -> None:
+        """Just before a flush, the KD file is furthest behind the log (``stats``)."""
+        since = self._flushed_ns if self._flushed_ns is not None else self._log_start_ns
+        if self.last_t_ns is not None and since is not None:
+            lag = int(self.last_t_ns) - int(since)
+            self.stats.kd_flush_max_lag_ns = max(self.stats.kd_flush_max_lag_ns, lag)
 
     def _drain(self) -> list[CycleResult]:
         """Run every sweep still waiting for its poses or at the odometry process."""
@@ -563,7 +587,9 @@ class WorldModelNode:
         if self._flushed_ns is not None and t_ns - self._flushed_ns < cfg.kd_flush_every_ns:
             return
         tiles = self._tiles_ns is None or t_ns - self._tiles_ns >= cfg.kd_tile_flush_every_ns
+        self._note_lag()
         self.kd.flush(tiles=tiles)
+        self.stats.kd_flushes += 1
         self._flushed_ns = t_ns
         self._tiles_ns = t_ns if tiles else self._tiles_ns
 

@@ -63,6 +63,14 @@ class RunReport:
     cpu_ms_per_sweep: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
     pictures: list[str] = field(default_factory=list)
+    #: the KD file's periodic flush: ``interval_s`` (log s, NodeConfig.kd_flush_every_ns),
+    #: ``max_lag_s`` (the longest the file stayed behind the log, log s: the newest frame's
+    #: time less the last flushed sweep's, just before each flush) and ``flushes`` (count,
+    #: the final one included)
+    kd_flush: dict[str, float] = field(default_factory=dict)
+    #: rows in the KD at the end: the vehicle's states and the entity frames (self included)
+    self_states: int = 0
+    kd_entities: int = 0
 
     @property
     def real_time_factor(self) -> float:
@@ -99,6 +107,12 @@ class RunReport:
         lines.append(f"events: {_fmt_counts(self.events) or 'none'}")
         for k, v in self.metrics.items():
             lines.append(f"{k}: {_fmt_counts(v) if isinstance(v, dict) else v}")
+        if self.kd_flush:
+            f = self.kd_flush
+            lines.append(
+                f"KD flushes: {f['flushes']}, every {f['interval_s']:g} s of log; the file "
+                f"was at most {f['max_lag_s']:.2f} s behind the log"
+            )
         for p in self.pictures:
             lines.append(f"picture {p}")
         return "\n".join(lines)
@@ -306,6 +320,11 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
             continue
         entities.setdefault(f.most_specific_class or "unclassified", Counter())[f.status.value] += 1
     events = Counter(e.class_name for e in kd.events())
+    # what the KD file holds (kd.sql flushes first), not only what the node kept in RAM
+    in_kd = kd.sql(
+        f"SELECT (SELECT count(*) FROM entity_states WHERE entity_id = {node.self_id}) AS self, "
+        "(SELECT count(*) FROM entities) AS entities"
+    ).to_pylist()[0]
     n = max(node.stats.sweeps, 1)
     duration = (last_t - first_t) / NS_PER_S if first_t is not None and last_t is not None else 0.0
     return RunReport(
@@ -324,6 +343,13 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
         odometry_status=dict(node.stats.odometry_status),
         skipped=dict(node.stats.skipped),
         node_events=dict(node.stats.events),
+        kd_flush={
+            "interval_s": node.config.kd_flush_every_ns / NS_PER_S,
+            "max_lag_s": node.stats.kd_flush_max_lag_ns / NS_PER_S,
+            "flushes": node.stats.kd_flushes,
+        },
+        self_states=int(in_kd["self"]),
+        kd_entities=int(in_kd["entities"]),
     )
 
 
