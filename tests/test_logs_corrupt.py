@@ -3,10 +3,14 @@ topics and paths that are no log. Every failure is a LogError naming the file.""
 
 from __future__ import annotations
 
+import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.opcode import Opcode
 from mcap.writer import CompressionType, Writer
 
 from sp.logs import (
@@ -156,3 +160,177 @@ def test_unsupported_paths_list_the_formats(tmp_path) -> None:
     empty_dir.mkdir()
     with pytest.raises(LogError, match="Supported formats"):
         open_log(empty_dir)
+
+
+# ---------------------------------------------------------------- defects found by position
+
+
+def _records(data: bytes) -> list[tuple[int, int, int]]:
+    """(offset, opcode, total length) of each top-level record of an MCAP file's bytes."""
+    out, pos = [], 8
+    while pos + 9 <= len(data):
+        opcode, length = struct.unpack_from("<BQ", data, pos)
+        out.append((pos, opcode, 9 + length))
+        if opcode == Opcode.FOOTER:
+            break
+        pos += 9 + length
+    return out
+
+
+def _chunks(data: bytes) -> list[tuple[int, int, int]]:
+    """(offset, length, messages) of each chunk: messages from its message indexes."""
+    out = []
+    for offset, opcode, length in _records(data):
+        if opcode == Opcode.CHUNK:
+            out.append([offset, length, 0])
+        elif opcode == Opcode.MESSAGE_INDEX and out:
+            out[-1][2] += struct.unpack_from("<I", data, offset + 9 + 2)[0] // 16
+    return [tuple(c) for c in out]
+
+
+def _duplicate_chunk(d: bytearray, k: int, at_end: bool = False) -> tuple[bytearray, int, int]:
+    """Chunk ``k`` again, right after it (or after the last chunk): (bytes, offset of the
+    copy, messages in it)."""
+    chunks = _chunks(bytes(d))
+    offset, length, n = chunks[k]
+    at = offset + length
+    if at_end:
+        data_end = next(o for o, op, _ in _records(bytes(d)) if op == Opcode.DATA_END)
+        at = data_end
+    d[at:at] = d[offset : offset + length]
+    return d, at, n
+
+
+@pytest.mark.parametrize("at_end", [False, True])
+def test_a_duplicated_chunk_is_a_named_defect_and_skipped_whole(good_log, tmp_path, at_end):
+    data = bytearray(good_log.read_bytes())
+    first = _chunks(bytes(data))[2][0]
+    edited, copy_at, n = _duplicate_chunk(data, 2, at_end)
+    bad = tmp_path / "dup.mcap"
+    bad.write_bytes(bytes(edited))
+    with pytest.raises(LogError, match=rf"CHUNK at byte {copy_at} repeats the chunk at byte "
+                       rf"{first} \(duplicated: {n} messages on /ladar/points"):  # fmt: skip
+        list(open_log(bad).frames())
+    src = open_log(bad, skip_corrupt=True)
+    assert src.info().topic("/ladar/points").count == N_SCANS
+    scans = list(src.frames())
+    assert [s.t_ns for s in scans] == [(k + 1) * 100_000_000 for k in range(N_SCANS)]
+    assert src.stats.skipped_records == 1 and src.stats.lost == {"duplicated chunk": n}
+    assert src.stats.backwards_timestamps == 0 and len(src.defects) == 1
+
+
+def test_a_repeated_loose_message_is_a_defect(tmp_path) -> None:
+    path = tmp_path / "loose.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.NONE, use_chunking=False)
+        w.start(profile="ros2")
+        sid = w.register_schema(
+            "nav_msgs/msg/Odometry", "ros2msg", ros2msg_schema("nav_msgs/msg/Odometry")
+        )
+        cid = w.register_channel("/odom", "cdr", sid)
+        for k in (1, 2, 3, 3, 4, 3):  # the third message three times, twice after others
+            (enc,) = encode_frame(OdometryFrame(k * 10**7, "odom", "base_link", np.eye(4)))
+            w.add_message(cid, k * 10**7, serialize(enc), k * 10**7, sequence=k)
+        w.finish()
+    with pytest.raises(LogError, match=r"/odom message at log time 30000000 ns .* duplicated"):
+        list(open_log(path).frames())
+    src = open_log(path, skip_corrupt=True)
+    assert [f.t_ns // 10**7 for f in src.frames()] == [1, 2, 3, 4]
+    assert src.stats.lost == {"duplicated message": 1}  # the same problem twice: one record
+    assert src.stats.skipped_records == 1
+
+
+def test_a_corrupt_chunk_counts_the_messages_it_held_once(good_log, tmp_path) -> None:
+    data = bytearray(good_log.read_bytes())
+    offset, length, n = _chunks(bytes(data))[3]
+    for i in range(offset + length // 2, offset + length // 2 + 32):
+        data[i] ^= 0xFF
+    bad = tmp_path / "flip.mcap"
+    bad.write_bytes(bytes(data))
+    src = open_log(bad, skip_corrupt=True)
+    src.info()
+    scans = list(src.frames())
+    list(src.frames())  # every pass meets it; it is counted once
+    assert len(scans) == N_SCANS - n
+    assert src.stats.skipped_records == 1 and src.stats.lost == {"corrupt chunk": n}
+
+
+@pytest.mark.parametrize("declared", [2**40, 2**31])
+def test_an_absurd_chunk_size_is_refused_unread(good_log, tmp_path, declared) -> None:
+    data = bytearray(good_log.read_bytes())
+    offset, _, n = _chunks(bytes(data))[1]
+    struct.pack_into("<Q", data, offset + 9 + 16, declared)  # uncompressed size
+    bad = tmp_path / "huge.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(
+        LogError, match=rf"CHUNK at byte {offset} declares {declared} uncompressed bytes, above"
+    ):
+        list(open_log(bad).frames())
+    src = open_log(bad, skip_corrupt=True)
+    assert len(list(src.frames())) == N_SCANS - n
+    assert src.stats.lost == {"oversized chunk": n}
+
+
+def test_a_zstd_chunk_declaring_more_than_its_frame_holds_is_refused(tmp_path) -> None:
+    rng = np.random.default_rng(3)
+    path = tmp_path / "z.mcap"
+    config = McapWriterConfig(compression=Compression.ZSTD, chunk_size_bytes=64 * 1024)
+    with McapLogWriter(path, config) as w:
+        for k in range(8):
+            w.write(_scan(k, rng))
+    data = bytearray(path.read_bytes())
+    offset = _chunks(bytes(data))[0][0]
+    (size,) = struct.unpack_from("<Q", data, offset + 9 + 16)
+    struct.pack_into("<Q", data, offset + 9 + 16, 100 * size)
+    path.write_bytes(bytes(data))
+    with pytest.raises(LogError, match=rf"declares {100 * size} .* but its data holds {size}"):
+        list(open_log(path).frames())
+
+
+def test_an_attachment_crc_mismatch_is_named_never_fatal(tmp_path) -> None:
+    rng = np.random.default_rng(4)
+    path = tmp_path / "att.mcap"
+    payload = bytes(range(256)) * 8
+    with McapLogWriter(path) as w:
+        w.attach("terrain.npy", payload, "application/x-npy")
+        w.attach("notes.txt", b"fine", "text/plain")
+        for k in range(3):
+            w.write(_scan(k, rng))
+    data = bytearray(path.read_bytes())
+    at = bytes(data).index(payload) + 100
+    data[at] ^= 0x01
+    path.write_bytes(bytes(data))
+    src = open_log(path)  # no skip_corrupt: scoring data never stops reading
+    assert len(list(src.frames())) == 3
+    assert src.attachments() == {"notes.txt": b"fine"}
+    (why,) = src.damaged_extras().values()
+    assert "attachment 'terrain.npy'" in why and "CRC mismatch" in why
+    r = subprocess.run(
+        [sys.executable, "-m", "wm.cli", "log-info", str(path), "--check"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stdout + r.stderr
+    defects = [line for line in r.stdout.splitlines() if line.startswith("defect:")]
+    assert len(defects) == 1 and "terrain.npy" in defects[0] and "CRC mismatch" in defects[0]
+
+
+def test_log_info_check_lists_every_defect_and_fails(good_log, tmp_path) -> None:
+    def check(path: Path) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "wm.cli", "log-info", str(path), "--check"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+
+    r = check(good_log)
+    assert r.returncode == 0 and "check: no defects" in r.stdout, r.stderr
+    data, copy_at, _ = _duplicate_chunk(bytearray(good_log.read_bytes()), 1)
+    offset = _chunks(bytes(data))[5][0]
+    struct.pack_into("<Q", data, offset + 9 + 16, 2**40)
+    bad = tmp_path / "two.mcap"
+    bad.write_bytes(bytes(data))
+    r = check(bad)
+    assert r.returncode == 2
+    defects = [line for line in r.stdout.splitlines() if line.startswith("defect:")]
+    assert len(defects) == 2
+    assert f"CHUNK at byte {copy_at} repeats" in defects[0]
+    assert f"CHUNK at byte {offset} declares" in defects[1]

@@ -4,7 +4,7 @@
     wm log-info LOG [--skip-corrupt] [--check]
     wm query KD.duckdb "SELECT ..." [--parquet OUT [--overwrite]]
     wm run LOG --kd KD.duckdb [--overwrite] [--report report.json] [--render DIR]
-           [--poses odometry|truth]                   (an existing KD only with --overwrite)
+           [--poses odometry|truth] [--skip-corrupt]  (an existing KD only with --overwrite)
     wm check KD.duckdb                                 (integrity: rows point at frames)
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
     wm whatif LOG [--kd KD.duckdb] --waypoints "t,x,y;t,x,y;..." [--seconds S]
@@ -60,12 +60,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_log_info(args: argparse.Namespace) -> int:
+    """What a log holds; with ``--check`` every frame is decoded and every defect that would
+    stop ``wm run`` is listed, one line each (exit status 2 when there is any)."""
     from sp.logs import format_log_info, open_log
 
     path = Path(args.log)
     if not path.exists():
         raise FileNotFoundError(f"log {path} does not exist")
-    source = open_log(path, skip_corrupt=args.skip_corrupt)
+    # a check reads on past each defect, so that it lists them all
+    source = open_log(path, skip_corrupt=args.skip_corrupt or args.check)
     print(format_log_info(source.info()))
     if args.check:  # decode every frame, so dropped points and backwards times are counted
         n = sum(1 for _ in source.frames())
@@ -83,6 +86,19 @@ def cmd_log_info(args: argparse.Namespace) -> int:
         )
         for line in stats.messages:
             print(f"  {line}")
+    if not args.check:
+        return 0
+    defects = list(source.defects) + list(source.damaged_extras().values())
+    for d in defects:
+        print(f"defect: {d}")
+    if defects:
+        print(
+            f"wm log-info: {path}: {len(defects)} defects (wm run stops at the first log "
+            f"defect unless --skip-corrupt; damaged attachments only disable scores)",
+            file=sys.stderr,
+        )
+        return EXIT_USER_ERROR
+    print("check: no defects")
     return 0
 
 
@@ -220,6 +236,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         seconds=args.seconds,
         decode_process=not getattr(args, "decode_in_process", False),
+        skip_corrupt=getattr(args, "skip_corrupt", False),
     )
     print(report.text())
     if args.report:
@@ -518,6 +535,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--decode-in-process", action="store_true",
         help="decode the log in the node's process (default: ahead, in a child process)",
+    )  # fmt: skip
+    r.add_argument(
+        "--skip-corrupt", action="store_true",
+        help="skip corrupt or duplicated log records (counted in the report) instead of stopping",
     )  # fmt: skip
     pose_flag(r)
     r.set_defaults(func=cmd_run)

@@ -164,13 +164,25 @@ def unbounded_track() -> PoseTrack:
     return PoseTrack(horizon=1 << 40)
 
 
-def load_truth(log_path: str | Path, config: EvalConfig = EvalConfig()) -> Truth:
+def load_truth(
+    log_path: str | Path, config: EvalConfig = EvalConfig(), *, skip_corrupt: bool = False
+) -> Truth:
     """Ground truth of a log (GroundTruthPose, ObjectBoxes, LadarScan, static base_link->ladar
     TransformFrame). Body-frame boxes are moved to the world with the true pose at their time.
     Each sweep is counted against the boxes (:func:`see`) once the poses cover it and the box
     set nearest its middle is in, and then let go. Raises EvaluationError when the log has no
-    true poses or no truth boxes."""
-    from sp.logs import open_log
+    true poses or no truth boxes, or when the log cannot be read (ground truth unavailable;
+    ``skip_corrupt`` reads on past damaged records)."""
+    from sp.logs import LogError, open_log
+
+    try:
+        return _load_truth(log_path, config, open_log(log_path, skip_corrupt=skip_corrupt))
+    except LogError as e:
+        raise EvaluationError(f"ground truth unavailable: {e}") from e
+
+
+def _load_truth(log_path: str | Path, config: EvalConfig, source: Any) -> Truth:
+    """:func:`load_truth` from an open log source."""
     from sp.logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 
     truth = Truth(unbounded_track(), [], [])
@@ -178,7 +190,7 @@ def load_truth(log_path: str | Path, config: EvalConfig = EvalConfig()) -> Truth
     waiting: deque[Sweep] = deque()
     last_box_ns = -(2**62)
     kinds = (GroundTruthPose, ObjectBoxes, LadarScan, TransformFrame)
-    for f in open_log(log_path).frames(kinds=kinds):
+    for f in source.frames(kinds=kinds):
         if isinstance(f, GroundTruthPose):
             truth.poses.add(f.t_ns, f.T_parent_child)
         elif isinstance(f, ObjectBoxes):
@@ -200,9 +212,13 @@ def load_truth(log_path: str | Path, config: EvalConfig = EvalConfig()) -> Truth
     _boxes_to_world(truth, waiting_boxes, last=True)
     truth.seen += [see(truth, sw, config) for sw in waiting]
     if not len(truth.poses):
-        raise EvaluationError(f"log {log_path}: no /ground_truth/pose; nothing to score against")
+        raise EvaluationError(
+            f"log {log_path}: ground truth unavailable: no /ground_truth/pose to score against"
+        )
     if not truth.boxes:
-        raise EvaluationError(f"log {log_path}: no /ground_truth/objects boxes")
+        raise EvaluationError(
+            f"log {log_path}: ground truth unavailable: no /ground_truth/objects boxes"
+        )
     return truth
 
 

@@ -53,7 +53,9 @@ class RunReport:
     events: dict[str, int]
     stage_ms_per_sweep: dict[str, float]
     odometry_status: dict[str, int]
-    #: frames the node refused (bad pose, out of order, time jump, bad shape), per reason
+    #: frames lost, per reason, each counted once: those the node refused (bad pose, out of
+    #: order, time jump, bad shape) and the messages the log reader left out with
+    #: ``--skip-corrupt`` (duplicated chunk, corrupt chunk, duplicated message, ...)
     skipped: dict[str, int] = field(default_factory=dict)
     #: what the node did about the log on its own, per named reason (time_jump_new_segment)
     node_events: dict[str, int] = field(default_factory=dict)
@@ -158,17 +160,24 @@ def run_log(
     progress: bool = True,
     seconds: float | None = None,
     decode_process: bool = False,
+    skip_corrupt: bool = False,
 ) -> RunReport:
     """Run the node over a whole log (or its first ``seconds``); see the module docstring.
     With ``decode_process`` the log is decoded ahead in a child interpreter
     (:class:`~sp.logs.prefetch.FramePrefetcher`), which takes its few ms per sweep off the
     node's process (``wm run`` does this unless told ``--decode-in-process``); off here by
-    default, since a child's start-up (about 0.3 s) outweighs it on short logs."""
+    default, since a child's start-up (about 0.3 s) outweighs it on short logs.
+
+    With ``skip_corrupt`` corrupt and duplicated records of the log are skipped and counted
+    in the report's ``skipped`` (as the messages lost, per reason) instead of stopping the
+    run. Damaged truth that only scores the run (the terrain attachment or its metadata)
+    never stops it: that score is left out and a note says why."""
     config = config or NodeConfig()
-    source = open_log(Path(log_path))
+    source = open_log(Path(log_path), skip_corrupt=skip_corrupt)
     info = source.info()
     total = sum(t.count for t in info.topics)
-    terrain = _terrain_truth(source) or RasterTruth.from_folder(Path(log_path))
+    terrain, no_terrain = _terrain_truth(source)
+    terrain = terrain or RasterTruth.from_folder(Path(log_path))
     if str(kd_path) != ":memory:":
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
     t_start, cpu_start = time.perf_counter(), time.process_time()
@@ -208,7 +217,11 @@ def run_log(
         if reader is not None and reader.decode_cpu_s:
             report.cpu_ms_per_sweep["decode_process"] = 1e3 * reader.decode_cpu_s / n
         report.metrics.update(_metrics(node, odo, terrain))
-        report.metrics.update(_tracking(node, kd, log_path))
+        if no_terrain is not None:
+            report.metrics["elevation"] = {"disabled": no_terrain}
+            report.notes.append(f"elevation scores disabled: {no_terrain}")
+        _log_losses(report, source)
+        report.metrics.update(_tracking(node, kd, log_path, skip_corrupt))
         if render_dir is not None:
             from wm.render import render_run
 
@@ -258,14 +271,36 @@ def _cpu_timed(frames: Iterator[Frame], total_s: list[float]) -> Iterator[Frame]
         yield frame
 
 
-def _terrain_truth(source: LogSource) -> TerrainTruth | None:
-    """The log's terrain truth, or None. It only scores the run, so a damaged one is left out
-    with a warning, never fatal."""
+def _terrain_truth(source: LogSource) -> tuple[TerrainTruth | None, str | None]:
+    """The log's terrain truth (None if it has none), and why it is unusable when it is
+    there but damaged (a CRC mismatch, bytes that are no array, metadata that is no grid). It
+    only scores the run, so a damaged one is left out with a warning, never fatal."""
+    damaged = {k: v for k, v in _safe(source.damaged_extras).items() if _terrain_related(k)}
     try:
-        return TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
+        truth = TerrainTruth.from_log(_safe(source.attachments), _safe(source.metadata))
     except Exception as e:
-        log.warning("terrain truth in the log is unusable (%s); the run is not scored on it", e)
-        return None
+        why = f"terrain truth in the log is unusable ({type(e).__name__}: {e})"
+    else:
+        if truth is not None or not damaged:
+            return truth, None
+        why = "terrain truth in the log is damaged: " + "; ".join(damaged.values())
+    log.warning("%s; the run is not scored on it", why)
+    return None, why
+
+
+def _terrain_related(what: str) -> bool:
+    """A damaged attachment or metadata record that may be the terrain truth (a damaged
+    metadata record's name is unknown)."""
+    return "terrain" in what or "METADATA" in what
+
+
+def _log_losses(report: RunReport, source: LogSource) -> None:
+    """The messages the reader left out (``--skip-corrupt``), per reason, into the report's
+    ``skipped``, and what it noted into its notes: each once (the reader counts a record
+    once however many passes meet it)."""
+    for reason, n in source.stats.lost.items():
+        report.skipped[reason] = report.skipped.get(reason, 0) + n
+    report.notes += [m for m in source.stats.messages if m not in report.notes]
 
 
 def _safe(get) -> dict:
@@ -289,7 +324,9 @@ def _score(node: WorldModelNode, cycle, odo: OdometryScore) -> None:
         odo.add(cycle.t_pose_ns, cycle.T_world_body, node.truth)
 
 
-def _tracking(node: WorldModelNode, kd: kd_store.KnowledgeDatabase, log_path) -> dict[str, Any]:
+def _tracking(
+    node: WorldModelNode, kd: kd_store.KnowledgeDatabase, log_path, skip_corrupt: bool = False
+) -> dict[str, Any]:
     """The KD's object entities against the log's truth, as `wm evaluate` scores them
     (:mod:`wm.evaluation`, docs/evaluation.md: py-motmetrics, TrackEval, evo), once the run is
     over: the log is read again for its truth, off the node's time. Empty when SP did not run
@@ -300,7 +337,7 @@ def _tracking(node: WorldModelNode, kd: kd_store.KnowledgeDatabase, log_path) ->
 
     kd.flush()
     try:
-        s = evaluate_run(load_truth(log_path), load_kd(kd))
+        s = evaluate_run(load_truth(log_path, skip_corrupt=skip_corrupt), load_kd(kd))
     except EvaluationError as e:
         return {"detection": {"error": str(e)}}
     return {"detection": {k: s[k] for k in REPORTED_TRACKING if k in s}}

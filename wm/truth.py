@@ -37,6 +37,8 @@ class TerrainTruth:
         if "terrain.npy" not in attachments or not meta:
             return None
         h = np.load(io.BytesIO(attachments["terrain.npy"])).astype(np.float64)
+        if h.ndim != 2 or min(h.shape) < 2:
+            raise ValueError(f"terrain.npy holds an array of shape {h.shape}, not a grid")
         origin = (float(meta["origin_x"]), float(meta["origin_y"]))
         return cls(h, origin, float(meta["resolution_m"]))
 

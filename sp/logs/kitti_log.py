@@ -94,7 +94,11 @@ class KittiLogSource(LogSource):
         path = self.scan_files[i]
         size = path.stat().st_size
         if size % 16:
-            self.fail(f"{path.name}: {size} bytes is not a whole number of 16-byte points")
+            self.fail(
+                f"{path.name}: {size} bytes is not a whole number of 16-byte points",
+                reason="corrupt scan",
+                lost=1,
+            )
             return None
         xyzi = np.fromfile(path, dtype="<f4").reshape(-1, 4)
         return xyzi, np.isfinite(xyzi[:, :3]).all(axis=1)

@@ -58,6 +58,63 @@ _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end time, uncompressed size, CRC
 _U64 = struct.Struct("<Q")
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel, sequence, log time, publish time
+_MESSAGE_INDEX_HEAD = struct.Struct("<HI")  # channel, byte length of its (time, offset) pairs
+
+#: the most uncompressed bytes a chunk may declare: more is refused as corrupt, never allocated
+MAX_CHUNK_BYTES = 1 << 30
+#: ... nor more than this many times the file's size (floor: ``_CHUNK_SIZE_FLOOR``), since no
+#: real chunk compresses that well
+MAX_CHUNK_EXPANSION = 256
+_CHUNK_SIZE_FLOOR = 64 << 20
+#: how many of each channel's latest messages a repeat is looked for among
+_RECENT_MESSAGES = 256
+
+
+def chunk_size_limit(file_size: int) -> int:
+    """The most uncompressed bytes a chunk of a file of ``file_size`` bytes may declare."""
+    return min(MAX_CHUNK_BYTES, max(_CHUNK_SIZE_FLOOR, MAX_CHUNK_EXPANSION * file_size))
+
+
+def _chunk_size_problem(body: bytes, limit: int) -> str | None:
+    """Why a chunk record's declared uncompressed size cannot be right (None if it can be):
+    above ``limit``, or (uncompressed) not the size of its data. Compressed data that says
+    its own size (zstd, LZ4 frames) must agree, so nothing decompresses to more."""
+    if len(body) < _CHUNK_HEAD.size:
+        return None  # the reading names a short record
+    size = _CHUNK_HEAD.unpack_from(body)[2]
+    if size > limit:
+        return f"declares {size} uncompressed bytes, above the limit of {limit}"
+    name_len = _CHUNK_HEAD.unpack_from(body)[4]
+    pos = _CHUNK_HEAD.size + name_len
+    if pos + _U64.size > len(body):
+        return None
+    compression = bytes(body[_CHUNK_HEAD.size : pos])
+    data = memoryview(body)[pos + _U64.size :]
+    framed: int | None = None
+    try:
+        if compression == b"":
+            framed = _U64.unpack_from(body, pos)[0]
+        elif compression == b"zstd":
+            import zstandard
+
+            framed = zstandard.frame_content_size(data)
+        elif compression == b"lz4":
+            import lz4.frame
+
+            framed = lz4.frame.get_frame_info(data).get("content_size") or None
+    except Exception:  # damaged or unknown: the reading names it
+        return None
+    if framed is not None and framed >= 0 and framed != size:
+        return f"declares {size} uncompressed bytes but its data holds {framed}"
+    return None
+
+
+def _index_count(body: bytes) -> int:
+    """Messages a MESSAGE_INDEX record lists (0 if it is damaged)."""
+    if len(body) < _MESSAGE_INDEX_HEAD.size:
+        return 0
+    n_bytes = _MESSAGE_INDEX_HEAD.unpack_from(body)[1]
+    return min(n_bytes, len(body) - _MESSAGE_INDEX_HEAD.size) // 16
 
 
 def _opcode_name(opcode: int) -> str:
@@ -397,6 +454,22 @@ def _reading_typestore_factory() -> Callable[[], Any] | None:
     return functools.partial(CdrReadingTypestore, empty)
 
 
+def _ends_crc(data: bytes, n: int = 4096) -> int:
+    """CRC32 of a message's first and last ``n`` bytes: tells two messages apart as well as
+    the whole would (a sweep's stamp and header lead its bytes; many writers leave every
+    sequence number 0) at a fixed cost, not a pass over megabytes of points."""
+    return crc32(data[-n:], crc32(data[:n])) if len(data) > 2 * n else crc32(data)
+
+
+def _chunk_fingerprint(body: bytes) -> tuple[int, ...]:
+    """What tells a chunk record's bytes from another's: its header (times, size, CRC of the
+    uncompressed records) and length, with the CRC of the record itself where the chunk was
+    written without one."""
+    head = _CHUNK_HEAD.unpack_from(body)[:4] if len(body) >= _CHUNK_HEAD.size else ()
+    crc = head[3] if head and head[3] else crc32(body)
+    return (*head[:3], crc, len(body))
+
+
 @dataclass(slots=True)
 class _ChunkMessages:
     """The messages of one chunk (or one loose message), with the chunk's start time."""
@@ -437,6 +510,8 @@ class McapLogSource(LogSource):
             raise LogError(f"{self.path}: cannot read: {exc}") from exc
         if head != MAGIC:
             raise LogError(f"{self.path}: not an MCAP file (starts with {head!r})")
+        self._size = size
+        self._damaged: dict[str, str] = {}  # attachments and metadata left out: what -> why
         self._complete = size >= 2 * len(MAGIC) + _FOOTER_SIZE and tail == MAGIC
         if not self._complete:
             problem = f"ends without the MCAP footer after {size} bytes: truncated"
@@ -445,7 +520,7 @@ class McapLogSource(LogSource):
             self.stats.note(f"{self.path.name}: {problem}; reading what is there")
 
     # -------------------------------------------------------------- records
-    def _records(self, fail: Callable[[str], None]) -> Iterator[tuple[int, int, bytes]]:
+    def _records(self, fail: Callable[..., None]) -> Iterator[tuple[int, int, bytes]]:
         """(byte offset, opcode, body) of each top-level record up to the footer."""
         with open(self.path, "rb") as f:
             size = os.fstat(f.fileno()).st_size
@@ -467,22 +542,48 @@ class McapLogSource(LogSource):
                 if opcode == Opcode.FOOTER:
                     return
 
-    def _scan(
-        self, fail: Callable[[str], None]
-    ) -> Iterator[_ChunkMessages | Attachment | Metadata]:
+    def _scan(self, fail: Callable[..., None]) -> Iterator[_ChunkMessages | Attachment | Metadata]:
         """Chunks (as their messages), loose messages, attachments and metadata, in file order.
 
-        Schemas and channels are registered on the way.
+        Schemas and channels are registered on the way. A chunk whose declared size is absurd
+        is refused unread; a chunk whose bytes repeat an earlier chunk's (the same record
+        twice) is a defect, left out whole when skipping. A damaged chunk's lost messages are
+        counted from the message indexes after it. An attachment whose CRC does not match, or
+        a damaged attachment or metadata record, is left out and named in
+        :meth:`damaged_extras` (never fatal: they only serve scoring).
         """
+        limit = chunk_size_limit(self._size)
+        seen: dict[tuple[int, ...], int] = {}  # chunk fingerprint -> offset of its first copy
+        failed: list[tuple[str, str, int]] = []  # a damaged chunk: problem, reason, messages
+
+        def flush_failed() -> None:
+            while failed:
+                problem, reason, lost = failed.pop()
+                fail(problem, reason=reason, lost=lost)
+
         for offset, opcode, body in self._records(fail):
+            if opcode == Opcode.MESSAGE_INDEX and failed:
+                failed[-1] = (failed[-1][0], failed[-1][1], failed[-1][2] + _index_count(body))
+                continue
+            flush_failed()
             stream = ReadDataStream(io.BytesIO(body))
             try:
                 if opcode == Opcode.CHUNK:
+                    size_problem = _chunk_size_problem(body, limit)
+                    if size_problem is not None:
+                        problem = f"record CHUNK at byte {offset} {size_problem}: corrupt"
+                        failed.append((problem, "oversized chunk", 0))
+                        continue
                     parsed = _chunk_records(body)
                     if parsed is None:  # unusual or damaged: the library's reading says what
                         parsed = _chunk_records_reference(stream)
                     start_t_ns, records = parsed
                     messages = [r for r in records if self._register(r)]
+                    first = seen.setdefault(_chunk_fingerprint(body), offset)
+                    if first != offset:
+                        problem = self._repeat(offset, first, messages)
+                        fail(problem, reason="duplicated chunk", lost=len(messages))
+                        continue
                     yield _ChunkMessages(start_t_ns, messages)
                 elif opcode == Opcode.MESSAGE:
                     message = Message.read(stream, len(body))
@@ -491,13 +592,64 @@ class McapLogSource(LogSource):
                     self._register(Schema.read(stream))
                 elif opcode == Opcode.CHANNEL:
                     self._register(Channel.read(stream))
-                elif opcode == Opcode.ATTACHMENT:
-                    yield Attachment.read(stream)
-                elif opcode == Opcode.METADATA:
-                    yield Metadata.read(stream)
+                elif opcode in (Opcode.ATTACHMENT, Opcode.METADATA):
+                    item = self._extra(offset, opcode, body)
+                    if item is not None:
+                        yield item
+            except LogError:  # a defect named already (fail above)
+                raise
             except Exception as exc:  # damaged bytes surface as many library errors
                 what = f"{type(exc).__name__}: {exc}"
-                fail(f"record {_opcode_name(opcode)} at byte {offset} is corrupt: {what}")
+                problem = f"record {_opcode_name(opcode)} at byte {offset} is corrupt: {what}"
+                if opcode != Opcode.CHUNK:
+                    fail(problem, reason="corrupt record", lost=int(opcode == Opcode.MESSAGE))
+                else:
+                    failed.append((problem, "corrupt chunk", 0))
+        flush_failed()
+
+    def _repeat(self, offset: int, first: int, messages: list[Message]) -> str:
+        topics = sorted({self._topic(m.channel_id) for m in messages})
+        times = [m.log_time for m in messages] or [0]
+        return (
+            f"record CHUNK at byte {offset} repeats the chunk at byte {first} (duplicated: "
+            f"{len(messages)} messages on {', '.join(topics)}, log times "
+            f"{min(times)}..{max(times)} ns, again)"
+        )
+
+    def _topic(self, channel_id: int) -> str:
+        channel = self._channels.get(channel_id)
+        return channel.topic if channel is not None else f"channel {channel_id}"
+
+    def _extra(self, offset: int, opcode: int, body: bytes) -> Attachment | Metadata | None:
+        """An attachment (its CRC checked) or metadata record; None, named in
+        :meth:`damaged_extras` and noted, when it is damaged."""
+        where = f"{_opcode_name(opcode)} at byte {offset}"
+        try:
+            if opcode == Opcode.METADATA:
+                return Metadata.read(ReadDataStream(io.BytesIO(body)))
+            item = Attachment.read(ReadDataStream(io.BytesIO(body)))
+            where = f"attachment {item.name!r} at byte {offset}"
+            if len(body) < 4:
+                raise ValueError("no CRC")
+            (stored,) = struct.unpack_from("<I", body, len(body) - 4)
+            computed = crc32(memoryview(body)[:-4])
+            if stored != 0 and stored != computed:  # 0: written without a CRC
+                raise ValueError(f"CRC mismatch (stored {stored:#010x}, data {computed:#010x})")
+            return item
+        except Exception as exc:
+            problem = f"{where} is damaged: {exc}"
+            key = where.split(" at byte")[0]
+            if self._damaged.get(key) != problem:
+                self._damaged[key] = problem
+                self.stats.note(f"{self.path.name}: left out: {problem}")
+            return None
+
+    def damaged_extras(self) -> dict[str, str]:
+        """Attachments and metadata left out as damaged: ``{"attachment 'terrain.npy'":
+        why}`` (read with the attachments; metadata keyed ``METADATA`` as its name is in the
+        damaged bytes)."""
+        self._attachments_and_metadata()
+        return dict(self._damaged)
 
     def _register(self, record: object) -> bool:
         """Keep schemas and channels; True for a message record."""
@@ -507,24 +659,49 @@ class McapLogSource(LogSource):
             self._channels[record.id] = record
         return isinstance(record, Message)
 
-    def _quiet_fail(self, problem: str) -> None:
+    def _quiet_fail(self, problem: str, **counts: Any) -> None:
         if not self.skip_corrupt:
-            self.fail(problem)
+            self.fail(problem, **counts)
 
     def _messages(self) -> Iterator[Message]:
-        """Messages in log-time order (ties in file order), merging chunks as they come."""
+        """Messages in log-time order (ties in file order), merging chunks as they come.
+
+        A message that repeats one of the latest on its channel (the same log and publish
+        time, sequence number, length and bytes: a duplicated record) is a defect."""
         heap: list[tuple[int, int, Message]] = []
         seq = 0
+        recent: dict[int, dict[tuple[int, ...], None]] = {}
         for item in self._scan(self.fail):
             if not isinstance(item, _ChunkMessages):
                 continue
             while heap and heap[0][0] <= item.start_t_ns:
-                yield heapq.heappop(heap)[2]
+                message = heapq.heappop(heap)[2]
+                if self._first_time(message, recent):
+                    yield message
             for message in item.messages:
                 heapq.heappush(heap, (message.log_time, seq, message))
                 seq += 1
         while heap:
-            yield heapq.heappop(heap)[2]
+            message = heapq.heappop(heap)[2]
+            if self._first_time(message, recent):
+                yield message
+
+    def _first_time(self, m: Message, recent: dict[int, dict[tuple[int, ...], None]]) -> bool:
+        """False (after :meth:`fail`) for a repeat of one of its channel's latest messages."""
+        key = (m.log_time, m.publish_time, m.sequence, len(m.data), _ends_crc(m.data))
+        latest = recent.setdefault(m.channel_id, {})
+        if key in latest:
+            self.fail(
+                f"{self._topic(m.channel_id)} message at log time {m.log_time} ns (sequence "
+                f"{m.sequence}) repeats an earlier one: duplicated",
+                reason="duplicated message",
+                lost=1,
+            )
+            return False
+        latest[key] = None
+        if len(latest) > _RECENT_MESSAGES:
+            del latest[next(iter(latest))]
+        return True
 
     # -------------------------------------------------------------- decoding
     def _msgtype(self, channel: Channel) -> str:
@@ -565,7 +742,11 @@ class McapLogSource(LogSource):
         for message in self._messages():
             channel = self._channels.get(message.channel_id)
             if channel is None:
-                self.fail(f"message at log time {message.log_time} has unknown channel")
+                self.fail(
+                    f"message at log time {message.log_time} has unknown channel",
+                    reason="unknown channel",
+                    lost=1,
+                )
                 continue
             if channel.id not in roles:
                 role = role_of(
@@ -583,7 +764,9 @@ class McapLogSource(LogSource):
             except Exception as exc:  # rosbags raises several types for bad bytes
                 self.fail(
                     f"{channel.topic} message at log time {message.log_time} cannot be "
-                    f"decoded as {self._msgtype(channel)}: {exc}"
+                    f"decoded as {self._msgtype(channel)}: {exc}",
+                    reason="undecodable message",
+                    lost=1,
                 )
                 continue
             yield from assembler.push(channel.topic, role, msg, message.log_time)

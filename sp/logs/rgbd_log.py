@@ -86,7 +86,7 @@ class RgbdLogSource(LogSource):
 
         bgr = cv2.imread(str(color), cv2.IMREAD_COLOR)
         if bgr is None:
-            self.fail(f"{color.name}: unreadable image")
+            self.fail(f"{color.name}: unreadable image", reason="corrupt image", lost=1)
             return None
         depth = None
         depth_path = color.with_name(color.name.split(".")[0] + ".depth.png")
@@ -113,7 +113,7 @@ class RgbdLogSource(LogSource):
         try:
             T = np.loadtxt(path, dtype=np.float64).reshape(4, 4)
         except ValueError as exc:
-            self.fail(f"{path.name}: not a 4x4 pose: {exc}")
+            self.fail(f"{path.name}: not a 4x4 pose: {exc}", reason="corrupt pose", lost=1)
             return None
         if not np.isfinite(T).all():
             self.stats.note(f"{path.name}: pose not finite (tracking lost); left out")

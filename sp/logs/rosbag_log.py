@@ -71,7 +71,11 @@ class RosbagLogSource(LogSource):
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                 except Exception as exc:
-                    self.fail(f"{conn.topic} message at {t_ns} ns is undecodable: {exc}")
+                    self.fail(
+                        f"{conn.topic} message at {t_ns} ns is undecodable: {exc}",
+                        reason="undecodable message",
+                        lost=1,
+                    )
                     continue
                 yield from assembler.push(conn.topic, wanted[conn.id][1], msg, t_ns)
         yield from assembler.flush()

@@ -131,6 +131,8 @@ class LogSource(ABC):
         self._info: LogInfo | None = None
         self._static: dict[tuple[str, str], np.ndarray] | None = None
         self._failed: set[str] = set()  # corrupt records counted (each problem names its place)
+        #: the defects skipped (skip_corrupt=True), each once, in the order met
+        self.defects: list[str] = []
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.path)!r})"
@@ -154,15 +156,18 @@ class LogSource(ABC):
     def _notes(self) -> list[str]:
         return []
 
-    def fail(self, problem: str) -> None:
+    def fail(self, problem: str, *, reason: str = "corrupt record", lost: int = 0) -> None:
         """A corrupt record: raise LogError, or count and note it once when skipping corrupt
-        input."""
+        input: one more in ``stats.skipped_records`` and ``lost`` more messages left out under
+        ``stats.lost[reason]``."""
         if not self.skip_corrupt:
             raise LogError(f"{self.path}: {problem} (open with skip_corrupt=True to skip it)")
         if problem in self._failed:  # met again on a later pass (info() and frames() both read)
             return
         self._failed.add(problem)
+        self.defects.append(problem)
         self.stats.skipped_records += 1
+        self.stats.lost[reason] = self.stats.lost.get(reason, 0) + lost
         self.stats.note(f"{self.path.name}: skipped: {problem}")
 
     # ------------------------------------------------------------------ the interface
@@ -222,6 +227,11 @@ class LogSource(ABC):
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """Metadata records by name (empty where the format has none)."""
+        return {}
+
+    def damaged_extras(self) -> dict[str, str]:
+        """Attachments and metadata left out of :meth:`attachments` and :meth:`metadata` as
+        damaged (what -> why); never fatal, since they only serve scoring."""
         return {}
 
     def frame_topics(self) -> set[str]:

@@ -174,6 +174,11 @@ class ReadStats:
     dropped_nonfinite_points: int = 0  # NaN/inf LADAR points dropped
     backwards_timestamps: int = 0  # records whose time went backwards on their topic
     messages: list[str] = field(default_factory=list)  # one line per problem, for the user
+    #: messages left out, per reason ("corrupt chunk", "duplicated chunk", ...): each skipped
+    #: record counted once (however many passes meet it), as the messages it held where the
+    #: log says how many (a chunk's message indexes), else 0 (the record is still counted in
+    #: ``skipped_records``)
+    lost: dict[str, int] = field(default_factory=dict)
 
     def note(self, message: str, limit: int = 100) -> None:
         if len(self.messages) < limit:
