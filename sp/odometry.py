@@ -56,6 +56,12 @@ class OdometryError(EngineError, ValueError):
     """A configuration or input the odometry cannot use; names the value."""
 
 
+#: Largest departure of a wheel-odometry rotation from orthonormal (entries of ``R R^T - I``)
+#: taken as rounding (a quaternion stored in float32); the rotation is then re-orthonormalised.
+#: The node screens messages with the same bound, so what it passes the odometry takes.
+WHEEL_POSE_ATOL = 1e-4
+
+
 class TrackStatus(StrEnum):
     """What happened to a sweep."""
 
@@ -217,11 +223,15 @@ class WheelOdometry:
         self.max_extrapolate_ns = max_extrapolate_ns
 
     def add(self, frame: OdometryFrame) -> None:
+        """Buffer one message; a pose that is not a finite rigid transform raises
+        :class:`OdometryError` and leaves the buffer as it was (its lists stay aligned)."""
         if self.t_ns and frame.t_ns <= self.t_ns[-1]:
             return  # out of order or repeated: the buffer keeps time order
+        T = _rigid(frame.T_parent_child, f"wheel odometry T_odom_body at t_ns={frame.t_ns}")
+        tilt_var = _reported_tilt_variance(frame)
         self.t_ns.append(int(frame.t_ns))
-        self.poses.append(check_pose(frame.T_parent_child, "wheel odometry T_odom_body"))
-        self.tilt_var.append(_reported_tilt_variance(frame))
+        self.poses.append(T)
+        self.tilt_var.append(tilt_var)
         if len(self.t_ns) > self.horizon:
             del self.t_ns[0], self.poses[0], self.tilt_var[0]
 
@@ -289,6 +299,7 @@ class LadarOdometry:
         kiss.registration.max_num_threads = cfg.max_threads
         kiss.registration.convergence_criterion = cfg.convergence
         kiss.registration.max_num_iterations = cfg.max_iterations
+        self._kiss_config = kiss
         self.kiss = KissICP(kiss)
         self.T_body_sensor = np.eye(4) if T_body_sensor is None else check_pose(T_body_sensor)
         self.T_sensor_body = se3_inverse(self.T_body_sensor)
@@ -305,9 +316,40 @@ class LadarOdometry:
         # variance (rad^2) of the estimated roll and pitch: the world starts level with the
         # first wheel-odometry attitude, so it starts at zero
         self.tilt_P = 0.0
+        # the last accepted sweep: reference time and T_world_sensor (recover() restarts there)
+        self.last_good: tuple[int, np.ndarray] | None = None
 
     def add_wheel_odometry(self, frame: OdometryFrame) -> None:
+        """Buffer a wheel-odometry message; raises :class:`OdometryError` on a pose that is
+        not a finite rigid transform, the buffer unchanged."""
         self.wheel.add(frame)
+
+    def update_or_skip(self, scan: LadarScan) -> tuple[OdometryEstimate | None, str]:
+        """:meth:`update` that never raises: a sweep it fails on gives ``(None, reason)``,
+        the reason ``"odometry failed: ..."`` naming the sweep and the error, and the
+        odometry restarts from its last accepted pose (:meth:`recover`), so one bad sweep
+        costs that sweep alone. ``(estimate, "")`` otherwise."""
+        try:
+            return self.update(scan), ""
+        except Exception as e:  # any bug or bad value in one sweep must not end the track
+            why = f"odometry failed: sweep at t_ns={scan.t_ns}: {type(e).__name__}: {e}"
+            self.recover()
+            return None, why
+
+    def recover(self) -> None:
+        """Start a fresh registration map at the last accepted sweep's pose (the world frame
+        stays): the next sweep is placed by the wheels' motion since then (or where that
+        sweep was, without wheels) and starts the new map. The wheel buffer is kept."""
+        from kiss_icp.kiss_icp import KissICP
+
+        self.kiss = KissICP(self._kiss_config)
+        if self.last_good is not None:
+            self.last_t_ns, self.T_world_map = self.last_good[0], self.last_good[1].copy()
+        else:  # nothing accepted yet: restart where the world started
+            self.last_t_ns = None
+        self.last_interval_ns = 0
+        self._previous_voxels = None
+        self.n_lost += 1
 
     def _T_world_body(self, T_map_sensor: np.ndarray) -> np.ndarray:
         return self.T_world_map @ T_map_sensor @ self.T_sensor_body
@@ -409,6 +451,7 @@ class LadarOdometry:
         self.n_lost = 0
         self.last_interval_ns = t_ns - self.last_t_ns if self.last_t_ns is not None else 0
         self.last_t_ns = t_ns
+        self.last_good = (t_ns, self.T_world_map @ pose)
         return OdometryEstimate(
             t_ns, self._T_world_body(pose), quality, status, "", n_usable, delta_icp
         )
@@ -518,6 +561,21 @@ class LadarOdometry:
         return OdometryEstimate(
             t_ns, self._T_world_body(kiss.last_pose), quality, TrackStatus.LOST, message, n_points
         )
+
+
+def _rigid(T: np.ndarray, name: str) -> np.ndarray:
+    """``T`` (4x4 float64) if it is a finite rigid transform within :data:`WHEEL_POSE_ATOL`,
+    a rotation off by rounding replaced by the nearest rotation (SVD); else
+    :class:`OdometryError`."""
+    try:
+        T = check_pose(T, name, atol=WHEEL_POSE_ATOL).copy()
+    except ValueError as e:
+        raise OdometryError(str(e)) from None
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-9):  # exact ones stay bit for bit
+        u, _, vt = np.linalg.svd(R)
+        T[:3, :3] = u @ vt
+    return T
 
 
 def _reported_tilt_variance(frame: OdometryFrame) -> float:

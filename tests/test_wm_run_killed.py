@@ -1,6 +1,6 @@
-"""A killed `wm run` leaves nothing running: its odometry process notices that the node's
-process is gone and exits (and with it the last holder of the decoder's pipe, so the decoder
-exits too). And it keeps what it saw: the KD file holds the entities of the run up to the
+"""A killed `wm run` leaves nothing running: the kernel kills its children, the log decoder
+and the odometry process, when their parent dies (core.process.die_with_parent), within 2 s of
+the SIGKILL. And it keeps what it saw: the KD file holds the entities of the run up to the
 last flush (every second of log time)."""
 
 from __future__ import annotations
@@ -25,6 +25,15 @@ def _children(pid: int) -> set[int]:
         except OSError:
             pass
     return out
+
+
+def _kind(pid: int) -> str:
+    """The child's kind: the decoder (the prefetch interpreter) or odometry (a fork of the run)."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    except OSError:
+        return "gone"
+    return "decoder" if "sp.logs.prefetch" in cmd else "odometry" if "wm.cli" in cmd else cmd
 
 
 def _running(pid: int) -> bool:
@@ -53,20 +62,21 @@ def test_sigkill_of_wm_run_leaves_no_process_and_keeps_what_it_saw(
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)  # fmt: skip
     try:
-        kids: set[int] = set()
+        kids: dict[int, str] = {}
         deadline = time.monotonic() + 60
-        while len(kids) < 2 and time.monotonic() < deadline and proc.poll() is None:
-            kids |= _children(proc.pid)  # the decoder and the odometry process
+        while len(set(kids.values())) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            kids |= {k: _kind(k) for k in _children(proc.pid) - kids.keys()}
             time.sleep(0.05)
-        assert len(kids) >= 2, "wm run started no odometry and decoder processes"
+        assert {"decoder", "odometry"} <= set(kids.values()), f"children seen: {kids}"
         time.sleep(4.0)  # a few seconds of the 8 s log
         assert proc.poll() is None, "the run ended before it could be killed"
+        killed = time.monotonic()
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
-        deadline = time.monotonic() + 10
-        while any(_running(k) for k in kids) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert not [k for k in kids if _running(k)]
+        while any(_running(k) for k in kids) and time.monotonic() < killed + 2.0:
+            time.sleep(0.02)
+        left = {k: kind for k, kind in kids.items() if _running(k)}
+        assert not left, f"children still running 2 s after the SIGKILL: {left}"
         import kd_store
 
         with kd_store.open(tmp_path / "k.kd", read_only=True) as kd:

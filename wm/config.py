@@ -169,12 +169,14 @@ class NodeConfig:
     odometry_ahead: int = 2
     # a sweep waits for wheel odometry past its end at most this long (ns of log time)
     wheel_wait_ns: int = 200_000_000
-    # a frame stamped more than this after the log's latest frame is held back, not taken (a
-    # corrupted stamp would otherwise carry the self pose and every state far into the future)
+    # a frame stamped more than this after the log's latest frame, or before it, is held back,
+    # not taken (a corrupted stamp would otherwise carry the self pose and every state far
+    # into the future, or make every later frame look out of order)
     max_time_jump_ns: int = 600_000_000_000
     # ... and this many such frames in a row, each within max_time_jump_ns of the one before,
-    # are a real gap in the log (the recording paused): the node starts a new segment there
-    # and takes them; fewer, followed by a frame in time, were corrupted stamps and are skipped
+    # are a real jump of the log's clock (the recording paused, or its clock restarted
+    # earlier): the node starts a new segment there and takes them; fewer, followed by a frame
+    # in time, were corrupted stamps and are skipped
     segment_confirm_frames: int = 3
     # BLAS and OpenMP threads in the node's process during a run (None: the libraries' own
     # choice). One: the node's array operations are small, and the libraries' idle threads

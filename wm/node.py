@@ -27,15 +27,18 @@ finishes when the block ends, and an error inside the block still flushes what t
 and stops the odometry process before it propagates.
 
 Time jumps: a frame stamped more than ``NodeConfig.max_time_jump_ns`` after the log's latest
-one is held back. A frame in time after it shows it was a corrupted stamp: it is skipped
-(``stats.skipped["time jump"]``). ``segment_confirm_frames`` such frames in a row, each within
-the bound of the one before, are a real gap (the recording paused): the node ends the segment
-before the gap (its sweeps run, the KD is flushed), starts a new one
-(``stats.events["time_jump_new_segment"]``) and takes the held frames. Nothing integrates
-across the gap: the odometry starts again from the last pose before it (a fresh registration
-map and wheel history, zero velocity), the pose track and the range-image prediction start
-empty. SP's tracks are kept; their prediction uncertainty grows with the gap like any other
-interval, so static objects keep their entities and movers are found anew.
+one, or that far before it, is held back. A frame in time after it shows it was a corrupted
+stamp: it is skipped (``stats.skipped["time jump"]``). ``segment_confirm_frames`` such frames
+in a row, each within the bound of the one before, are a real jump of the log's clock: a gap
+forward (the recording paused) or back (the clock restarted earlier and runs on from there).
+Either way the node ends the segment before the jump (its sweeps run, the KD is flushed),
+starts a new one (``stats.events["time_jump_new_segment"]``, a note saying which way it
+jumped) and takes the held frames; after a jump back the time-order checks start anew, so the
+frames of the new segment are not taken for stragglers. Nothing integrates across the jump:
+the odometry starts again from the last pose before it (a fresh registration map and wheel
+history, zero velocity), the pose track and the range-image prediction start empty. SP's
+tracks are kept; their prediction uncertainty grows with the gap like any other interval, so
+static objects keep their entities and movers are found anew.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+import typing
 from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -74,10 +78,11 @@ from sp.logs.types import (
     OdometryFrame,
     TransformFrame,
 )
+from sp.odometry import OdometryError
 from sp.pipeline import SensoryProcessor
 from wm import predict, vj
 from wm.config import NodeConfig, PoseSource
-from wm.odometry_worker import OdometryWorker
+from wm.odometry_worker import OdometryReply, OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.truth import truth_boxes_to_world
 from wm.whatis import WhatIs
@@ -146,6 +151,14 @@ def level_from_ground(
 
 class NodeError(EngineError, ValueError):
     """The node cannot run on what it was given (names what is missing and where)."""
+
+
+class FrameTypeError(EngineError, TypeError):
+    """:meth:`WorldModelNode.feed` was given something that is not a log frame (names its
+    type and the frame types the node takes)."""
+
+
+FRAME_TYPES: tuple[type, ...] = typing.get_args(Frame)
 
 
 @dataclass
@@ -270,8 +283,14 @@ class WorldModelNode:
         A frame the node cannot use (:meth:`_screen`: a non-finite or non-rigid odometry
         pose, a sweep out of time order or of the wrong shape; :meth:`_hold`: far in the
         future) is logged and counted in ``stats.skipped`` and changes nothing: one bad
-        message never stops or corrupts a run. A run of frames far in the future is a gap in
-        the log: a new segment starts (module docstring)."""
+        message never stops or corrupts a run. A run of frames far in the future or the past
+        is a jump of the log's clock: a new segment starts (module docstring). Anything but a
+        frame (None, a dict, an array) raises :class:`FrameTypeError`, the node untouched."""
+        if not isinstance(frame, FRAME_TYPES):
+            raise FrameTypeError(
+                f"WorldModelNode.feed takes one log frame "
+                f"({', '.join(t.__name__ for t in FRAME_TYPES)}), got {type(frame).__name__}"
+            )
         self.stats.frames[type(frame).__name__] += 1
         if self._beyond_jump(frame):
             return self._hold(frame)
@@ -291,9 +310,7 @@ class WorldModelNode:
         elif isinstance(frame, OdometryFrame):
             self.last_wheel_t_ns = max(self.last_wheel_t_ns or frame.t_ns, frame.t_ns)
             if self._uses_odometry():
-                if self.odometry is None and self.T_world_body0 is None:
-                    self.T_world_body0 = initial_pose(frame)
-                self._odometry().add_wheel_odometry(frame)
+                self._wheel_to_odometry(frame)
         elif isinstance(frame, CameraFrame):
             self.camera = frame
         elif isinstance(frame, ObjectBoxes):
@@ -309,10 +326,21 @@ class WorldModelNode:
             out += self._start(self.pending.popleft())
         return out
 
+    def _wheel_to_odometry(self, frame: OdometryFrame) -> None:
+        """Hand a screened wheel-odometry frame to the odometry; one it still refuses (in
+        this process) is counted as skipped, the run goes on."""
+        if self.odometry is None and self.T_world_body0 is None:
+            self.T_world_body0 = initial_pose(frame)
+        try:
+            self._odometry().add_wheel_odometry(frame)
+        except OdometryError as e:  # the odometry process tells its own with the next sweep
+            self._skipped(frame, f"bad odometry pose: {e}")
+
     def _beyond_jump(self, frame: Frame) -> bool:
-        """The frame is stamped more than ``max_time_jump_ns`` after the log's latest one."""
+        """The frame is stamped more than ``max_time_jump_ns`` after the log's latest one,
+        or more than that before it (a clock that jumped back)."""
         last = self.last_t_ns
-        return last is not None and int(frame.t_ns) > last + self.config.max_time_jump_ns
+        return last is not None and abs(int(frame.t_ns) - last) > self.config.max_time_jump_ns
 
     def _hold(self, frame: Frame) -> list[CycleResult]:
         """Hold a frame beyond a time jump; once ``segment_confirm_frames`` held frames agree
@@ -334,14 +362,19 @@ class WorldModelNode:
 
     def _jump_reason(self, t_ns: int) -> str:
         gap_s = (t_ns - (self.last_t_ns or 0)) * 1e-9
+        way = "after" if gap_s >= 0 else "before"
         return (
-            f"time jump: {gap_s:.3g} s after the log's latest frame "
+            f"time jump: {abs(gap_s):.3g} s {way} the log's latest frame "
             f"(limit {self.config.max_time_jump_ns * 1e-9:g} s)"
         )
 
     def _skipped(self, frame: Frame, why: str) -> None:
+        self._count_skip(f"{type(frame).__name__} at t_ns={frame.t_ns}", why)
+
+    def _count_skip(self, what: str, why: str) -> None:
+        """Count a skip under its reason (``why`` up to its first colon) and log it."""
         self.stats.skipped[why.split(":")[0]] += 1
-        log.warning("skipped %s at t_ns=%s: %s", type(frame).__name__, frame.t_ns, why)
+        log.warning("skipped %s: %s", what, why)
 
     def _new_segment(self) -> list[CycleResult]:
         """A real gap in the log: end the segment before it (its sweeps run, the KD file is
@@ -356,17 +389,29 @@ class WorldModelNode:
         self._flushed_ns = self._log_start_ns = None
         self._restart_continuity()
         self.stats.events["time_jump_new_segment"] += 1
+        jump_s = (int(held[0].t_ns) - (last or 0)) * 1e-9
         note = (
-            f"new segment at t_ns={held[0].t_ns}: the log jumped "
-            f"{(int(held[0].t_ns) - (last or 0)) * 1e-9:.4g} s after t_ns={last}; "
+            f"new segment at t_ns={held[0].t_ns}: the log jumped {abs(jump_s):.4g} s "
+            f"{'forward' if jump_s >= 0 else 'back'} from t_ns={last}; "
             f"odometry restarted from the last pose"
         )
         self.stats.notes.append(note)
         log.warning("%s", note)
-        self.last_t_ns = None  # the held frames set it anew
+        self._restart_clock()
         for f in held:
             out += self._take(f)
         return out
+
+    def _restart_clock(self) -> None:
+        """Forget the old segment's times, which the held frames set anew: after a jump
+        back they are all earlier, and would otherwise be taken for stragglers (skipped as
+        out of order), never flush the KD and never be due for the levels' slow work."""
+        self.last_t_ns = None
+        self.last_sweep_t_ns = None
+        self.last_wheel_t_ns = None
+        self._flushed_ns = None
+        self._tiles_ns = None
+        self.level_due_ns = dict.fromkeys(self.level_due_ns, -(2**62))
 
     def _restart_continuity(self) -> None:
         """Forget what integrates across time: the odometry (restarted lazily, from the last
@@ -436,7 +481,7 @@ class WorldModelNode:
         while self.pending:
             out += self._start(self.pending.popleft())
         while self.inflight:
-            out.append(self.cycle(*self.inflight.popleft()))
+            out += self._cycles(*self.inflight.popleft())
         return out
 
     def whatis(self) -> WhatIs:
@@ -470,11 +515,16 @@ class WorldModelNode:
         submit it and run the oldest sweep's cycle once ``odometry_ahead`` are in hand there
         (the process registers them meanwhile)."""
         if not (self._uses_odometry() and self.config.odometry_process):
-            return [self.cycle(scan, self.camera)]
+            return self._cycles(scan, self.camera)
         self._odometry(scan).submit(scan)
         self.inflight.append((scan, self.camera))
         ahead = self.config.odometry_ahead
-        return [self.cycle(*self.inflight.popleft())] if len(self.inflight) > ahead else []
+        return self._cycles(*self.inflight.popleft()) if len(self.inflight) > ahead else []
+
+    def _cycles(self, scan: LadarScan, camera: CameraFrame | None) -> list[CycleResult]:
+        """The sweep's cycle as a list: empty when the sweep got no pose (skipped)."""
+        result = self.cycle(scan, camera)
+        return [] if result is None else [result]
 
     def _ready(self, scan: LadarScan) -> bool:
         """The log has passed the sweep's last point and, when it carries wheel odometry,
@@ -527,11 +577,11 @@ class WorldModelNode:
 
     # --- the cycle -------------------------------------------------------------------------
 
-    def cycle(self, scan: LadarScan, camera: CameraFrame | None = None) -> CycleResult:
+    def cycle(self, scan: LadarScan, camera: CameraFrame | None = None) -> CycleResult | None:
         """One node cycle on one sweep (module docstring, steps 1-6); ``camera`` is the latest
-        image when the sweep's poses came in."""
+        image when the sweep's poses came in. None when the odometry could not place the
+        sweep (counted in ``stats.skipped["odometry failed"]``): nothing else is done."""
         clock = _StageClock(self.stats)
-        self.kd.begin_cycle(scan.t_ns)
         if self.T_body_ladar is None:
             self.T_body_ladar = np.eye(4)
             if scan.frame_id != BODY:
@@ -539,6 +589,9 @@ class WorldModelNode:
                     f"no {BODY}->{scan.frame_id} transform in the log: LADAR taken at the body"
                 )
         status = self._pose(scan)
+        if status is None:
+            return None
+        self.kd.begin_cycle(scan.t_ns)
         span = int(scan.t_offset_ns.max()) if scan.n_points else 0
         t_mid = scan.t_ns + span // 2
         T_world_body = self.track.at(t_mid)
@@ -593,8 +646,10 @@ class WorldModelNode:
         self._flushed_ns = t_ns
         self._tiles_ns = t_ns if tiles else self._tiles_ns
 
-    def _pose(self, scan: LadarScan) -> str:
-        """Step 1: extend the pose track over this sweep; returns the odometry status."""
+    def _pose(self, scan: LadarScan) -> str | None:
+        """Step 1: extend the pose track over this sweep; returns the odometry status, or
+        None when the odometry failed on the sweep (counted as skipped; it restarts from its
+        last accepted pose)."""
         if self.config.pose_source == PoseSource.TRUTH:
             if not self.truth.t_ns:
                 raise NodeError(
@@ -605,10 +660,16 @@ class WorldModelNode:
             return "truth"
         odo = self._odometry(scan)
         if isinstance(odo, OdometryWorker):
-            est, cpu_s = odo.result()
-            self.stats.stage_cpu_s["odometry"] += cpu_s
+            reply = odo.result()
+            self.stats.stage_cpu_s["odometry"] += reply.cpu_s
         else:
-            est = odo.update(scan)
+            est, why = odo.update_or_skip(scan)
+            reply = OdometryReply(est, 0.0, [why] if why else [])
+        for why in reply.skipped:
+            self._count_skip("odometry request", why)
+        est = reply.estimate
+        if est is None:
+            return None
         self.track.add(est.t_ns, est.T_world_body)
         return str(est.status)
 

@@ -4,7 +4,14 @@ runs on one core; the node's other stages need the other).
 
 Requests go through one queue in the order the node makes them (wheel-odometry frames, then
 the sweep they cover), so the child sees exactly what a serial :class:`~sp.odometry.
-LadarOdometry` would; estimates come back in sweep order.
+LadarOdometry` would; replies (:class:`OdometryReply`) come back in sweep order.
+
+One bad request never ends the process: a wheel-odometry frame it cannot use, or a sweep whose
+registration fails, comes back as a skip reason with the next reply, and after a failed sweep
+the odometry restarts from its last accepted pose (:meth:`~sp.odometry.LadarOdometry.
+update_or_skip`). The process never outlives the node's: the kernel kills it when the node's
+process dies (:func:`core.process.die_with_parent`, Linux), a thread watching the parent's pid
+ends it elsewhere, and the node stops waiting as soon as the process is gone.
 """
 
 from __future__ import annotations
@@ -16,14 +23,17 @@ import os
 import queue
 import threading
 import time
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from core.errors import EngineError
+from core.process import die_with_parent
 from sp.logs.types import LadarScan, OdometryFrame
 
 RESULT_TIMEOUT_S = 120.0
+_POLL_S = 0.2  # how often a node waiting for a reply checks that the process still runs
 _NO_INTENSITY = np.zeros(0, dtype=np.float32)  # registration never reads intensities
 
 
@@ -45,9 +55,22 @@ def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
     threading.Thread(target=watch, name="wm-odometry-watch", daemon=True).start()
 
 
+@dataclass
+class OdometryReply:
+    """The answer to one submitted sweep: its estimate (None when the sweep was skipped), the
+    odometry process's CPU seconds on it, and the reasons ("reason: detail", as the node's
+    ``stats.skipped`` keys them) of each request skipped since the last reply, the wheel
+    frames before this sweep first."""
+
+    estimate: Any | None
+    cpu_s: float = 0.0
+    skipped: list[str] = field(default_factory=list)
+
+
 def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0, parent: int) -> None:
     """The child's loop: feed wheel odometry, register sweeps, answer each sweep in order."""
-    _exit_with_parent(parent)
+    die_with_parent(parent)
+    _exit_with_parent(parent)  # where prctl is not there (or not allowed)
     from sp.odometry import LadarOdometry, OdometryConfig
 
     # one registration thread: this process has the core the node's process leaves, and a
@@ -55,20 +78,23 @@ def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0, parent: in
     odo = LadarOdometry(
         OdometryConfig(max_threads=1), T_body_sensor=T_body_sensor, T_world_body0=T_world_body0
     )
+    skipped: list[str] = []
     while True:
         kind, item = requests.get()
         if kind == "stop":
             return
         if kind == "wheel":
-            with contextlib.suppress(Exception):  # the node screens wheel frames; never die
+            try:
                 odo.add_wheel_odometry(item)
+            except Exception as e:  # the node screens wheel frames; one that slips by is told
+                skipped.append(f"bad odometry pose: t_ns={item.t_ns}: {type(e).__name__}: {e}")
             continue
-        try:
-            cpu = time.process_time()  # KISS-ICP's threads included
-            est = odo.update(item)
-            results.put((est, time.process_time() - cpu))
-        except Exception as e:  # sent back: the node raises it with the sweep's time
-            results.put(e)
+        cpu = time.process_time()  # KISS-ICP's threads included
+        est, why = odo.update_or_skip(item)
+        if why:
+            skipped.append(why)
+        results.put(OdometryReply(est, time.process_time() - cpu, skipped))
+        skipped = []
 
 
 class OdometryWorker:
@@ -110,23 +136,28 @@ class OdometryWorker:
         self._requests.put(("scan", slim))
         self._waiting.append(int(scan.t_ns))
 
-    def result(self) -> tuple[Any, float]:
-        """The estimate of the oldest submitted sweep (waits for it) and the CPU seconds the
-        odometry process spent on it."""
+    def result(self) -> OdometryReply:
+        """The reply for the oldest submitted sweep (waits for it, at most
+        ``RESULT_TIMEOUT_S``); raises :class:`OdometryWorkerError` as soon as the process is
+        found gone instead of waiting the timeout out."""
         if not self._waiting:
             raise OdometryWorkerError("asked for an odometry result with no sweep submitted")
         t_ns = self._waiting.pop(0)
-        try:
-            out = self._results.get(timeout=RESULT_TIMEOUT_S)
-        except queue.Empty:
-            alive = "running" if self._proc.is_alive() else f"exit code {self._proc.exitcode}"
-            raise OdometryWorkerError(
-                f"no odometry for the sweep at t_ns={t_ns} within {RESULT_TIMEOUT_S:g} s "
-                f"(odometry process {alive})"
-            ) from None
-        if isinstance(out, Exception):
-            raise out
-        return out
+        deadline = time.monotonic() + RESULT_TIMEOUT_S
+        while True:
+            try:
+                return self._results.get(timeout=_POLL_S)
+            except queue.Empty:
+                pass
+            if not self._proc.is_alive():
+                with contextlib.suppress(queue.Empty):  # its last words may be in the pipe
+                    return self._results.get(timeout=_POLL_S)
+                why = f"the odometry process ended (exit code {self._proc.exitcode})"
+            elif time.monotonic() > deadline:
+                why = f"none within {RESULT_TIMEOUT_S:g} s (odometry process running)"
+            else:
+                continue
+            raise OdometryWorkerError(f"no odometry for the sweep at t_ns={t_ns}: {why}")
 
     def close(self) -> None:
         """Stop the process; never blocks on requests it will not read (a process that died

@@ -13,6 +13,10 @@ and a garbage collection in the child that finalises one of them can crash it (s
 while collecting inside rosbags' type compiler). A fresh interpreter also never re-runs the
 caller's ``__main__``. It opens the log anew as ``type(source)(source.path,
 skip_corrupt=source.skip_corrupt)``, as :func:`~sp.logs.source.open_log` does.
+
+The child never outlives the consumer: on Linux the kernel kills it when the consumer's
+process dies (:func:`core.process.die_with_parent`), and anywhere it exits when the pipe's
+reading end is gone (its next write fails).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from core.errors import EngineError
+from core.process import die_with_parent
 from sp.logs.source import LogSource
 from sp.logs.types import Frame
 
@@ -80,14 +85,19 @@ def _serve(source: LogSource, fd: int, batch_frames: int, kwargs: dict) -> None:
         if batch:
             _send(fd, ("frames", batch))
         _send(fd, ("end", source.stats, time.process_time()))
+    except BrokenPipeError:
+        return  # the consumer is gone (closed early, or killed): no one left to tell
     except Exception as e:  # sent back: the consumer raises it where it reads
         _send(fd, ("error", e))
 
 
 def _child_main() -> None:
-    """The child interpreter's entry: the request (source type, path, skip_corrupt, batch
-    size, frame filters) comes pickled on stdin; messages go out on the original stdout, and
-    anything else printed goes to stderr so it cannot corrupt the stream."""
+    """The child interpreter's entry: the consumer's pid is its one argument (taken before
+    the child started, so a consumer that died meanwhile is noticed); the request (source
+    type, path, skip_corrupt, batch size, frame filters) comes pickled on stdin; messages go
+    out on the original stdout, and anything else printed goes to stderr so it cannot
+    corrupt the stream."""
+    die_with_parent(int(sys.argv[1]))
     source_type, path, skip_corrupt, batch_frames, kwargs = pickle.load(sys.stdin.buffer)
     fd = os.dup(1)
     os.dup2(2, 1)
@@ -121,7 +131,7 @@ class FramePrefetcher:
         self._kwargs = kwargs
         request = (type(source), source.path, source.skip_corrupt, batch_frames, kwargs)
         self._proc = subprocess.Popen(
-            [sys.executable, "-c", _CHILD],
+            [sys.executable, "-c", _CHILD, str(os.getpid())],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=_child_env(),
