@@ -384,9 +384,6 @@ class WorldModelNode:
         last = self.last_t_ns
         out = self._drain()
         self.flush()
-        # the gap is the recording's pause, not the file falling behind: the lag and the
-        # flush period start again with the new segment (its first cycle flushes)
-        self._flushed_ns = self._log_start_ns = None
         self._restart_continuity()
         self.stats.events["time_jump_new_segment"] += 1
         jump_s = (int(held[0].t_ns) - (last or 0)) * 1e-9
@@ -405,8 +402,10 @@ class WorldModelNode:
     def _restart_clock(self) -> None:
         """Forget the old segment's times, which the held frames set anew: after a jump
         back they are all earlier, and would otherwise be taken for stragglers (skipped as
-        out of order), never flush the KD and never be due for the levels' slow work."""
+        out of order), never flush the KD and never be due for the levels' slow work. The
+        jump is the recording's, not the file falling behind: the flush lag starts again."""
         self.last_t_ns = None
+        self._log_start_ns = None
         self.last_sweep_t_ns = None
         self.last_wheel_t_ns = None
         self._flushed_ns = None
