@@ -11,7 +11,7 @@ Reference 001, section 4.4. Start with :func:`open`::
 
 from kd_store.classes import ClassKind, ClassLibrary, ClassPrototype
 from kd_store.config import KDConfig, MemoryConfig, PromotionRule
-from kd_store.errors import KDError
+from kd_store.errors import KDError, ResultTooLarge
 from kd_store.frames import (
     Attribute,
     EntityFrame,
@@ -46,6 +46,7 @@ __all__ = [
     "PromotionRule",
     "Relation",
     "RelationKind",
+    "ResultTooLarge",
     "SQLReader",
     "State",
     "StateBatch",

@@ -6,7 +6,10 @@ The text is not trusted: the connection is opened read-only with DuckDB's extern
 its configuration locked (``SET``, ``PRAGMA`` cannot lift the limits), a memory limit (it
 bounds DuckDB's operators: sorts, joins, aggregates; not one huge value in the result, such as
 ``repeat('x', 2000000000)``, which DuckDB builds outside it) and a time limit; and one SELECT
-only (:func:`kd_store.store._read_only_query`). The views are those of docs/kd.md.
+only (:func:`kd_store.store._read_only_query`). The result is read batch by batch and refused
+once it passes a row or byte limit, so a ``SELECT * FROM range(10_000_000)`` stops at the limit
+instead of being held whole; one huge value is refused by the byte limit, but only after DuckDB
+has built it. The views are those of docs/kd.md.
 """
 
 from __future__ import annotations
@@ -18,23 +21,34 @@ from pathlib import Path
 import pyarrow as pa
 
 from kd_store import persist
-from kd_store.errors import KDError
+from kd_store.errors import KDError, ResultTooLarge
+
+MB = 2**20  # bytes
 
 
 @dataclass(frozen=True)
 class QueryLimits:
     """What one untrusted query may use: DuckDB's ``memory_limit`` (e.g. ``"1GB"``), its
-    worker ``threads``, and ``timeout_s`` seconds of wall time before it is interrupted."""
+    worker ``threads``, ``timeout_s`` seconds of wall time before it is interrupted, and a
+    result of at most ``max_rows`` rows and ``max_bytes`` bytes (Arrow buffers); a larger
+    result is refused with a KDError naming the limit, not truncated."""
 
     memory_limit: str = "1GB"
     threads: int = 2
     timeout_s: float = 30.0
+    max_rows: int = 1_000_000
+    max_bytes: int = 256 * MB
 
     def __post_init__(self) -> None:
         if not self.timeout_s > 0 or self.threads < 1:
             raise KDError(
                 f"query limits: timeout_s {self.timeout_s} must be > 0 and threads "
                 f"{self.threads} >= 1"
+            )
+        if self.max_rows < 0 or self.max_bytes < 1:
+            raise KDError(
+                f"query limits: max_rows {self.max_rows} must be >= 0 and max_bytes "
+                f"{self.max_bytes} >= 1"
             )
 
 
@@ -59,24 +73,34 @@ def sandbox_settings(limits: QueryLimits) -> dict[str, object]:
 
 def served_settings(limits: QueryLimits = QueryLimits()) -> dict[str, object]:
     """The DuckDB configuration of a KD a live node writes while serving untrusted SQL over it
-    (:mod:`wm.serve`): external access off and the configuration locked as for
-    :func:`query_file`; the memory limit bounds the writer too, so it is not set here."""
+    (:mod:`wm.serve`): external access off, the configuration locked and ``limits.threads``
+    worker threads (2 by default) as for :func:`query_file`; the memory limit bounds the
+    writer too, so it is not set here."""
     return {k: v for k, v in sandbox_settings(limits).items() if k not in ("memory_limit",)}
 
 
 def query_reader(reader, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
     """One read-only SELECT through ``reader`` (a :class:`kd_store.store.SQLReader` of a KD
-    opened with :func:`served_settings`), interrupted after ``limits.timeout_s``."""
-    return _time_limited(sql, limits, lambda: reader.sql(sql), reader.interrupt)
+    opened with :func:`served_settings`), interrupted after ``limits.timeout_s`` and refused
+    past ``limits.max_rows`` rows or ``limits.max_bytes`` bytes."""
+    return _time_limited(
+        sql,
+        limits,
+        lambda: reader.sql(sql, max_rows=limits.max_rows, max_bytes=limits.max_bytes),
+        reader.interrupt,
+    )
 
 
 def _time_limited(sql: str, limits: QueryLimits, run, interrupt) -> pa.Table:
     """``run()`` with ``interrupt()`` called after ``limits.timeout_s``; a query stopped so
-    raises KDError saying it was the time limit."""
+    raises KDError saying it was the time limit (a result refused for its size keeps its own
+    words: DuckDB finishes building one huge value before it sees the interrupt)."""
     timer = threading.Timer(limits.timeout_s, interrupt)
     timer.start()
     try:
         return run()
+    except ResultTooLarge:
+        raise  # the size limit is what stopped it, even when the timer fired meanwhile
     except KDError:
         if not timer.is_alive():
             raise KDError(f"SQL {sql!r}: stopped after the {limits.timeout_s:g} s limit") from None
@@ -87,7 +111,8 @@ def _time_limited(sql: str, limits: QueryLimits, run, interrupt) -> pa.Table:
 
 def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
     """One read-only SELECT over the KD file ``path`` in a sandboxed connection; the result as
-    Arrow. Raises KDError naming the query for anything refused, failed or timed out."""
+    Arrow. Raises KDError naming the query for anything refused, failed, timed out or over
+    the result limits (``limits.max_rows``, ``limits.max_bytes``)."""
     from kd_store.store import _read_only_query
 
     p = Path(path)
@@ -95,6 +120,13 @@ def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) 
         raise FileNotFoundError(f"KD file {p} does not exist")
     con = persist.connect(p, read_only=True, settings=sandbox_settings(limits))
     try:
-        return _time_limited(sql, limits, lambda: _read_only_query(con, sql), con.interrupt)
+        return _time_limited(
+            sql,
+            limits,
+            lambda: _read_only_query(
+                con, sql, max_rows=limits.max_rows, max_bytes=limits.max_bytes
+            ),
+            con.interrupt,
+        )
     finally:
         con.close()

@@ -12,8 +12,8 @@ import duckdb
 import pytest
 
 import kd_store
-from kd_store import KDError, Level, State, Status
-from kd_store.query import QueryLimits, query_file
+from kd_store import KDError, Level, ResultTooLarge, State, Status
+from kd_store.query import MB, QueryLimits, query_file
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -84,6 +84,50 @@ def test_a_query_over_its_time_stops_with_a_clear_error(kd_file):
         query_file(kd_file, slow, QueryLimits(timeout_s=0.5))
 
 
+def test_a_result_over_the_row_limit_is_refused_before_it_is_read_whole(kd_file):
+    """Ten million rows against the default limit of a million: refused with the limit and
+    the query in the words, and the KD still answers a query under the limit."""
+    sql = "SELECT * FROM range(10_000_000)"
+    with pytest.raises(ResultTooLarge, match=r"1,000,000 rows \(max_rows\)") as e:
+        query_file(kd_file, sql)
+    assert sql in str(e.value) and isinstance(e.value, KDError)
+    assert query_file(kd_file, "SELECT * FROM range(1_000_000)").num_rows == 1_000_000
+    three = "SELECT id FROM entities"
+    assert query_file(kd_file, three, QueryLimits(max_rows=3)).num_rows == 3
+    with pytest.raises(ResultTooLarge, match="2 rows"):
+        query_file(kd_file, three, QueryLimits(max_rows=2))
+
+
+def test_a_result_over_the_byte_limit_is_refused(kd_file):
+    sql = "SELECT range, repeat('x', 100) AS s FROM range(100_000)"  # about 11 MB of Arrow
+    with pytest.raises(ResultTooLarge, match=r"limit of 1\.0 MB \(max_bytes\)") as e:
+        query_file(kd_file, sql, QueryLimits(max_bytes=MB))
+    assert sql in str(e.value)
+    assert query_file(kd_file, sql, QueryLimits(max_bytes=64 * MB)).num_rows == 100_000
+
+
+def test_one_huge_value_is_refused_with_a_clear_error(kd_file):
+    """A 2 GB string: DuckDB's memory limit does not bound one value, so DuckDB builds it
+    (about 20 s and a few GB here); the byte limit then refuses it, or on a slow host the
+    time limit stops it: either way a KDError naming the query, not a crash."""
+    sql = "SELECT repeat('x', 2000000000) AS s"
+    with pytest.raises(KDError, match="limit") as e:
+        query_file(kd_file, sql)
+    assert sql in str(e.value)
+
+
+def test_served_settings_use_two_threads_like_the_others(tmp_path):
+    """A served KD (the live node's writer and its SQL readers) runs with the same two
+    DuckDB threads as a sandboxed query, whatever the host's core count."""
+    from kd_store.query import sandbox_settings, served_settings
+
+    assert served_settings()["threads"] == sandbox_settings(QueryLimits())["threads"] == 2
+    assert "memory_limit" not in served_settings()
+    with kd_store.open(tmp_path / "served.duckdb", settings=served_settings()) as kd:
+        got = kd.sql("SELECT current_setting('threads') AS n").to_pylist()
+    assert got == [{"n": 2}]
+
+
 def test_a_served_kd_stops_a_reader_query_over_its_time(tmp_path):
     """The live node's SQL path: a KD opened with the served settings, queried through a
     reader of another thread, is interrupted at the limit and still answers afterwards."""
@@ -105,6 +149,37 @@ def wm(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         [sys.executable, "-m", "wm.cli", *args], cwd=cwd, capture_output=True, text=True,
         env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}, timeout=120,
     )  # fmt: skip
+
+
+def test_wm_query_refuses_a_result_over_its_row_limit_in_bounded_memory(kd_file, tmp_path):
+    """``wm query`` of ten million rows: exit 2 with the limit and the query named, its peak
+    memory far below what holding and printing the whole result would take; ``--max-rows``
+    raises the limit, and the print count is ``--show-rows``."""
+    sql = "SELECT * FROM range(10_000_000)"
+    # the process's own high-water mark (VmHWM: ru_maxrss would carry pytest's over the exec)
+    peak = (
+        "import re, runpy, sys\n"
+        "try:\n    runpy.run_module('wm.cli', run_name='__main__')\n"
+        "finally:\n    hwm = re.search(r'VmHWM:\\s+(\\d+)', open('/proc/self/status').read())\n"
+        "    print('peak_kb', hwm.group(1), file=sys.stderr)"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", peak, "query", str(kd_file), sql], cwd=tmp_path,
+        capture_output=True, text=True, timeout=120,
+        env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"},
+    )  # fmt: skip
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "1,000,000 rows (max_rows)" in r.stderr and sql in r.stderr
+    peak_mb = int(r.stderr.split("peak_kb")[1]) / 1024
+    assert peak_mb < 600, f"wm query peaked at {peak_mb:.0f} MB"
+    out = tmp_path / "ten.parquet"
+    r = wm("query", str(kd_file), "SELECT * FROM range(10)", "--max-rows", "9",
+           "--parquet", str(out), cwd=tmp_path)  # fmt: skip
+    assert r.returncode == 2 and "9 rows (max_rows)" in r.stderr and not out.exists()
+    r = wm("query", str(kd_file), "SELECT * FROM range(10)", "--max-rows", "10",
+           "--show-rows", "3", cwd=tmp_path)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "... 7 more rows" in r.stdout and "(10 rows)" in r.stdout
 
 
 def test_wm_query_parquet_never_overwrites_the_kd_or_a_folder(kd_file, tmp_path):

@@ -140,6 +140,8 @@ def test_region_lookup_and_events_match_the_kd(server) -> None:
     assert code == 200 and sorted(r[0] for r in rows["rows"]) == sorted(
         e["entity_id"] for e in ents
     )
+    code, under = call(base, "/v1/sql", {"query": "SELECT * FROM range(100_000)"})
+    assert code == 200 and len(under["rows"]) == 100_000 and not under["truncated"]
     code, ev = call(base, f"/v1/events?t_from_ns=0&t_to_ns={me['cycle_t_ns']}")
     assert code == 200 and ev["events"]
     starts = [e["t_start_ns"] for e in ev["events"]]
@@ -161,6 +163,9 @@ def test_region_lookup_and_events_match_the_kd(server) -> None:
         ("/v1/sql", {"query": "SET enable_external_access = true"}, 400, "SET"),
         ("/v1/sql", {"query": "SELECT 1; DROP TABLE entities"}, 400, "DROP"),
         ("/v1/sql", {"query": "x" * 20_000}, 422, "query"),
+        # a result over the row limit: refused as it is read, the limit and query named
+        ("/v1/sql", {"query": "SELECT * FROM range(10_000_000)"}, 413, "100,000 rows (max_rows)"),
+        ("/v1/sql", {"query": "SELECT * FROM range(10_000_000)"}, 413, "range(10_000_000)"),
     ],
 )
 def test_bad_requests_get_a_4xx_naming_the_value(server, path, body, code, names) -> None:

@@ -2,7 +2,7 @@
 
     wm simulate SCENARIO --out LOG.mcap [--seconds S] [--seed N]
     wm log-info LOG [--skip-corrupt] [--check]
-    wm query KD.duckdb "SELECT ..." [--parquet OUT [--overwrite]]
+    wm query KD.duckdb "SELECT ..." [--parquet OUT [--overwrite]] [--max-rows N] [--max-mb MB]
     wm run LOG --kd KD.duckdb [--overwrite] [--report report.json] [--render DIR]
            [--poses odometry|truth] [--skip-corrupt]  (an existing KD only with --overwrite)
     wm check KD.duckdb                                 (integrity: rows point at frames)
@@ -122,13 +122,18 @@ def _cell(v: object) -> str:
 
 def cmd_query(args: argparse.Namespace) -> int:
     """Read-only SQL over a KD file's documented views (entities, entity_states, events, ...)."""
-    from kd_store.query import QueryLimits, query_file
+    from kd_store.query import MB, QueryLimits, query_file
 
     path = Path(args.kd)
     if not path.exists():
         raise FileNotFoundError(f"KD file {path} does not exist")
     out = _parquet_target(args.parquet, path, args.overwrite) if args.parquet else None
-    limits = QueryLimits(memory_limit=args.memory_limit, timeout_s=args.timeout)
+    limits = QueryLimits(
+        memory_limit=args.memory_limit,
+        timeout_s=args.timeout,
+        max_rows=args.max_rows,
+        max_bytes=round(args.max_mb * MB),
+    )
     table = query_file(path, args.sql, limits)
     if out is not None:
         import pyarrow.parquet as pq
@@ -138,7 +143,7 @@ def cmd_query(args: argparse.Namespace) -> int:
         tmp.replace(out)  # whole or not at all
         print(f"wrote {table.num_rows} rows to {out}")
     else:
-        print(format_table(table, args.max_rows))
+        print(format_table(table, args.show_rows))
     return 0
 
 
@@ -507,7 +512,15 @@ def build_parser() -> argparse.ArgumentParser:
     q = sub.add_parser("query", help="read-only SQL over a KD file (views: see README)")
     q.add_argument("kd", help="KD file (DuckDB)")
     q.add_argument("sql", help="one SELECT over the views (entities, events, ...)")
-    q.add_argument("--max-rows", type=int, default=50, help="rows to print (default 50)")
+    q.add_argument("--show-rows", type=int, default=50, help="rows to print (default 50)")
+    q.add_argument(
+        "--max-rows", type=int, default=1_000_000,
+        help="refuse a result of more rows than this (default 1000000)",
+    )  # fmt: skip
+    q.add_argument(
+        "--max-mb", type=float, default=256.0,
+        help="refuse a result larger than this many MB of Arrow data (default 256)",
+    )  # fmt: skip
     q.add_argument("--parquet", default=None, help="write the result to this new .parquet file")
     q.add_argument(
         "--overwrite", action="store_true", help="let --parquet replace a file that exists"

@@ -114,5 +114,7 @@ class Client:
         return self._call("/v1/whatif", body=body)
 
     def sql(self, query: str) -> dict:
-        """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns"}``."""
+        """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns"}``
+        (``truncated`` always false: a result over the server's row or byte limit raises
+        ClientError with status 413 and the limit in its words)."""
         return self._call("/v1/sql", body={"query": query})

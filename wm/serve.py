@@ -44,7 +44,10 @@ from core.errors import EngineError
 
 NS_PER_S = 1_000_000_000
 MAX_SQL_CHARS = 10_000
-MAX_SQL_ROWS = 100_000
+MAX_SQL_ROWS = 100_000  # rows of one /v1/sql answer; a larger result gets a 413
+# bytes (Arrow) of one /v1/sql result: its JSON takes several times that, so it is kept
+# below the command line's 256 MB
+MAX_SQL_BYTES = 64 * 2**20
 
 
 class ServeError(EngineError, ValueError):
@@ -346,7 +349,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
     """The FastAPI application over ``live`` (module docstring); ``token``: the bearer token
     every request must carry (None: none needed)."""
     import kd_store
-    from kd_store.errors import KDError
+    from kd_store.errors import KDError, ResultTooLarge
     from kd_store.query import QueryLimits, query_reader
     from wm.whatis import WhatIsError
 
@@ -502,13 +505,15 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
         evs, cycle = ask(go)
         return {"cycle_t_ns": cycle, "events": evs}
 
-    limits = QueryLimits(timeout_s=10.0)
+    limits = QueryLimits(timeout_s=10.0, max_rows=MAX_SQL_ROWS, max_bytes=MAX_SQL_BYTES)
 
     @app.post("/v1/sql")
     def sql(req: SQLRequest) -> dict:
         """One read-only SELECT over the KD's views (docs/kd.md) as of the node's last flush
-        (at most a second of log time before ``cycle_t_ns``); JSON columns and rows (at most
-        100 000 rows; ``truncated`` says when there were more)."""
+        (at most a second of log time before ``cycle_t_ns``); JSON columns and rows. A result
+        of more than 100 000 rows or 64 MB is refused with a 413 naming the limit (it is read
+        batch by batch and stopped there, never held whole); ``truncated`` is always false,
+        kept for clients of the earlier answer that cut the rows instead."""
         if live.kd is None or live.closed:
             raise HTTPException(503, "the KD is not open (not started, or stopped)")
         # the views as of the node's last flush (at most a second of log time old): a reader
@@ -518,17 +523,16 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
         try:
             table = query_reader(reader, req.query, limits)
         except KDError as e:
-            raise bad(e) from None
+            # too large a result is not a bad statement: 413 tells a client to narrow it
+            raise bad(e, 413 if isinstance(e, ResultTooLarge) else 400) from None
         finally:
             reader.close()
-        truncated = table.num_rows > MAX_SQL_ROWS
-        table = table.slice(0, MAX_SQL_ROWS)
         rows = [[_json_value(v) for v in r.values()] for r in table.to_pylist()]
         return {
             "cycle_t_ns": cycle,
             "columns": table.column_names,
             "rows": rows,
-            "truncated": truncated,
+            "truncated": False,
         }
 
     @app.post("/v1/whatif")
