@@ -44,6 +44,18 @@ def _running(pid: int) -> bool:
     return state != "Z"
 
 
+KILL_AT_CPU_S = 5.0
+
+
+def _cpu_s(pid: int) -> float:
+    """User plus system CPU seconds the process ``pid`` has used (0 once it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 @pytest.fixture(scope="module")
 def log(tmp_path_factory) -> Path:
     from fixtures.simulate import simulate_to_log
@@ -68,7 +80,10 @@ def test_sigkill_of_wm_run_leaves_no_process_and_keeps_what_it_saw(
             kids |= {k: _kind(k) for k in _children(proc.pid) - kids.keys()}
             time.sleep(0.05)
         assert {"decoder", "odometry"} <= set(kids.values()), f"children seen: {kids}"
-        time.sleep(4.0)  # a few seconds of the 8 s log
+        # a few seconds into the 8 s log, by the run's own CPU time (a whole run takes about
+        # 10 s of it), so that a loaded machine does not kill it before it got anywhere
+        while _cpu_s(proc.pid) < KILL_AT_CPU_S and proc.poll() is None:
+            time.sleep(0.05)
         assert proc.poll() is None, "the run ended before it could be killed"
         killed = time.monotonic()
         proc.send_signal(signal.SIGKILL)
