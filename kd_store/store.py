@@ -128,6 +128,8 @@ class KnowledgeDatabase:
         self._event_dirty: set[int] = set()
         self._pending: list[StateColumns] = []
         self._next_id = 0
+        self._snapshot_targets: dict[str, Path] = {}  # publish_snapshot paths, checked
+        self._snapshot_marked: set[Path] = set()  # ... and recorded in kd_meta
         self.tiles = TileMemory(
             lambda: persist.read_tile_keys(self._con),
             lambda key: persist.read_tile(self._con, key),
@@ -160,6 +162,34 @@ class KnowledgeDatabase:
         with self._lock:
             self._con.execute("CHECKPOINT")
         return n
+
+    def snapshot_target(self, path: str | Path) -> Path:
+        """Where :meth:`publish_snapshot` would publish ``path`` (absolute), or a KDError
+        when it refuses it (:func:`kd_store.persist.snapshot_target`: the KD itself, or an
+        existing file that is no snapshot published there before). Checked once per path."""
+        key = str(path)
+        if key not in self._snapshot_targets:
+            if self._read_only:
+                raise KDError(f"snapshot {path}: KD file {self.path} is open read-only")
+            self._snapshot_targets[key] = persist.snapshot_target(self.path, path)
+        return self._snapshot_targets[key]
+
+    def publish_snapshot(self, path: str | Path, tiles: bool = True) -> Path:
+        """Publish a consistent read-only copy of the KD file at ``path``: flush (map tiles
+        only if ``tiles``), fold the write-ahead log into the file (CHECKPOINT), copy it
+        beside ``path`` and rename it there (:func:`kd_store.persist.copy_snapshot`), so other
+        processes can open ``path`` read-only while this one keeps writing the KD. Returns
+        the absolute path. KDError when the path is refused (:meth:`snapshot_target`) or the
+        copy fails (nothing at ``path`` changed then)."""
+        target = self.snapshot_target(path)
+        with self._lock:  # no write lands between the checkpoint and the end of the copy
+            self.flush(tiles=tiles)
+            if target not in self._snapshot_marked:
+                persist.mark_snapshot(self._con, target)
+                self._snapshot_marked.add(target)
+            self._con.execute("CHECKPOINT")
+            persist.copy_snapshot(Path(self.path), target)
+        return target
 
     def _load(self, s: persist.Stored) -> None:
         """Recall long-term memory: frames, relations and classes (histories stay on disk)."""

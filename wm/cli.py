@@ -5,6 +5,7 @@
     wm query KD.duckdb "SELECT ..." [--parquet OUT [--overwrite]] [--max-rows N] [--max-mb MB]
     wm run LOG --kd KD.duckdb [--overwrite] [--report report.json] [--render DIR]
            [--poses odometry|truth] [--skip-corrupt]  (an existing KD only with --overwrite)
+           [--snapshot S.duckdb [--snapshot-every 5]]  (a read-only copy others may open)
     wm check KD.duckdb                                 (integrity: rows point at frames)
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
     wm whatif LOG [--kd KD.duckdb] --waypoints "t,x,y;t,x,y;..." [--seconds S]
@@ -13,6 +14,7 @@
     wm render --kd KD.duckdb OUT_DIR                    (the maps and entities a run stored)
     wm evaluate LOG KD.duckdb [--json OUT]             (scores of a KD against the log's truth)
     wm serve --replay LOG [--rate 1.0] [--kd KD.duckdb] [--host 127.0.0.1] [--port 8765]
+             [--snapshot S.duckdb [--snapshot-every 5]]
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -168,7 +170,14 @@ def _parquet_target(value: str, kd: Path, overwrite: bool = False) -> Path:
 def _node_config(args: argparse.Namespace):
     from wm.config import NodeConfig, PoseSource
 
-    return NodeConfig(pose_source=PoseSource(args.poses))
+    try:
+        return NodeConfig(
+            pose_source=PoseSource(args.poses),
+            snapshot_path=getattr(args, "snapshot", None),
+            snapshot_every_s=getattr(args, "snapshot_every", 5.0),
+        )
+    except ValueError as e:  # a bad --snapshot-every
+        raise UserError(str(e)) from None
 
 
 def _check_log(path: str) -> Path:
@@ -229,13 +238,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     """The main job: a log through the world-modeling node into a KD, summary and report.
     A run that produced nothing (no sweep, pose or entity) is a user error: one line on what
     the log lacked, exit status 2, though the report is still written."""
+    from kd_store.persist import snapshot_target
     from wm.run import run_log
 
     log = _check_log(args.log)
+    config = _node_config(args)
+    if config.snapshot_path is not None:  # refused before --overwrite removes anything
+        snapshot_target(args.kd, config.snapshot_path)
     report = run_log(
         log,
         _kd_target(args.kd, getattr(args, "overwrite", False), log),
-        config=_node_config(args),
+        config=config,
         report_path=args.report,
         render_dir=args.render,
         progress=not args.no_progress,
@@ -537,6 +550,18 @@ def build_parser() -> argparse.ArgumentParser:
             help="vehicle poses from LADAR+wheel odometry (default) or the log's ground truth",
         )  # fmt: skip
 
+    def snapshot_flags(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument(
+            "--snapshot", default=None, metavar="S",
+            help="publish a read-only copy of the KD here, for other processes to open while "
+            "the node writes (docs/kd.md); an existing S only if it is an earlier snapshot",
+        )  # fmt: skip
+        sp.add_argument(
+            "--snapshot-every", type=float, default=5.0, metavar="SECONDS",
+            help="publish the snapshot at most this often, in log seconds (default 5), and at "
+            "the end",
+        )  # fmt: skip
+
     r = sub.add_parser("run", help="the main job: a log through the world model into a KD")
     r.add_argument("log", help="any supported log (see log-info)")
     r.add_argument("--kd", required=True, help="KD file to write (DuckDB); must not exist")
@@ -554,6 +579,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="skip corrupt or duplicated log records (counted in the report) instead of stopping",
     )  # fmt: skip
     pose_flag(r)
+    snapshot_flags(r)
     r.set_defaults(func=cmd_run)
 
     c = sub.add_parser("check", help="integrity of a KD file: every row points at a frame")
@@ -610,6 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="name of an environment variable holding a bearer token every request must carry",
     )  # fmt: skip
     pose_flag(v)
+    snapshot_flags(v)
     v.set_defaults(func=cmd_serve)
 
     d = sub.add_parser("demo", help="simulate the default scenario and run the world model on it")

@@ -9,6 +9,7 @@ horizon and replanning interval grow by about an order of magnitude per level).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -158,6 +159,10 @@ class NodeConfig:
     kd_advance_every: int = 10  # trim short-term memory every this many sweeps
     kd_flush_every_ns: int = 1_000_000_000  # long-term memory to the file this often (log time)
     kd_tile_flush_every_ns: int = 10_000_000_000  # ... map tiles with it this often
+    # a read-only copy of the KD file published here after a flush (None: none), for other
+    # processes to open while the node writes the KD (KnowledgeDatabase.publish_snapshot)
+    snapshot_path: str | None = None
+    snapshot_every_s: float = 5.0  # ... at most this often (s of log time), and at the end
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     vj: VJConfig = field(default_factory=VJConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
@@ -188,6 +193,9 @@ class NodeConfig:
         if not (isinstance(self.odometry_ahead, int) and self.odometry_ahead >= 1):
             raise ValueError(f"NodeConfig.odometry_ahead must be an int >= 1, got "
                              f"{self.odometry_ahead!r}")  # fmt: skip
+        if not (math.isfinite(self.snapshot_every_s) and self.snapshot_every_s >= 0):
+            raise ValueError(f"NodeConfig.snapshot_every_s must be a finite number >= 0 (s), "
+                             f"got {self.snapshot_every_s!r}")  # fmt: skip
         if not (isinstance(self.segment_confirm_frames, int) and self.segment_confirm_frames >= 2):
             raise ValueError(f"NodeConfig.segment_confirm_frames must be an int >= 2, got "
                              f"{self.segment_confirm_frames!r}")  # fmt: skip

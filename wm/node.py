@@ -191,6 +191,10 @@ class NodeStats:
     # the longest the KD file stayed behind the log: log time (newest frame) minus the sweep
     # time of the last flush (or the log's start before the first), ns, just before a flush
     kd_flush_max_lag_ns: int = 0
+    # read-only snapshots of the KD file published (NodeConfig.snapshot_path): the wall time
+    # of each (ms: flush, checkpoint, copy, rename), and how many failed (logged; the run goes on)
+    snapshot_ms: list[float] = field(default_factory=list)
+    snapshot_failures: int = 0
     range_image_error_m: list[float] = field(default_factory=list)
     surprise_fraction: list[float] = field(default_factory=list)
 
@@ -239,6 +243,9 @@ class WorldModelNode:
         self._log_start_ns: int | None = None  # the first frame taken: the lag's origin
         self._flushed_at: tuple[int, int | None] | None = None  # (sweeps, last_t_ns) flushed
         self._tiles_ns: int | None = None  # ... and of the last one with map tiles
+        self._snapshot_ns: int | None = None  # ... and of the last snapshot published
+        if self.config.snapshot_path is not None:  # refused now, not after a run's work
+            kd.snapshot_target(self.config.snapshot_path)
         self.pending: deque[LadarScan] = deque()
         self.inflight: deque[tuple[LadarScan, CameraFrame | None]] = deque()  # at the odometry
         self.camera: CameraFrame | None = None
@@ -466,6 +473,8 @@ class WorldModelNode:
         self._flushed_at = (self.stats.sweeps, self.last_t_ns)
         if self.last_t_ns is not None:  # everything taken so far is in the file now
             self._flushed_ns = self.last_t_ns
+        if not again:  # the end of the log (or of a segment): the snapshot is due
+            self.publish_snapshot(tiles=True)
 
     def _note_lag(self) -> None:
         """Just before a flush, the KD file is furthest behind the log (``stats``)."""
@@ -644,6 +653,28 @@ class WorldModelNode:
         self.stats.kd_flushes += 1
         self._flushed_ns = t_ns
         self._tiles_ns = t_ns if tiles else self._tiles_ns
+        last = self._snapshot_ns
+        every_ns = round(cfg.snapshot_every_s * 1e9)
+        if last is None or t_ns - last >= every_ns or t_ns < last:  # < : the clock jumped back
+            self.publish_snapshot(tiles=tiles, t_ns=t_ns)
+
+    def publish_snapshot(self, tiles: bool = True, t_ns: int | None = None) -> None:
+        """Publish the read-only copy of the KD file (``NodeConfig.snapshot_path``; nothing
+        when None) now, stamped ``t_ns`` (log time; default the newest frame's) for the next
+        one's timing. A copy that fails is logged and counted (``stats.snapshot_failures``),
+        never stops the run: the KD file is what the run writes, the copy only a window on it."""
+        path = self.config.snapshot_path
+        if path is None:
+            return
+        t0 = time.perf_counter()
+        try:
+            self.kd.publish_snapshot(path, tiles=tiles)
+        except (OSError, kd_store.KDError) as e:
+            self.stats.snapshot_failures += 1
+            log.warning("KD snapshot %s not published: %s", path, e)
+            return
+        self.stats.snapshot_ms.append(1e3 * (time.perf_counter() - t0))
+        self._snapshot_ns = t_ns if t_ns is not None else self.last_t_ns
 
     def _pose(self, scan: LadarScan) -> str | None:
         """Step 1: extend the pose track over this sweep; returns the odometry status, or

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 import kd_store
+from kd_store.persist import snapshot_target
 from maps.frames import NS_PER_S
 from sp.logs import LogSource, open_log
 from sp.logs.prefetch import FramePrefetcher
@@ -70,6 +71,11 @@ class RunReport:
     #: time less the last flushed sweep's, just before each flush) and ``flushes`` (count,
     #: the final one included)
     kd_flush: dict[str, float] = field(default_factory=dict)
+    #: read-only snapshots of the KD (``--snapshot``, NodeConfig.snapshot_path): ``path``,
+    #: ``interval_s`` (log s), ``published`` (count, the final one included), ``failed`` and
+    #: the wall time each took, ``median_ms`` and ``max_ms`` (flush, CHECKPOINT, copy, rename);
+    #: empty without snapshots
+    kd_snapshot: dict[str, Any] = field(default_factory=dict)
     #: rows in the KD at the end: the vehicle's states and the entity frames (self included)
     self_states: int = 0
     kd_entities: int = 0
@@ -114,6 +120,13 @@ class RunReport:
             lines.append(
                 f"KD flushes: {f['flushes']}, every {f['interval_s']:g} s of log; the file "
                 f"was at most {f['max_lag_s']:.2f} s behind the log"
+            )
+        if self.kd_snapshot:
+            s = self.kd_snapshot
+            lines.append(
+                f"KD snapshots: {s['published']} published to {s['path']} (every "
+                f"{s['interval_s']:g} s of log), {s['median_ms']:.1f} ms median, "
+                f"{s['max_ms']:.1f} ms max" + (f"; {s['failed']} failed" if s["failed"] else "")
             )
         for p in self.pictures:
             lines.append(f"picture {p}")
@@ -180,6 +193,8 @@ def run_log(
     terrain = terrain or RasterTruth.from_folder(Path(log_path))
     if str(kd_path) != ":memory:":
         Path(kd_path).parent.mkdir(parents=True, exist_ok=True)
+    if config.snapshot_path is not None:  # refused before the KD file is made
+        snapshot_target(kd_path, config.snapshot_path)
     t_start, cpu_start = time.perf_counter(), time.process_time()
     read_cpu_s = [0.0]
     with (
@@ -206,6 +221,7 @@ def run_log(
                 _score(node, c, odo)
         if stack is not None:
             keep_windows(stack)  # the last windows too, for the next run over this KD
+            node.publish_snapshot()  # ... and in the snapshot
         wall = time.perf_counter() - t_start
         report = _report(node, kd, log_path, kd_path, first_t, last_t, wall)
         n = max(node.stats.sweeps, 1)
@@ -385,9 +401,25 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
             "max_lag_s": node.stats.kd_flush_max_lag_ns / NS_PER_S,
             "flushes": node.stats.kd_flushes,
         },
+        kd_snapshot=_snapshot_summary(node),
         self_states=int(in_kd["self"]),
         kd_entities=int(in_kd["entities"]),
     )
+
+
+def _snapshot_summary(node: WorldModelNode) -> dict[str, Any]:
+    """The report's ``kd_snapshot`` (RunReport): count and wall ms of the snapshots."""
+    if node.config.snapshot_path is None:
+        return {}
+    ms = node.stats.snapshot_ms
+    return {
+        "path": node.config.snapshot_path,
+        "interval_s": node.config.snapshot_every_s,
+        "published": len(ms),
+        "failed": node.stats.snapshot_failures,
+        "median_ms": float(np.median(ms)) if ms else 0.0,
+        "max_ms": max(ms, default=0.0),
+    }
 
 
 def _metrics(node, odo: OdometryScore, terrain) -> dict[str, Any]:
