@@ -15,6 +15,8 @@
     wm evaluate LOG KD.duckdb [--json OUT]             (scores of a KD against the log's truth)
     wm serve --replay LOG [--rate 1.0] [--kd KD.duckdb] [--host 127.0.0.1] [--port 8765]
              [--snapshot S.duckdb [--snapshot-every 5]]
+    wm serve --ingest [--queue 64] [--kd KD.duckdb] ...  (clients POST ROS 2 messages to /v1/ingest)
+           [--rate-limit R [--burst N]]  (per client: N requests at once, then R a second)
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -284,7 +286,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    """A live node replaying a log at its recorded pace, serving What Is over HTTP (wm.serve)."""
+    """A live node replaying a log at its recorded pace (or fed ROS 2 messages by clients,
+    ``--ingest``), serving What Is over HTTP (wm.serve)."""
     import os
 
     from wm.serve import LiveNode, serve
@@ -294,14 +297,35 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise UserError(f"--token-env {args.token_env}: that environment variable is empty")
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         print(f"warning: serving on {args.host} without a token", file=sys.stderr)
-    live = LiveNode(_check_log(args.replay), args.kd, _node_config(args), args.rate).start()
-    print(f"serving {args.replay} at {args.rate:g}x on http://{args.host}:{args.port}/v1 "
+    limits = _serve_limits(args)
+    if args.ingest:
+        from wm.ingest import IngestNode
+
+        live = IngestNode(args.kd, _node_config(args), args.queue).start()
+        what = f"ROS 2 messages posted to /v1/ingest (queue {args.queue} frames)"
+    else:
+        live = LiveNode(_check_log(args.replay), args.kd, _node_config(args), args.rate).start()
+        what = f"{args.replay} at {args.rate:g}x"
+    print(f"serving {what} on http://{args.host}:{args.port}/v1 "
           f"(schema: /openapi.json); KD {args.kd}; Ctrl-C stops")  # fmt: skip
     try:
-        serve(live, args.host, args.port, token)
+        serve(live, args.host, args.port, token, limits)
     finally:
         live.stop()
     return 0
+
+
+def _serve_limits(args: argparse.Namespace):
+    """The API's input limits (wm.limits) from ``wm serve``'s options."""
+    from wm.limits import ServeLimits
+
+    if args.rate_limit is not None and not args.rate_limit > 0:
+        raise UserError(f"--rate-limit {args.rate_limit}: need requests a second > 0")
+    if args.burst < 1:
+        raise UserError(f"--burst {args.burst}: need at least 1")
+    if args.queue < 1:
+        raise UserError(f"--queue {args.queue}: need at least 1 frame")
+    return ServeLimits(rate_per_s=args.rate_limit, burst=args.burst)
 
 
 def cmd_whatis(args: argparse.Namespace) -> int:
@@ -626,7 +650,18 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=cmd_evaluate)
 
     v = sub.add_parser("serve", help="a live node replaying a log, What Is over HTTP (/v1)")
-    v.add_argument("--replay", required=True, help="any supported log, fed at its own pace")
+    source = v.add_mutually_exclusive_group(required=True)
+    source.add_argument("--replay", help="any supported log, fed at its own pace")
+    source.add_argument(
+        "--ingest", action="store_true",
+        help="no log: clients POST ROS 2 messages (CDR) to /v1/ingest (wm.ingest)",
+    )  # fmt: skip
+    v.add_argument("--queue", type=int, default=64, help="--ingest: frames waiting at most")
+    v.add_argument(
+        "--rate-limit", type=float, default=None,
+        help="requests a second each client address may make (default: no limit); 429 beyond",
+    )  # fmt: skip
+    v.add_argument("--burst", type=int, default=100, help="requests at once under --rate-limit")
     v.add_argument("--rate", type=float, default=1.0, help="replay speed (0: as fast as it can)")
     v.add_argument("--kd", default="live.duckdb", help="KD file the node writes (DuckDB)")
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default: localhost)")

@@ -3,6 +3,7 @@ its recorded pace, answering What Is over HTTP while it runs (reference 001, 4.2
 answers What Is? queries from BG and other modules"; docs/architecture.md, the node cycle).
 
     wm serve --replay LOG [--rate 1.0] [--kd KD.duckdb] [--host 127.0.0.1] [--port 8765]
+    wm serve --ingest [--queue 64] [--kd KD.duckdb] ...   (fed ROS 2 messages: wm.ingest)
 
 :class:`LiveNode` feeds the log's frames to a :class:`~wm.node.WorldModelNode` in a thread of its
 own, paced by their stamps (``rate`` times real time; 0: as fast as it can), and flushes the KD
@@ -20,7 +21,10 @@ region, an interval that ends before it starts, a statement that is not one read
 reaches outside the KD) get a 4xx whose ``detail`` names the value. SQL runs on the KD's own
 database, opened with DuckDB's external access off and its configuration locked
 (:func:`kd_store.query.served_settings`), with a time limit. The server binds to 127.0.0.1
-unless told otherwise; a bearer token, when set, is required on every request.
+unless told otherwise; a bearer token, when set, is required on every request. Bodies are
+limited in size (413) and, if asked, each client's request rate (429): :mod:`wm.limits`.
+With ``--ingest`` the node has no log: clients post ROS 2 messages to ``/v1/ingest``
+(:mod:`wm.ingest`).
 
 This module imports FastAPI; the command line imports it only for ``wm serve``.
 """
@@ -98,22 +102,24 @@ class CycleSnapshot:
 class LiveNode:
     """A world-model node fed from a log in a thread of its own (see the module docstring).
 
-    ``log_path``: any log :func:`sp.logs.open_log` reads; ``kd_path``: the KD file it writes
-    (``":memory:"`` for none); ``rate``: replay speed against the log's stamps (1.0 real time,
-    0 as fast as possible)."""
+    ``log_path``: any log :func:`sp.logs.open_log` reads (None for a node fed otherwise:
+    :class:`wm.ingest.IngestNode`); ``kd_path``: the KD file it writes (``":memory:"`` for
+    none); ``rate``: replay speed against the log's stamps (1.0 real time, 0 as fast as
+    possible)."""
 
     def __init__(
         self,
-        log_path: str | Path,
+        log_path: str | Path | None,
         kd_path: str | Path = ":memory:",
         config: Any | None = None,
         rate: float = 1.0,
     ) -> None:
         if not (math.isfinite(rate) and rate >= 0):
             raise ServeError(f"replay rate {rate}: need a finite number >= 0")
-        if not Path(log_path).exists():
+        if log_path is not None and not Path(log_path).exists():
             raise FileNotFoundError(f"log {log_path} does not exist")
-        self.log_path, self.kd_path, self.rate = Path(log_path), str(kd_path), rate
+        self.log_path = None if log_path is None else Path(log_path)
+        self.kd_path, self.rate = str(kd_path), rate
         self.config = config
         self.lock = threading.Lock()
         self.status = LiveStatus()
@@ -153,13 +159,12 @@ class LiveNode:
     def _run(self) -> None:
         import kd_store
         from kd_store.query import served_settings
-        from sp.logs import open_log
         from wm.config import NodeConfig
         from wm.node import WorldModelNode
         from wm.tiles import map_stack_over_kd
 
         try:
-            source = open_log(self.log_path)
+            source = self._open_source()
             if self.kd_path != ":memory:":
                 Path(self.kd_path).parent.mkdir(parents=True, exist_ok=True)
             self.kd = kd_store.open(self.kd_path, settings=served_settings())
@@ -179,6 +184,15 @@ class LiveNode:
                 self.node.close()
                 self.kd.flush()
             self.status.done = True
+
+    def _open_source(self) -> Any:
+        from sp.logs import open_log
+
+        return open_log(self.log_path)
+
+    def status_extra(self) -> dict:
+        """What ``/v1/status`` says besides :class:`LiveStatus`: the log replayed."""
+        return {"log": str(self.log_path)}
 
     def _replay(self, source: Any) -> None:
         t0_log, t0_wall = None, time.perf_counter()
@@ -292,7 +306,10 @@ class PlanModel(BaseModel):
 
     name: str = Field("", max_length=200)
     t_s: list[Finite] = Field(..., min_length=1, max_length=1000)
-    xy: list[list[Finite]] | None = Field(None, max_length=1000)
+    # pairs, so that a ragged list is a 422 naming it, not an array numpy cannot make
+    xy: list[Annotated[list[Finite], Field(min_length=2, max_length=2)]] | None = Field(
+        None, max_length=1000
+    )
     speed_mps: list[Finite] | None = Field(None, max_length=1000)
     curvature_1pm: list[Finite] | None = Field(None, max_length=1000)
 
@@ -345,9 +362,10 @@ def _why(result: Any, i: int) -> str:
     )
 
 
-def create_app(live: LiveNode, token: str | None = None) -> Any:
+def create_app(live: LiveNode, token: str | None = None, limits: Any | None = None) -> Any:
     """The FastAPI application over ``live`` (module docstring); ``token``: the bearer token
-    every request must carry (None: none needed)."""
+    every request must carry (None: none needed); ``limits``: body sizes and request rates
+    (:class:`wm.limits.ServeLimits`; None: its defaults)."""
     import kd_store
     from kd_store.errors import KDError, ResultTooLarge
     from kd_store.query import QueryLimits, query_reader
@@ -399,7 +417,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
             "skipped": s.skipped,
             "done": s.done,
             "error": s.error,
-            "log": str(live.log_path),
+            **live.status_extra(),
         }
 
     def present(entity_id: int | None, t_ns: int | None, frame: str) -> dict | None:
@@ -505,7 +523,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
         evs, cycle = ask(go)
         return {"cycle_t_ns": cycle, "events": evs}
 
-    limits = QueryLimits(timeout_s=10.0, max_rows=MAX_SQL_ROWS, max_bytes=MAX_SQL_BYTES)
+    sql_limits = QueryLimits(timeout_s=10.0, max_rows=MAX_SQL_ROWS, max_bytes=MAX_SQL_BYTES)
 
     @app.post("/v1/sql")
     def sql(req: SQLRequest) -> dict:
@@ -521,7 +539,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
         reader = live.kd.reader()
         cycle = live.status.cycle_t_ns
         try:
-            table = query_reader(reader, req.query, limits)
+            table = query_reader(reader, req.query, sql_limits)
         except KDError as e:
             # too large a result is not a bad statement: 413 tells a client to narrow it
             raise bad(e, 413 if isinstance(e, ResultTooLarge) else 400) from None
@@ -572,6 +590,11 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
             "level": result.level, "dt_s": result.dt_s, "best": ev.best, "plans": out,
         }  # fmt: skip
 
+    from wm.ingest import add_ingest_routes
+    from wm.limits import LimitsMiddleware, ServeLimits
+
+    add_ingest_routes(app, live)  # POST /v1/ingest, for a node fed by clients
+    app.add_middleware(LimitsMiddleware, limits=limits or ServeLimits())
     return app
 
 
@@ -580,9 +603,13 @@ def _finite_or_none(v: float) -> float | None:
 
 
 def serve(
-    live: LiveNode, host: str = "127.0.0.1", port: int = 8765, token: str | None = None
+    live: LiveNode,
+    host: str = "127.0.0.1",
+    port: int = 8765,
+    token: str | None = None,
+    limits: Any | None = None,
 ) -> None:
     """Run the API over ``live`` with uvicorn until interrupted."""
     import uvicorn
 
-    uvicorn.run(create_app(live, token), host=host, port=port, log_level="warning")
+    uvicorn.run(create_app(live, token, limits), host=host, port=port, log_level="warning")

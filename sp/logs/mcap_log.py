@@ -49,9 +49,16 @@ from mcap.stream_reader import breakup_chunk
 from sp.logs.mcap_file import MAGIC, McapFileWriter, crc32
 from sp.logs.ros_decode import FrameAssembler
 from sp.logs.ros_encode import encode_frame
-from sp.logs.ros_types import KIND_KEY, frame_topic, frame_topics_of, role_of, ros2msg_schema
+from sp.logs.ros_types import (
+    KIND_KEY,
+    Role,
+    frame_topic,
+    frame_topics_of,
+    role_of,
+    ros2msg_schema,
+)
 from sp.logs.source import LogSource, TopicInfo, topic_info
-from sp.logs.types import Frame, LogError
+from sp.logs.types import Frame, LogError, ReadStats
 
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end time, uncompressed size, CRC, len(compression)
@@ -478,6 +485,104 @@ class _ChunkMessages:
     messages: list[Message]
 
 
+class CdrFrameDecoder:
+    """ROS 2 CDR messages in, frames out: ``(topic, msgtype, cdr bytes, log time)`` become the
+    frames :class:`McapLogSource` would read of them (the same deserialisers and the same
+    :class:`~sp.logs.ros_decode.FrameAssembler`), for a reader of files and for a live feed.
+
+    Feed messages in log-time order: the messages of one instant (one log time) become frames
+    when the next instant starts (:meth:`feed` returns them) or at :meth:`flush`. A message type
+    is registered from its schema text (:meth:`register`, as a file gives it) or, when no schema
+    came, from the standard ROS 2 Humble definitions (plus vision_msgs) the writer uses.
+    Problems making a frame of a decoded message go to ``on_error`` (a :class:`LogError` when
+    None); bytes that cannot be deserialised raise from :meth:`decode`.
+    """
+
+    def __init__(
+        self,
+        stats: ReadStats,
+        kinds: tuple[type, ...] | None = None,
+        topics: frozenset[str] | None = None,
+        on_error: Callable[[str], None] | None = None,
+        store: _CdrTypes | None = None,
+    ) -> None:
+        self.assembler = FrameAssembler(stats, kinds, on_error=on_error)
+        self.topics = topics
+        self.store = store if store is not None else _CdrTypes()
+        self._roles: dict[tuple[str, str, str | None], Role | None] = {}
+
+    def role(self, topic: str, msgtype: str, kind: str | None = None) -> Role | None:
+        """What a message on ``topic`` of ``msgtype`` feeds (``kind``: the channel's
+        ``frame_kind``, which tells ground truth from odometry), or None when no wanted frame
+        comes of it (then it is not worth deserialising)."""
+        key = (topic, msgtype, kind)
+        if key not in self._roles:
+            role = role_of(topic, msgtype, kind)
+            wanted = self.assembler.wants(role) and (
+                self.topics is None or frame_topic(topic, role) in self.topics
+            )
+            self._roles[key] = role if wanted else None
+        return self._roles[key]
+
+    def register(self, msgtype: str, text: str, encoding: str = "ros2msg") -> None:
+        """Learn ``msgtype`` from its schema text (``ros2msg`` or ``ros2idl``)."""
+        self.store.register(msgtype, text, encoding)
+
+    def decode(self, msgtype: str, data: bytes | memoryview) -> Any:
+        """The message ``data`` (CDR) holds; a type never registered is taken from the standard
+        definitions (KeyError when there is none). Raises whatever rosbags raises for bad bytes."""
+        if not self.store.knows(msgtype):
+            self.register(msgtype, ros2msg_schema(msgtype).decode())
+        return self.store.deserialize(data, msgtype)
+
+    def push(self, topic: str, role: Role, message: Any, log_t_ns: int) -> list[Frame]:
+        """Add a decoded message; returns the frames completed by the instant before it."""
+        return self.assembler.push(topic, role, message, log_t_ns)
+
+    def feed(
+        self, topic: str, msgtype: str, data: bytes | memoryview, log_t_ns: int,
+        kind: str | None = None,
+    ) -> list[Frame]:  # fmt: skip
+        """:meth:`decode` and :meth:`push` one message (none for a type frames do not carry)."""
+        role = self.role(topic, msgtype, kind)
+        if role is None:
+            return []
+        return self.push(topic, role, self.decode(msgtype, data), log_t_ns)
+
+    def flush(self) -> list[Frame]:
+        """The frames of the pending instant (at the end of the input)."""
+        return self.assembler.flush()
+
+
+class _CdrTypes:
+    """The message types a reading has registered, in a :func:`_reading_typestore` made on
+    first use."""
+
+    def __init__(self) -> None:
+        self._store: Any = None
+        self._registered: set[str] = set()
+
+    def knows(self, msgtype: str) -> bool:
+        return msgtype in self._registered
+
+    def register(self, msgtype: str, text: str, encoding: str) -> None:
+        from rosbags.typesys import get_types_from_idl, get_types_from_msg
+
+        if self._store is None:
+            self._store = _reading_typestore()
+        if encoding == "ros2msg":
+            types = get_types_from_msg(text, msgtype)
+        elif encoding == "ros2idl":
+            types = get_types_from_idl(text)
+        else:
+            raise ValueError(f"schema {msgtype!r} has encoding {encoding!r}")
+        self._store.register(types)
+        self._registered.add(msgtype)
+
+    def deserialize(self, data: bytes | memoryview, msgtype: str) -> Any:
+        return self._store.deserialize_cdr(data, msgtype)
+
+
 class McapLogSource(LogSource):
     """An MCAP file of ROS 2 ``cdr`` messages, read as sensor frames."""
 
@@ -496,8 +601,7 @@ class McapLogSource(LogSource):
         super().__init__(path, skip_corrupt=skip_corrupt)
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
-        self._store: Any = None
-        self._registered: set[str] = set()
+        self._types = _CdrTypes()  # kept across readings: each type registered once
         # attachments and metadata, kept from the first pass over the file that met them
         self._extras: tuple[dict[str, bytes], dict[str, dict[str, str]]] | None = None
         try:
@@ -708,36 +812,21 @@ class McapLogSource(LogSource):
         schema = self._schemas.get(channel.schema_id)
         return schema.name if schema is not None else ""
 
-    def _deserialize(self, channel: Channel, message: Message) -> Any:
+    def _deserialize(self, decoder: CdrFrameDecoder, channel: Channel, message: Message) -> Any:
         schema = self._schemas.get(channel.schema_id)
         if schema is None or channel.message_encoding != "cdr":
             raise ValueError(
                 f"{channel.topic}: message encoding {channel.message_encoding!r} "
                 f"with schema {schema.name if schema else None!r} is not ROS 2 cdr"
             )
-        if schema.name not in self._registered:
-            self._register_schema(schema)
-        return self._store.deserialize_cdr(message.data, schema.name)
-
-    def _register_schema(self, schema: Schema) -> None:
-        from rosbags.typesys import get_types_from_idl, get_types_from_msg
-
-        if self._store is None:
-            self._store = _reading_typestore()
-        text = schema.data.decode()
-        if schema.encoding == "ros2msg":
-            types = get_types_from_msg(text, schema.name)
-        elif schema.encoding == "ros2idl":
-            types = get_types_from_idl(text)
-        else:
-            raise ValueError(f"schema {schema.name!r} has encoding {schema.encoding!r}")
-        self._store.register(types)
-        self._registered.add(schema.name)
+        if not self._types.knows(schema.name):
+            decoder.register(schema.name, schema.data.decode(), schema.encoding)
+        return decoder.decode(schema.name, message.data)
 
     def _frames(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
     ) -> Iterator[Frame]:
-        assembler = FrameAssembler(self.stats, kinds, on_error=self.fail)
+        decoder = CdrFrameDecoder(self.stats, kinds, topics, self.fail, self._types)
         roles: dict[int, Any] = {}
         for message in self._messages():
             channel = self._channels.get(message.channel_id)
@@ -749,18 +838,13 @@ class McapLogSource(LogSource):
                 )
                 continue
             if channel.id not in roles:
-                role = role_of(
-                    channel.topic, self._msgtype(channel), channel.metadata.get(KIND_KEY)
-                )
-                wanted = assembler.wants(role) and (
-                    topics is None or frame_topic(channel.topic, role) in topics
-                )
-                roles[channel.id] = role if wanted else None
+                kind = channel.metadata.get(KIND_KEY)
+                roles[channel.id] = decoder.role(channel.topic, self._msgtype(channel), kind)
             role = roles[channel.id]
             if role is None:
                 continue
             try:
-                msg = self._deserialize(channel, message)
+                msg = self._deserialize(decoder, channel, message)
             except Exception as exc:  # rosbags raises several types for bad bytes
                 self.fail(
                     f"{channel.topic} message at log time {message.log_time} cannot be "
@@ -769,8 +853,8 @@ class McapLogSource(LogSource):
                     lost=1,
                 )
                 continue
-            yield from assembler.push(channel.topic, role, msg, message.log_time)
-        yield from assembler.flush()
+            yield from decoder.push(channel.topic, role, msg, message.log_time)
+        yield from decoder.flush()
 
     # -------------------------------------------------------------- the rest of the interface
     def _topics(self) -> list[TopicInfo]:
