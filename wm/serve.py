@@ -22,6 +22,12 @@ database, opened with DuckDB's external access off and its configuration locked
 (:func:`kd_store.query.served_settings`), with a time limit. The server binds to 127.0.0.1
 unless told otherwise; a bearer token, when set, is required on every request.
 
+:mod:`wm.serve_views` adds views beyond What Is: map windows per level and layer
+(``/v1/maps/{level}``, JSON, ``.npy`` or Arrow), the entities of attention per level with why
+(``/v1/attention``) and a push stream of what each cycle changed (``/v1/stream``, server-sent
+events, a bounded queue per client that drops its oldest cycles rather than slow the node;
+its counts in ``/v1/status`` under ``stream``).
+
 This module imports FastAPI; the command line imports it only for ``wm serve``.
 """
 
@@ -41,6 +47,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from core.errors import EngineError
+from wm.serve_views import STREAM_QUEUE_CYCLES, add_view_routes
 
 NS_PER_S = 1_000_000_000
 MAX_SQL_CHARS = 10_000
@@ -345,9 +352,12 @@ def _why(result: Any, i: int) -> str:
     )
 
 
-def create_app(live: LiveNode, token: str | None = None) -> Any:
+def create_app(
+    live: LiveNode, token: str | None = None, stream_queue: int = STREAM_QUEUE_CYCLES
+) -> Any:
     """The FastAPI application over ``live`` (module docstring); ``token``: the bearer token
-    every request must carry (None: none needed)."""
+    every request must carry (None: none needed); ``stream_queue``: cycles a ``/v1/stream``
+    client may fall behind before its oldest are dropped."""
     import kd_store
     from kd_store.errors import KDError, ResultTooLarge
     from kd_store.query import QueryLimits, query_reader
@@ -368,6 +378,9 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
     def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         # the errors echo the input, which may hold NaN or inf: JSON has no words for them
         return JSONResponse(status_code=422, content={"detail": _json_value(exc.errors())})
+
+    # map windows, attention and the push stream (wm.serve_views)
+    feed = add_view_routes(app, live, stream_queue)
 
     def bad(e: Exception, code: int = 400) -> HTTPException:
         return HTTPException(code, str(e))
@@ -400,6 +413,7 @@ def create_app(live: LiveNode, token: str | None = None) -> Any:
             "done": s.done,
             "error": s.error,
             "log": str(live.log_path),
+            "stream": feed.status(),
         }
 
     def present(entity_id: int | None, t_ns: int | None, frame: str) -> dict | None:
