@@ -17,6 +17,7 @@ import json
 import urllib.error
 import urllib.parse
 import urllib.request
+from collections.abc import Iterator
 from typing import Any
 
 from core.errors import EngineError
@@ -38,14 +39,18 @@ class Client:
         self.base_url = base_url.rstrip("/")
         self.token, self.timeout_s = token, timeout_s
 
+    def _headers(self) -> dict[str, str]:
+        headers = {"Content-Type": "application/json"}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
+        return headers
+
     def _call(self, path: str, params: dict | None = None, body: dict | None = None) -> Any:
         query = urllib.parse.urlencode(
             {k: v for k, v in (params or {}).items() if v is not None}, doseq=True
         )
         url = f"{self.base_url}{path}" + (f"?{query}" if query else "")
-        headers = {"Content-Type": "application/json"}
-        if self.token:
-            headers["Authorization"] = f"Bearer {self.token}"
+        headers = self._headers()
         data = None if body is None else json.dumps(body).encode()
         req = urllib.request.Request(url, data=data, headers=headers)
         try:
@@ -113,8 +118,55 @@ class Client:
                 "goal_xy": None if goal_xy is None else list(goal_xy)}  # fmt: skip
         return self._call("/v1/whatif", body=body)
 
+    def map_window(
+        self, level: str | int, x: float, y: float, half_m: float = 10.0,
+        layers: tuple[str, ...] = ("elevation",),
+    ) -> dict:  # fmt: skip
+        """Layers of map ``level`` (name or 2..5) around world (x, y) m as JSON: ``values``
+        by layer, rows south to north (NaN as None), ``origin`` (world m of cell [0, 0]'s
+        south-west corner), ``resolution_m``, ``shape``, ``cycle_t_ns``."""
+        params = {"x": x, "y": y, "half_m": half_m, "layers": ",".join(layers)}
+        return self._call(f"/v1/maps/{level}", params)
+
+    def attention(self, level: str | int = 4) -> dict:
+        """Entities of SP ``level`` the node attends to, each with ``why``."""
+        return self._call("/v1/attention", {"level": level})
+
+    def stream(self, timeout_s: float | None = None) -> Iterator[dict]:
+        """The push stream (``GET /v1/stream``): one dictionary per server-sent event,
+        ``{"event": "cycle" | "end", **data}``, until the server ends it (the end of the
+        replay) or the caller stops iterating (which closes the connection). ``timeout_s``:
+        the longest wait for a line (default the client's)."""
+        req = urllib.request.Request(f"{self.base_url}/v1/stream", headers=self._headers())
+        try:
+            resp = urllib.request.urlopen(req, timeout=timeout_s or self.timeout_s)
+        except urllib.error.HTTPError as e:
+            raise ClientError(f"/v1/stream: HTTP {e.code}: {e.reason}", e.code) from None
+        except urllib.error.URLError as e:
+            raise ClientError(f"{self.base_url}: cannot reach the server ({e.reason})") from None
+        with resp:
+            yield from _sse_events(resp)
+
     def sql(self, query: str) -> dict:
         """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns"}``
         (``truncated`` always false: a result over the server's row or byte limit raises
         ClientError with status 413 and the limit in its words)."""
         return self._call("/v1/sql", body={"query": query})
+
+
+def _sse_events(lines: Any) -> Iterator[dict]:
+    """Server-sent events from an iterable of byte lines: ``event:`` and ``data:`` fields up
+    to a blank line make one event (comment lines, ``:``, are skipped); data is JSON."""
+    event, data = "message", []
+    for raw in lines:
+        line = raw.decode("utf-8").rstrip("\r\n")
+        if not line:
+            if data:
+                yield {"event": event, **json.loads("\n".join(data))}
+            event, data = "message", []
+        elif line.startswith(":"):
+            continue
+        elif line.startswith("event:"):
+            event = line[6:].strip()
+        elif line.startswith("data:"):
+            data.append(line[5:].lstrip())

@@ -48,6 +48,7 @@ import logging
 import time
 import typing
 from collections import Counter, defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -257,6 +258,9 @@ class WorldModelNode:
         self.plan_xy: np.ndarray | None = None  # the controller's current plan (set_plan)
         self.prediction: predict.RangePrediction | None = None
         self.surprises = predict.SurpriseEvents()
+        # called with each cycle's result at its end, in the node's thread (a server's push
+        # stream); a listener must be quick and must not raise: the node waits for it
+        self.cycle_listeners: list[Callable[[CycleResult], None]] = []
         self.self_id = kd.add_entity(
             "self",
             Level.OBJECT,
@@ -637,7 +641,10 @@ class WorldModelNode:
         clock.lap("flush")
         self.stats.sweeps += 1
         self.stats.odometry_status[status] += 1
-        return CycleResult(scan.t_ns, T_world_body, len(pts), t_mid, sp_result, status)
+        result = CycleResult(scan.t_ns, T_world_body, len(pts), t_mid, sp_result, status)
+        for listener in self.cycle_listeners:
+            listener(result)
+        return result
 
     def _flush(self, t_ns: int) -> None:
         """Long-term memory to the KD file every ``kd_flush_every_ns`` of log time, in one

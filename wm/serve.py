@@ -26,6 +26,12 @@ limited in size (413) and, if asked, each client's request rate (429): :mod:`wm.
 With ``--ingest`` the node has no log: clients post ROS 2 messages to ``/v1/ingest``
 (:mod:`wm.ingest`).
 
+:mod:`wm.serve_views` adds views beyond What Is: map windows per level and layer
+(``/v1/maps/{level}``, JSON, ``.npy`` or Arrow), the entities of attention per level with why
+(``/v1/attention``) and a push stream of what each cycle changed (``/v1/stream``, server-sent
+events, a bounded queue per client that drops its oldest cycles rather than slow the node;
+its counts in ``/v1/status`` under ``stream``).
+
 This module imports FastAPI; the command line imports it only for ``wm serve``.
 """
 
@@ -45,6 +51,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from core.errors import EngineError
+from wm.serve_views import STREAM_QUEUE_CYCLES, add_view_routes
 
 NS_PER_S = 1_000_000_000
 MAX_SQL_CHARS = 10_000
@@ -362,10 +369,16 @@ def _why(result: Any, i: int) -> str:
     )
 
 
-def create_app(live: LiveNode, token: str | None = None, limits: Any | None = None) -> Any:
+def create_app(
+    live: LiveNode,
+    token: str | None = None,
+    limits: Any | None = None,
+    stream_queue: int = STREAM_QUEUE_CYCLES,
+) -> Any:
     """The FastAPI application over ``live`` (module docstring); ``token``: the bearer token
     every request must carry (None: none needed); ``limits``: body sizes and request rates
-    (:class:`wm.limits.ServeLimits`; None: its defaults)."""
+    (:class:`wm.limits.ServeLimits`; None: its defaults); ``stream_queue``: cycles a
+    ``/v1/stream`` client may fall behind before its oldest are dropped."""
     import kd_store
     from kd_store.errors import KDError, ResultTooLarge
     from kd_store.query import QueryLimits, query_reader
@@ -386,6 +399,9 @@ def create_app(live: LiveNode, token: str | None = None, limits: Any | None = No
     def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         # the errors echo the input, which may hold NaN or inf: JSON has no words for them
         return JSONResponse(status_code=422, content={"detail": _json_value(exc.errors())})
+
+    # map windows, attention and the push stream (wm.serve_views)
+    feed = add_view_routes(app, live, stream_queue)
 
     def bad(e: Exception, code: int = 400) -> HTTPException:
         return HTTPException(code, str(e))
@@ -418,6 +434,7 @@ def create_app(live: LiveNode, token: str | None = None, limits: Any | None = No
             "done": s.done,
             "error": s.error,
             **live.status_extra(),
+            "stream": feed.status(),
         }
 
     def present(entity_id: int | None, t_ns: int | None, frame: str) -> dict | None:

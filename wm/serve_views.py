@@ -1,0 +1,585 @@
+"""Views of the live node beyond What Is, for :mod:`wm.serve`: map windows, the entities of
+attention per level, and a push stream of what each cycle changed.
+
+    GET /v1/maps/{level}?x=&y=&half_m=&layers=elevation,cost
+    GET /v1/attention?level=4
+    GET /v1/stream                    (server-sent events, one per node cycle)
+
+Map windows (:func:`map_window`): the cells of one map level (``primitive``, ``subsystem``,
+``vehicle``, ``section``, or their reference-model numbers 2..5) around a world point, as the
+node's maps hold them between two cycles. The window is the ``(2k+1) x (2k+1)`` cells centred on
+the cell holding (x, y), ``k = ceil(half_m / resolution_m)``; row 0 is the southern edge, column
+0 the western one (as :class:`maps.level.MapLevel`), ``origin`` is the world (x, y) in metres of
+the south-west corner of cell [0, 0]. Cells outside the level's current window (it scrolls with
+the vehicle) hold the layer's empty value (NaN, -1 or 0, as ``maps.layers`` says): the server
+does not read the KD's stored tiles. JSON answers (lists, NaN as null) are for small windows
+(:data:`MAX_JSON_VALUES`); ``Accept: application/x-npy`` gives one ``.npy`` array (layers,
+rows, cols) float64 with the metadata in ``X-Map-*`` headers, ``Accept:
+application/vnd.apache.arrow.stream`` an Arrow IPC stream with one row per cell (``row``,
+``col``, cell-centre ``x``, ``y`` world m, then one column per layer in its own dtype) and the
+metadata in the schema's; both up to :data:`MAX_BINARY_VALUES` values (cells x layers).
+
+Entities of attention (:func:`attention_entities`) of SP level L (1..5, or a map level's name,
+which stands for the SP level of the same number): the entities of level L, neither denied nor
+gone, that the node attends to, each with the reasons why:
+
+* ``"attention list"``: on the entities-of-attention list value judgment keeps for the node
+  level of L (``kd.attention``, written by the node's step 5 from proximity, danger, novelty
+  and relevance to the plan; the rank is given);
+* ``"predicted window"``: level 4 only; SP tracks it, so its predicted position opens a window
+  on the next sweep (sp.pipeline ``_windows``; the window's half-size grows with the
+  position's standard deviation, given in metres);
+* ``"surprise window"``: a point the range-image prediction got wrong last cycle (the node's
+  ``attention_world_xyz``) lies within the window base (1 m) plus the entity's size;
+* ``"hypothesis awaiting confirmation"``: it is hypothesized (SP keeps attending to the pixels
+  of new and provisional hypotheses).
+
+The push stream (:class:`CycleFeed`): at the end of every node cycle the entities it created,
+changed (a new state, status, class or confidence) and ended (denied, gone, or forgotten from
+short-term memory), and the events it made, as one ``event: cycle`` of server-sent events.
+Every client has a queue of :data:`STREAM_QUEUE_CYCLES` cycles; the node only appends to it and
+never waits for a reader: when a queue is full its oldest cycle is dropped and counted, and the
+next message the client gets says how many (``dropped``). When the replay ends, a client gets
+``event: end`` after the last cycle. ``/v1/status`` carries ``stream`` (clients, cycles
+published, cycles dropped over all clients).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import logging
+import math
+import threading
+from collections import deque
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import FastAPI, HTTPException, Query, Request
+from fastapi.responses import Response, StreamingResponse
+
+log = logging.getLogger(__name__)
+
+MAX_JSON_VALUES = 10_000  # cells x layers of one JSON map window
+MAX_BINARY_VALUES = 1_000_000  # ... of one .npy or Arrow map window (8 MB as float64)
+STREAM_QUEUE_CYCLES = 64  # cycles one stream client may fall behind before the oldest drop
+STREAM_POLL_S = 0.02  # how often an idle stream looks at its queue, s
+STREAM_KEEPALIVE_S = 5.0  # an SSE comment after this long without a message, s
+NPY = "application/x-npy"
+ARROW_STREAM = "application/vnd.apache.arrow.stream"
+# reference-model numbers of the default map levels (wm/render.py names its pictures so)
+MAP_LEVEL_NUMBERS = {2: "primitive", 3: "subsystem", 4: "vehicle", 5: "section"}
+ENDED = ("denied", "gone")
+
+
+# --- map windows -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MapWindow:
+    """Cells of one level around a point: ``values[name]`` (rows, cols) in the layer's dtype,
+    row 0 south; ``origin_xy`` the world (x, y) m of cell [0, 0]'s south-west corner;
+    ``level_bounds`` the level's current window ((x_min, y_min), (x_max, y_max)) world m."""
+
+    level: str
+    resolution_m: float
+    origin_xy: tuple[float, float]
+    values: dict[str, np.ndarray]
+    level_bounds: tuple[tuple[float, float], tuple[float, float]]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return next(iter(self.values.values())).shape
+
+
+def find_level(stack: Any, key: str) -> Any:
+    """The stack's level named ``key``, or numbered so (2..5, :data:`MAP_LEVEL_NUMBERS`);
+    HTTP 404 naming the key and the levels there are."""
+    name = MAP_LEVEL_NUMBERS.get(int(key), key) if key.isdigit() else key
+    for lvl in stack.levels:
+        if lvl.name == name:
+            return lvl
+    have = [f"{n} ({lvl})" for n, lvl in MAP_LEVEL_NUMBERS.items()]
+    raise HTTPException(404, f"map level {key!r}: unknown; the levels are {have}")
+
+
+def window_cells(resolution_m: float, x: float, y: float, half_m: float) -> tuple[int, int, int]:
+    """``(ix0, iy0, n)``: the global index of the window's south-west cell and its cells per
+    side, ``n = 2k+1`` around the cell holding world (x, y) m, ``k = ceil(half_m / res)``."""
+    k = math.ceil(half_m / resolution_m)
+    return math.floor(x / resolution_m) - k, math.floor(y / resolution_m) - k, 2 * k + 1
+
+
+def map_window(level: Any, x: float, y: float, half_m: float, layers: list[str]) -> MapWindow:
+    """The ``layers`` of ``level`` (a :class:`maps.level.MapLevel`) in the window around world
+    (x, y) m of half-width ``half_m`` m (module docstring); cells outside the level's current
+    window hold the layer's empty value. Call it between two of the node's cycles."""
+    res = level.resolution_m
+    ix0, iy0, n = window_cells(res, x, y, half_m)
+    rows = np.arange(n, dtype=np.int64) + iy0 - int(level.origin_cell[1])
+    cols = np.arange(n, dtype=np.int64) + ix0 - int(level.origin_cell[0])
+    r_in = (rows >= 0) & (rows < level.size)
+    c_in = (cols >= 0) & (cols < level.size)
+    srow, scol = level.window_to_storage(rows[r_in], cols[c_in])
+    out = {}
+    for name in layers:
+        arr = level.storage(name)
+        vals = np.full((n, n), level.specs[name].fill, dtype=arr.dtype)
+        # the level's storage is toroidal: index it cell by cell, no copy of the whole layer
+        vals[np.ix_(r_in, c_in)] = arr[np.ix_(srow, scol)]
+        out[name] = vals
+    lo, hi = level.bounds_xy
+    bounds = ((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
+    return MapWindow(level.name, res, (ix0 * res, iy0 * res), out, bounds)
+
+
+def _layer_json(a: np.ndarray) -> list:
+    """Rows of ``a`` as lists, NaN and infinities as null (JSON has no words for them)."""
+    if a.dtype.kind != "f":
+        return a.tolist()
+    obj = a.astype(object)
+    obj[~np.isfinite(a)] = None
+    return obj.tolist()
+
+
+def _window_meta(w: MapWindow, cycle_t_ns: int) -> dict:
+    return {
+        "level": w.level,
+        "frame": "world",
+        "cycle_t_ns": cycle_t_ns,
+        "resolution_m": w.resolution_m,
+        "origin": list(w.origin_xy),
+        "shape": list(w.shape),
+        "layers": list(w.values),
+        "level_bounds": [list(w.level_bounds[0]), list(w.level_bounds[1])],
+    }
+
+
+def _npy_response(w: MapWindow, cycle_t_ns: int) -> Response:
+    """The layers stacked (L, rows, cols) float64 as one .npy; metadata in headers."""
+    buf = io.BytesIO()
+    np.save(buf, np.stack([v.astype(np.float64) for v in w.values.values()]))
+    meta = _window_meta(w, cycle_t_ns)
+    headers = {
+        "X-Map-Level": w.level,
+        "X-Map-Layers": ",".join(w.values),
+        "X-Map-Origin": f"{w.origin_xy[0]!r},{w.origin_xy[1]!r}",
+        "X-Map-Resolution-M": repr(w.resolution_m),
+        "X-Map-Frame": "world",
+        "X-Map-Shape": ",".join(str(s) for s in (len(w.values), *w.shape)),
+        "X-Cycle-T-Ns": str(cycle_t_ns),
+        "X-Map-Meta": json.dumps(meta),
+    }
+    return Response(buf.getvalue(), media_type=NPY, headers=headers)
+
+
+def _arrow_response(w: MapWindow, cycle_t_ns: int) -> Response:
+    """One row per cell: row, col, cell-centre x, y (world m), one column per layer."""
+    import pyarrow as pa
+
+    n_rows, n_cols = w.shape
+    row, col = np.meshgrid(np.arange(n_rows), np.arange(n_cols), indexing="ij")
+    cols = {
+        "row": row.reshape(-1).astype(np.int32),
+        "col": col.reshape(-1).astype(np.int32),
+        "x": w.origin_xy[0] + (col.reshape(-1) + 0.5) * w.resolution_m,
+        "y": w.origin_xy[1] + (row.reshape(-1) + 0.5) * w.resolution_m,
+    } | {name: v.reshape(-1) for name, v in w.values.items()}
+    meta = {k: json.dumps(v) for k, v in _window_meta(w, cycle_t_ns).items()}
+    table = pa.table(cols).replace_schema_metadata(meta)
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema) as writer:
+        writer.write_table(table)
+    return Response(sink.getvalue().to_pybytes(), media_type=ARROW_STREAM)
+
+
+def _wanted_layers(level: Any, layers: str) -> list[str]:
+    names = [s.strip() for s in layers.split(",") if s.strip()]
+    if not names:
+        raise HTTPException(400, f"layers {layers!r}: name at least one of {level.layer_names}")
+    unknown = [s for s in names if s not in level.specs]
+    if unknown:
+        raise HTTPException(
+            400, f"layers {unknown}: unknown on level {level.name!r}; known: {level.layer_names}"
+        )
+    return list(dict.fromkeys(names))  # in the order asked, each once
+
+
+def _check_window(
+    level: Any, x: float, y: float, half_m: float, layers: list[str], limit: int
+) -> None:
+    """Refuse a non-finite centre or a window of more than ``limit`` values (cells x layers)."""
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise HTTPException(400, f"centre (x, y) = ({x}, {y}): values must be finite")
+    if not (math.isfinite(half_m) and half_m > 0):
+        raise HTTPException(400, f"half_m {half_m}: need a finite number > 0 (metres)")
+    n = window_cells(level.resolution_m, x, y, min(half_m, 1e12))[2]
+    if n * n * len(layers) > limit:
+        raise HTTPException(
+            413,
+            f"window of half_m={half_m} m on level {level.name!r} "
+            f"({level.resolution_m} m cells) is {n} x {n} cells x {len(layers)} layers = "
+            f"{n * n * len(layers):,} values; at most {limit:,} in this format "
+            f"(JSON {MAX_JSON_VALUES:,}, {NPY} or {ARROW_STREAM} {MAX_BINARY_VALUES:,})",
+        )
+
+
+# --- entities of attention ---------------------------------------------------------------------
+
+
+def sp_level_of(key: str) -> int:
+    """The SP level (1..5) ``key`` names: its number, or a map level's name (the SP level of
+    the same number); HTTP 400 naming the key otherwise."""
+    by_name = {name: n for n, name in MAP_LEVEL_NUMBERS.items()}
+    if key in by_name:
+        return by_name[key]
+    if key.isdigit() and 1 <= int(key) <= 5:
+        return int(key)
+    raise HTTPException(400, f"level {key!r}: give an SP level 1..5 or one of {list(by_name)}")
+
+
+def _track_sigmas(node: Any, t_ns: int) -> dict[int, float]:
+    """SP's tracks that have a KD frame, with the standard deviation (m, world xy) of their
+    position predicted to ``t_ns``: each opens a window on the next sweep."""
+    sp = getattr(node, "sp", None)
+    tracks = sp.tracker.tracks if sp is not None else ()
+    if not len(tracks):
+        return {}
+    _, P = sp.tracker.predicted(t_ns)
+    sig = np.sqrt(np.maximum(P[:, 0, 0] + P[:, 1, 1], 0.0))
+    return {int(i): float(s) for i, s in zip(tracks.id, sig, strict=True) if i >= 0}
+
+
+def _near_surprise(node: Any, xy: np.ndarray, size_m: np.ndarray) -> np.ndarray:
+    """(N,) bool: a surprise point of last cycle lies within 1 m (SP's window base) plus the
+    entity's half size ``size_m`` (N,) m of its position (world xy (N, 2) m)."""
+    pts = node.attention_world_xyz
+    if pts is None or not len(pts) or not len(xy):
+        return np.zeros(len(xy), dtype=bool)
+    d = np.linalg.norm(xy[:, None, :] - np.asarray(pts)[None, :, :2], axis=2).min(axis=1)
+    return d <= 1.0 + size_m
+
+
+def attention_entities(node: Any, sp_level: int, t_ns: int) -> list[dict]:
+    """The entities of ``sp_level`` the node attends to, with why (module docstring), most
+    urgent first (attention list rank, then id). Positions world m; call it between cycles."""
+    kd = node.kd
+    node_level = kd.config.memory.node_of_sp_level[sp_level]
+    try:
+        ranked = {int(i): r for r, i in enumerate(kd.attention(node_level))}
+    except KeyError:
+        ranked = {}
+    sig = _track_sigmas(node, t_ns) if sp_level == 4 else {}
+    frames = [
+        f for f in kd.entities()
+        if int(f.level) == sp_level and f.id != node.self_id and f.state is not None
+        and f.state.frame == "world" and f.status.value not in ENDED
+    ]  # fmt: skip
+    xy = np.array([f.state.position_xyz[:2] for f in frames]).reshape(-1, 2)
+    size = np.array([_half_size_m(f) for f in frames])
+    surprised = _near_surprise(node, xy, size)
+    out = []
+    for f, near in zip(frames, surprised, strict=True):
+        why = []
+        if f.id in ranked:
+            why.append(f"attention list of {node_level!r}, rank {ranked[f.id] + 1}")
+        if f.id in sig:
+            why.append(f"predicted window (position sigma {sig[f.id]:.2f} m)")
+        if near:
+            why.append("surprise window (last cycle's prediction missed near it)")
+        if f.status.value == "hypothesized":
+            why.append("hypothesis awaiting confirmation")
+        if why:
+            out.append(_attended(f, why, ranked.get(f.id)))
+    return sorted(out, key=lambda e: (e["rank"] is None, e["rank"] or 0, e["entity_id"]))
+
+
+def _half_size_m(f: Any) -> float:
+    """Half the larger of the entity's length and width (m), 0 when it has neither."""
+    sizes = [0.0]
+    for name in ("length_m", "width_m"):
+        a = f.attributes.get(name)
+        if a is not None:
+            sizes += [v for v in (a.estimated, a.observed) if math.isfinite(v)]
+    return 0.5 * max(sizes)
+
+
+def _attended(f: Any, why: list[str], rank: int | None) -> dict:
+    s = f.state
+    return {
+        "entity_id": int(f.id), "class_name": f.most_specific_class,
+        "level": int(f.level), "status": f.status.value, "confidence": float(f.confidence),
+        "t_ns": int(s.t_ns), "frame": s.frame, "position": _finite(s.position_xyz),
+        "rank": None if rank is None else rank + 1, "why": why,
+    }  # fmt: skip
+
+
+def _finite(a: Any) -> list[float | None]:
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(a, np.float64).ravel()]
+
+
+# --- the push stream ---------------------------------------------------------------------------
+
+
+class StreamClient:
+    """One stream reader's bounded queue of encoded cycles. The node's thread puts, the
+    server's event loop takes; when full, a put drops the oldest cycle and counts it."""
+
+    def __init__(self, max_cycles: int = STREAM_QUEUE_CYCLES) -> None:
+        if max_cycles < 1:
+            raise ValueError(f"stream queue of {max_cycles} cycles: need at least 1")
+        self.max_cycles = max_cycles
+        self._queue: deque[bytes] = deque()
+        self._lock = threading.Lock()
+        self._unreported = 0  # dropped since the last message taken
+        self.dropped = 0  # dropped in all
+
+    def put(self, message: bytes) -> None:
+        with self._lock:
+            if len(self._queue) >= self.max_cycles:
+                self._queue.popleft()  # the oldest: a reader that catches up wants the newest
+                self._unreported += 1
+                self.dropped += 1
+            self._queue.append(message)
+
+    def take(self) -> tuple[bytes, int] | None:
+        """The oldest queued cycle and how many were dropped before it, or None."""
+        with self._lock:
+            if not self._queue:
+                return None
+            dropped, self._unreported = self._unreported, 0
+            return self._queue.popleft(), dropped
+
+
+def _stream_entity(c: dict[str, np.ndarray], k: int, why: str | None = None) -> dict:
+    e = {
+        "entity_id": int(c["id"][k]), "level": int(c["level"][k]),
+        "class_name": c["class_name"][k], "status": c["status"][k],
+        "confidence": float(c["confidence"][k]), "t_ns": int(c["t_ns"][k]),
+        "frame": c["frame"][k], "position": _finite(c["position"][k]),
+        "velocity": _finite(c["velocity"][k]),
+    }  # fmt: skip
+    return e if why is None else e | {"why": why}
+
+
+class CycleFeed:
+    """What each node cycle changed, pushed to every stream client (module docstring). It
+    listens to the node only while it has had a client (:meth:`subscribe` attaches it)."""
+
+    def __init__(self, live: Any, max_cycles: int = STREAM_QUEUE_CYCLES) -> None:
+        self.live, self.max_cycles = live, max_cycles
+        self._clients: set[StreamClient] = set()
+        self._lock = threading.Lock()
+        self._attached = False
+        self._prev: dict[str, np.ndarray] | None = None  # columns after the last cycle
+        self._next_id = 0  # the KD's next frame id after the last cycle
+        self.published = 0
+        self.dropped_gone = 0  # dropped by clients that have left
+
+    def status(self) -> dict:
+        with self._lock:
+            clients = list(self._clients)
+        dropped = self.dropped_gone + sum(c.dropped for c in clients)
+        return {"clients": len(clients), "cycles": self.published, "dropped": dropped}
+
+    def subscribe(self) -> StreamClient:
+        client = StreamClient(self.max_cycles)
+        with self.live.lock:  # between two cycles: the baseline is one cycle's columns
+            if not self._attached and self.live.node is not None and not self.live.closed:
+                self._baseline()
+                self.live.node.cycle_listeners.append(self._on_cycle)
+                self._attached = True
+        with self._lock:
+            self._clients.add(client)
+        return client
+
+    def remove(self, client: StreamClient) -> None:
+        with self._lock:
+            if client in self._clients:
+                self._clients.discard(client)
+                self.dropped_gone += client.dropped
+
+    def _baseline(self) -> None:
+        self._prev = self._sorted(self.live.kd.current_columns())
+        self._next_id = int(self.live.kd.next_id)
+
+    @staticmethod
+    def _sorted(c: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        order = np.argsort(c["id"], kind="stable")
+        return {k: v[order] for k, v in c.items()}
+
+    def _on_cycle(self, result: Any) -> None:
+        """At the end of a cycle, in the node's thread: a fault here is logged, never raised,
+        so a stream can not stop the node."""
+        try:
+            self._publish(int(result.t_ns))
+        except Exception:
+            log.exception("stream: the cycle at t_ns=%s was not published", result.t_ns)
+
+    def _publish(self, t_ns: int) -> None:
+        kd = self.live.kd
+        now = self._sorted(kd.current_columns())
+        prev, first_new = self._prev, self._next_id
+        self._prev, self._next_id = now, int(kd.next_id)
+        with self._lock:
+            clients = list(self._clients)
+        if not clients or prev is None:  # nobody listens: keep only the baseline current
+            return
+        created, changed, ended = _diff(prev, now)
+        self.published += 1
+        body = {
+            "cycle": self.published, "cycle_t_ns": t_ns, "frame": "world",
+            "self_id": self.live.node.self_id,
+            "created": [_stream_entity(now, k) for k in created],
+            "changed": [_stream_entity(now, k) for k in changed],
+            "ended": [_stream_entity(now, k, now["status"][k]) for k in ended[0]]
+            + [_stream_entity(prev, k, "forgotten") for k in ended[1]],
+            "events": _new_events(kd, first_new, self._next_id),
+        }  # fmt: skip
+        message = json.dumps(body, separators=(",", ":")).encode()
+        for c in clients:
+            c.put(message)
+
+
+def _diff(
+    prev: dict[str, np.ndarray], now: dict[str, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Rows of ``now`` created and changed since ``prev``, and ended: (rows of ``now`` newly
+    denied or gone, rows of ``prev`` no longer held). Both sorted by id."""
+    n_prev = len(prev["id"])
+    pos = np.minimum(np.searchsorted(prev["id"], now["id"]), max(n_prev - 1, 0))
+    known = prev["id"][pos] == now["id"] if n_prev else np.zeros(len(now["id"]), dtype=bool)
+    p, k = pos[known], np.flatnonzero(known)
+    moved = np.zeros(len(k), dtype=bool)
+    for name in ("t_ns", "status", "class_name", "confidence"):  # a new state, or a new word
+        moved |= prev[name][p] != now[name][k]
+    now_ended = np.isin(now["status"][k], ENDED) & ~np.isin(prev["status"][p], ENDED)
+    gone = ~np.isin(prev["id"], now["id"])
+    return (
+        np.flatnonzero(~known),
+        k[moved & ~now_ended],
+        (k[now_ended], np.flatnonzero(gone & ~np.isin(prev["status"], ENDED))),
+    )
+
+
+def _new_events(kd: Any, first_id: int, next_id: int) -> list[dict]:
+    """The events among the frames made with ids in [first_id, next_id) (one id space)."""
+    from kd_store.errors import KDError
+
+    out = []
+    for i in range(first_id, next_id):
+        try:
+            e = kd.get_event(i)
+        except KDError:
+            continue  # an entity, or an event already forgotten
+        out.append({
+            "event_id": int(e.id), "name": e.name, "class_name": e.class_name,
+            "t_start_ns": int(e.t_start_ns), "level": int(e.level),
+            "t_end_ns": None if e.t_end_ns is None else int(e.t_end_ns),
+            "confidence": float(e.confidence),
+        })  # fmt: skip
+    return out
+
+
+async def _sse(live: Any, feed: CycleFeed, client: StreamClient) -> AsyncIterator[bytes]:
+    """The client's cycles as server-sent events until the replay ends or the client goes
+    (the server cancels this generator then; ``finally`` removes the client)."""
+    idle = 0.0
+    try:
+        yield b": one event per node cycle\n\n"
+        while True:
+            got = client.take()
+            if got is not None:
+                msg, dropped = got
+                # splice the client's own count into the shared encoding: no re-encoding
+                data = b'{"dropped":%d,' % dropped + msg[1:]
+                yield b"event: cycle\ndata: " + data + b"\n\n"
+                idle = 0.0
+                continue
+            if live.status.done or live.closed:
+                end = {"cycles": live.status.cycles, "cycle_t_ns": live.status.cycle_t_ns}
+                yield b"event: end\ndata: " + json.dumps(end).encode() + b"\n\n"
+                return
+            if idle >= STREAM_KEEPALIVE_S:  # a write finds out whether the client is gone
+                yield b": keep-alive\n\n"
+                idle = 0.0
+            await asyncio.sleep(STREAM_POLL_S)
+            idle += STREAM_POLL_S
+    finally:
+        feed.remove(client)
+
+
+# --- the routes --------------------------------------------------------------------------------
+
+
+def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CYCLES) -> CycleFeed:
+    """Add ``/v1/maps/{level}``, ``/v1/attention`` and ``/v1/stream`` over ``live`` (a
+    :class:`wm.serve.LiveNode`) to ``app``; returns the stream's feed (its ``status()`` goes
+    into ``/v1/status``). ``stream_queue``: cycles a stream client may fall behind."""
+    feed = CycleFeed(live, stream_queue)
+    app.state.stream_feed = feed  # for a caller in the same process (and the tests)
+
+    def running() -> tuple[Any, int]:
+        """The node and its newest cycle's time; call under ``live.lock``."""
+        if live.node is None or live.closed:
+            raise HTTPException(503, "the live node is not running (not started, or stopped)")
+        snap = live.snapshot  # set under the lock with the cycle, unlike ``live.status``
+        return live.node, (snap.cycle_t_ns if snap is not None else -1)
+
+    @app.get("/v1/maps/{level}")
+    def map_view(
+        request: Request,
+        level: str,
+        x: float,
+        y: float,
+        half_m: Annotated[float, Query(description="half-width of the window, m")] = 10.0,
+        layers: str = "elevation",
+    ) -> Response:
+        """The named layers (comma-separated) of map level ``level`` (name or 2..5) in the
+        window of half-width ``half_m`` m around world (x, y) m: JSON, or ``.npy`` / Arrow by
+        the Accept header (module docstring of wm.serve_views)."""
+        accept = request.headers.get("accept", "")
+        binary = NPY if NPY in accept else ARROW_STREAM if ARROW_STREAM in accept else None
+        with live.lock:
+            node, cycle = running()
+            lvl = find_level(node.stack, level)
+            names = _wanted_layers(lvl, layers)
+            limit = MAX_BINARY_VALUES if binary else MAX_JSON_VALUES
+            _check_window(lvl, x, y, half_m, names, limit)
+            w = map_window(lvl, x, y, half_m, names)
+        if binary == NPY:
+            return _npy_response(w, cycle)
+        if binary == ARROW_STREAM:
+            return _arrow_response(w, cycle)
+        body = _window_meta(w, cycle) | {"values": {k: _layer_json(v) for k, v in w.values.items()}}
+        return Response(json.dumps(body), media_type="application/json")
+
+    @app.get("/v1/attention")
+    def attention(level: str = "4") -> dict:
+        """Entities of SP level ``level`` (1..5 or a map level's name) the node attends to,
+        each with ``why`` (module docstring of wm.serve_views), world frame."""
+        sp_level = sp_level_of(level)
+        with live.lock:
+            node, cycle = running()
+            ents = attention_entities(node, sp_level, cycle)
+            node_level = node.kd.config.memory.node_of_sp_level[sp_level]
+        return {"cycle_t_ns": cycle, "frame": "world", "level": sp_level,
+                "node_level": node_level, "entities": ents}  # fmt: skip
+
+    @app.get("/v1/stream")
+    def stream() -> StreamingResponse:
+        """Server-sent events: ``event: cycle`` per node cycle (entities created, changed,
+        ended; events made; ``dropped`` cycles this client missed), ``event: end`` at the end
+        of the replay."""
+        if live.closed:
+            raise HTTPException(503, "the live node is stopped")
+        client = feed.subscribe()
+        headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+        return StreamingResponse(
+            _sse(live, feed, client), media_type="text/event-stream", headers=headers
+        )
+
+    return feed
