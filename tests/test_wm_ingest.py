@@ -226,14 +226,15 @@ def test_bodies_above_the_limits_get_a_413(ingest_server) -> None:
 
 
 def test_a_client_above_its_rate_gets_a_429(log) -> None:
-    """With a rate limit of 1 request a second after a burst of 3, the fourth request at once
-    gets a 429 with Retry-After; without one (the default) there is no limit."""
+    """With a rate limit of 1 request per 100 s after a burst of 3 (slow enough that a loaded
+    machine cannot refill a token between requests), the fourth request gets a 429 with
+    Retry-After; without one (the default) there is no limit."""
     from wm.limits import ServeLimits, TokenBuckets
     from wm.serve import LiveNode, create_app
 
     live = LiveNode(log, rate=0.0).start()
     try:
-        with served(create_app(live, limits=ServeLimits(rate_per_s=1.0, burst=3))) as base:
+        with served(create_app(live, limits=ServeLimits(rate_per_s=0.01, burst=3))) as base:
             codes = [get(base, "/v1/status")[0] for _ in range(4)]
             assert codes == [200, 200, 200, 429]
             req = urllib.request.Request(base + "/v1/status")
