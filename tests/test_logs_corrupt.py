@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.opcode import Opcode
 from mcap.writer import CompressionType, Writer
 
 from sp.logs import (
@@ -24,6 +23,8 @@ from sp.logs import (
 )
 from sp.logs.ros_encode import encode_frame, serialize
 from sp.logs.ros_types import ros2msg_schema
+from wm.campaign import chunks as _chunks
+from wm.campaign import duplicate_chunk as _duplicate_chunk
 
 N_SCANS = 40
 
@@ -163,42 +164,6 @@ def test_unsupported_paths_list_the_formats(tmp_path) -> None:
 
 
 # ---------------------------------------------------------------- defects found by position
-
-
-def _records(data: bytes) -> list[tuple[int, int, int]]:
-    """(offset, opcode, total length) of each top-level record of an MCAP file's bytes."""
-    out, pos = [], 8
-    while pos + 9 <= len(data):
-        opcode, length = struct.unpack_from("<BQ", data, pos)
-        out.append((pos, opcode, 9 + length))
-        if opcode == Opcode.FOOTER:
-            break
-        pos += 9 + length
-    return out
-
-
-def _chunks(data: bytes) -> list[tuple[int, int, int]]:
-    """(offset, length, messages) of each chunk: messages from its message indexes."""
-    out = []
-    for offset, opcode, length in _records(data):
-        if opcode == Opcode.CHUNK:
-            out.append([offset, length, 0])
-        elif opcode == Opcode.MESSAGE_INDEX and out:
-            out[-1][2] += struct.unpack_from("<I", data, offset + 9 + 2)[0] // 16
-    return [tuple(c) for c in out]
-
-
-def _duplicate_chunk(d: bytearray, k: int, at_end: bool = False) -> tuple[bytearray, int, int]:
-    """Chunk ``k`` again, right after it (or after the last chunk): (bytes, offset of the
-    copy, messages in it)."""
-    chunks = _chunks(bytes(d))
-    offset, length, n = chunks[k]
-    at = offset + length
-    if at_end:
-        data_end = next(o for o, op, _ in _records(bytes(d)) if op == Opcode.DATA_END)
-        at = data_end
-    d[at:at] = d[offset : offset + length]
-    return d, at, n
 
 
 @pytest.mark.parametrize("at_end", [False, True])

@@ -14,34 +14,11 @@ from pathlib import Path
 
 import pytest
 
+from wm.campaign import _running
+from wm.campaign import children as _children
+from wm.campaign import kind_of as _kind
+
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _children(pid: int) -> set[int]:
-    out: set[int] = set()
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
-            out |= {int(c) for c in (task / "children").read_text().split()}
-        except OSError:
-            pass
-    return out
-
-
-def _kind(pid: int) -> str:
-    """The child's kind: the decoder (the prefetch interpreter) or odometry (a fork of the run)."""
-    try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return "gone"
-    return "decoder" if "sp.logs.prefetch" in cmd else "odometry" if "wm.cli" in cmd else cmd
-
-
-def _running(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 KILL_AT_CPU_S = 5.0

@@ -61,7 +61,6 @@ from maps.frames import (
     BODY,
     CAMERA,
     LADAR,
-    GeometryError,
     check_pose,
     matrix_to_quat,
     matrix_to_rpy,
@@ -85,6 +84,7 @@ from wm import predict, vj
 from wm.config import NodeConfig, PoseSource
 from wm.odometry_worker import OdometryReply, OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
+from wm.screen import check_frame, finite_points
 from wm.truth import truth_boxes_to_world
 from wm.whatis import WhatIs
 
@@ -185,6 +185,8 @@ class NodeStats:
     stage_cpu_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     odometry_status: Counter = field(default_factory=Counter)
     skipped: Counter = field(default_factory=Counter)  # frames refused by feed, per reason
+    # points dropped from sweeps the node took: non-finite or beyond the screen's range
+    dropped_nonfinite_points: int = 0
     # what the node did about the log on its own, per named reason (time_jump_new_segment)
     events: Counter = field(default_factory=Counter)
     notes: list[str] = field(default_factory=list)
@@ -291,9 +293,10 @@ class WorldModelNode:
     def feed(self, frame: Frame) -> list[CycleResult]:
         """Take one log frame; returns the cycles it let run (sweeps whose poses are in).
 
-        A frame the node cannot use (:meth:`_screen`: a non-finite or non-rigid odometry
-        pose, a sweep out of time order or of the wrong shape; :meth:`_hold`: far in the
-        future) is logged and counted in ``stats.skipped`` and changes nothing: one bad
+        A frame the node cannot use (:func:`wm.screen.check_frame`: a time that is no
+        integer, wrong shapes or dtypes, non-finite values, a rotation that is none, negative
+        box sizes, bad intrinsics; :meth:`_screen`: out of time order; :meth:`_hold`: far in
+        the future or past) is logged and counted in ``stats.skipped`` and changes nothing: one bad
         message never stops or corrupts a run. A run of frames far in the future or the past
         is a jump of the log's clock: a new segment starts (module docstring). Anything but a
         frame (None, a dict, an array) raises :class:`FrameTypeError`, the node untouched."""
@@ -303,6 +306,12 @@ class WorldModelNode:
                 f"({', '.join(t.__name__ for t in FRAME_TYPES)}), got {type(frame).__name__}"
             )
         self.stats.frames[type(frame).__name__] += 1
+        why = check_frame(frame)  # its content, before its time is trusted for anything
+        if why is None and isinstance(frame, LadarScan):
+            frame, why = self._finite_points(frame)
+        if why is not None:
+            self._skipped(frame, why)
+            return []
         if self._beyond_jump(frame):
             return self._hold(frame)
         self._skip_held()
@@ -436,24 +445,26 @@ class WorldModelNode:
         self.attention_world_xyz = None
 
     def _screen(self, frame: Frame) -> str | None:
-        """Why ``frame`` must be skipped ("reason: detail"), or None to take it."""
+        """Why ``frame`` must be skipped for its time order ("reason: detail"), or None to
+        take it; its content was checked on the way in (:func:`wm.screen.check_frame`)."""
         t = int(frame.t_ns)
         if isinstance(frame, OdometryFrame):
-            try:
-                check_pose(frame.T_parent_child, "odometry pose", atol=1e-4)
-            except GeometryError as e:
-                return f"bad odometry pose: {e}"
             if self.last_wheel_t_ns is not None and t <= self.last_wheel_t_ns:
                 return f"odometry out of order: t_ns {t} <= {self.last_wheel_t_ns}"
         elif isinstance(frame, LadarScan):
-            shape = np.shape(frame.points_xyz)
-            if len(shape) != 2 or shape[1] != 3:
-                return f"bad sweep: points_xyz of shape {shape}, not (N, 3)"
-            if np.shape(frame.t_offset_ns) not in ((shape[0],), (0,)):
-                return f"bad sweep: t_offset_ns of shape {np.shape(frame.t_offset_ns)}"
             if self.last_sweep_t_ns is not None and t <= self.last_sweep_t_ns:
                 return f"sweep out of order: t_ns {t} <= {self.last_sweep_t_ns}"
         return None
+
+    def _finite_points(self, scan: LadarScan) -> tuple[LadarScan, str | None]:
+        """The sweep without its non-finite or absurdly far points (counted in
+        ``stats.dropped_nonfinite_points``; wm.screen says why they are dropped, not the
+        sweep), or a reason to skip it when none is left."""
+        kept, dropped = finite_points(scan)
+        if dropped and kept.n_points == 0:
+            return scan, f"bad sweep: none of its {dropped} points is finite and in range"
+        self.stats.dropped_nonfinite_points += dropped
+        return kept, None
 
     def finish(self) -> list[CycleResult]:
         """End of log: run the sweeps still waiting, flush the KD (:meth:`flush`) and stop

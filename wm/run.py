@@ -319,6 +319,15 @@ def _log_losses(report: RunReport, source: LogSource) -> None:
     report.notes += [m for m in source.stats.messages if m not in report.notes]
 
 
+def _node_skips(stats) -> dict[str, int]:
+    """The node's skipped frames per reason, and the points it dropped from sweeps it took
+    (non-finite or out of range) under "non-finite points" (a count of points, not frames)."""
+    out = dict(stats.skipped)
+    if stats.dropped_nonfinite_points:
+        out["non-finite points"] = stats.dropped_nonfinite_points
+    return out
+
+
 def _safe(get) -> dict:
     try:
         return get()
@@ -394,7 +403,7 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
         events=dict(events),
         stage_ms_per_sweep={k: 1e3 * v / n for k, v in node.stats.stage_s.items()},
         odometry_status=dict(node.stats.odometry_status),
-        skipped=dict(node.stats.skipped),
+        skipped=_node_skips(node.stats),
         node_events=dict(node.stats.events),
         kd_flush={
             "interval_s": node.config.kd_flush_every_ns / NS_PER_S,
