@@ -687,7 +687,8 @@ def test_boxes_are_the_reference_boxes(good_log: Path) -> None:
     src = open_log(good_log)
     boxes = [m for m in src._messages() if src._channels[m.channel_id].topic.endswith("objects")]
     assert len(boxes) == 12
-    msgs = [src._deserialize(src._channels[m.channel_id], m) for m in boxes]
+    decoder = mcap_log.CdrFrameDecoder(src.stats, None, None, src.fail, src._types)
+    msgs = [src._deserialize(decoder, src._channels[m.channel_id], m) for m in boxes]
     for d in msgs[1].detections:
         d.id = f"car-{d.id}"  # not integers: mapped to ids in order of first appearance
     fast, ref = ros_decode.FrameAssembler(ReadStats()), ros_decode.FrameAssembler(ReadStats())

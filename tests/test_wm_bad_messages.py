@@ -1,5 +1,5 @@
 """One bad message never breaks or corrupts a run: the node logs it, counts it in
-``stats.skipped`` and goes on exactly as if it had not come (the same poses, bit for bit)."""
+``stats.skipped`` and goes on exactly as if it had not come (the same poses, to summation order)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,10 @@ from node_runs import self_poses
 
 from sp.logs import open_log
 from sp.logs.types import LadarScan, OdometryFrame
+
+# poses of a run with bad frames equal the clean run's to summation order: the registration's
+# parallel reductions may add in another order from one run to the next (1e-17 m seen)
+POSE_ATOL = 1e-9
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +64,7 @@ def test_bad_messages_are_skipped_counted_and_change_nothing(frames) -> None:
     spoiled, node = self_poses(_spoiled(frames))
     assert len(clean) == len(spoiled) >= 20
     for a, b in zip(clean, spoiled, strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=POSE_ATOL)
     assert not node0.stats.skipped
     assert dict(node.stats.skipped) == {
         "bad odometry pose": 3,
@@ -122,7 +126,7 @@ def test_a_few_frames_far_in_the_future_are_skipped_not_a_new_segment(frames) ->
     assert not node.stats.events
     assert dict(node.stats.skipped) == {"time jump": 2}
     for a, b in zip(clean, spoiled, strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=POSE_ATOL)
 
 
 # --- a clock that jumps back ----------------------------------------------------------------
@@ -167,7 +171,7 @@ def test_a_few_frames_stamped_far_back_are_skipped_not_a_new_segment(frames) -> 
     assert not node.stats.events
     assert dict(node.stats.skipped) == {"time jump": 2}
     for a, b in zip(clean, spoiled, strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=POSE_ATOL)
 
 
 # --- the odometry survives what gets past the node's screen ---------------------------------
@@ -204,7 +208,7 @@ def test_the_odometry_process_refuses_bad_wheel_frames_and_the_node_counts_them(
     assert dict(node.stats.skipped) == {"bad odometry pose": 2}
     assert len(poses) == len(clean)
     for a, b in zip(clean, poses, strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=POSE_ATOL)
     kd.close()
 
 

@@ -22,6 +22,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from core.errors import EngineError
 from maps.frames import GeometryError, check_pose
 from sp.camera import CameraError, PinholeCamera
 from sp.logs.types import (
@@ -50,8 +51,8 @@ MAX_POINT_RANGE_M = 10_000.0
 ROTATION_ATOL = 1e-4
 
 
-class _Bad(Exception):
-    """Internal: a check failed; ``args[0]`` is "reason: detail"."""
+class _Bad(EngineError):
+    """Internal: a check failed; ``args[0]`` is "reason: detail" (never leaves this module)."""
 
 
 def check_frame(frame: Frame) -> str | None:
