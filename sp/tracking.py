@@ -76,6 +76,9 @@ class TrackerConfig:
                     variance (a partial view).
     part_margin_m:  a free measurement inside a track's footprint enlarged by this is a part
                     of it; an unseen confirmed track inside another's footprint is a duplicate.
+                    The margin is at most ``part_margin_frac`` of the footprint's larger
+                    extent: it allows for the error of an extent seen in part, which is small
+                    on a small body (two people walking 0.8 m apart are two objects).
     alpha:          confidence gain per cycle; confirm / deny thresholds; min_hits to confirm.
     q_static_m:     random walk (m per sqrt(s)) of the stationary model's position.
     llr0:           log-likelihood ratio (moving vs stationary) of a new track: a prior for
@@ -111,6 +114,7 @@ class TrackerConfig:
     max_misses: int = 8
     max_misses_per_m: float = 0.2
     part_margin_m: float = 0.5
+    part_margin_frac: float = 0.25
     max_misses_hyp: int = 2
     q_static_m: float = 0.1
     llr0: float = -2.0
@@ -402,12 +406,13 @@ def inside_footprint(
     xy: np.ndarray, center_xy: np.ndarray, what: np.ndarray, config: TrackerConfig
 ) -> np.ndarray:
     """(N, T) bool: point n lies inside track t's footprint (length x width at yaw, from
-    ``what`` (T, 4)) enlarged by ``part_margin_m``. xy (N, 2), center_xy (T, 2), world m."""
+    ``what`` (T, 4)) enlarged by ``part_margin_m``, at most ``part_margin_frac`` of its larger
+    extent. xy (N, 2), center_xy (T, 2), world m."""
     d = xy[:, None, :] - center_xy[None, :, :]
     c, s = np.cos(what[:, 3]), np.sin(what[:, 3])
     u = np.abs(d[..., 0] * c + d[..., 1] * s)
     v = np.abs(-d[..., 0] * s + d[..., 1] * c)
-    m = config.part_margin_m
+    m = np.minimum(config.part_margin_m, config.part_margin_frac * what[:, :2].max(axis=1))
     return (u <= what[:, 0] / 2 + m) & (v <= what[:, 1] / 2 + m)
 
 
