@@ -4,11 +4,8 @@ that log makes; a flood is dropped and counted; bad input gets a 4xx naming it."
 
 from __future__ import annotations
 
-import contextlib
 import http.client
 import json
-import socket
-import threading
 import time
 import urllib.error
 import urllib.parse
@@ -17,6 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from serving import served
 
 pytest.importorskip("fastapi")
 uvicorn = pytest.importorskip("uvicorn")
@@ -40,30 +38,6 @@ def _messages(log: Path) -> Iterator[tuple[str, str, bytes, int]]:
     with open(log, "rb") as f:
         for schema, channel, msg in make_reader(f).iter_messages(log_time_order=True):
             yield channel.topic, schema.name, bytes(msg.data), int(msg.log_time)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@contextlib.contextmanager
-def served(app) -> Iterator[str]:
-    """``app`` on a free localhost port with uvicorn in a thread; its base URL."""
-    port = _free_port()
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    deadline = time.time() + 30
-    while not srv.started and time.time() < deadline:
-        time.sleep(0.05)
-    assert srv.started, "uvicorn did not start"
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        srv.should_exit = True
-        thread.join(10)
 
 
 def post(base: str, path: str, body: bytes, ctype: str = "application/octet-stream"):

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import socket
-import threading
 import time
 import urllib.error
 import urllib.request
@@ -15,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from serving import free_port, served
 
 pytest.importorskip("fastapi")
 uvicorn = pytest.importorskip("uvicorn")
@@ -30,12 +29,6 @@ def log(tmp_path_factory) -> Path:
     return simulate_to_log("default", path, seconds=6.0, seed=46, progress=False)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def server(log: Path, tmp_path_factory):
     """A live node replaying the log at twice real time, served on a free localhost port."""
@@ -43,20 +36,8 @@ def server(log: Path, tmp_path_factory):
 
     kd_path = tmp_path_factory.mktemp("serve-kd") / "live.duckdb"
     live = LiveNode(log, kd_path, rate=2.0).start()
-    port = _free_port()
-    config = uvicorn.Config(
-        create_app(live, token=TOKEN), host="127.0.0.1", port=port, log_level="warning"
-    )
-    srv = uvicorn.Server(config)
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    deadline = time.time() + 30
-    while not srv.started and time.time() < deadline:
-        time.sleep(0.05)
-    assert srv.started, "uvicorn did not start"
-    yield live, f"http://127.0.0.1:{port}", kd_path
-    srv.should_exit = True
-    thread.join(10)
+    with served(create_app(live, token=TOKEN)) as base:
+        yield live, base, kd_path
     live.stop()
 
 
@@ -281,7 +262,7 @@ def test_wm_serve_runs_as_its_own_process_and_stops_cleanly(log, tmp_path) -> No
 
     import kd_store
 
-    port = _free_port()
+    port = free_port()
     kd_path = tmp_path / "served.duckdb"
     env = os.environ | {"WM_TOKEN": TOKEN}
     cmd = [sys.executable, "-m", "wm.cli", "serve", "--replay", str(log), "--rate", "0",

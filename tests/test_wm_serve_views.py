@@ -16,11 +16,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from serving import served as served_app
 
 pytest.importorskip("fastapi")
 uvicorn = pytest.importorskip("uvicorn")
 
-from test_wm_serve import TOKEN, _free_port, call, log  # noqa: E402, F401  (log: a fixture)
+from test_wm_serve import TOKEN, call, log  # noqa: E402, F401  (log: a fixture)
 
 QUEUE = 3  # cycles a stream client may fall behind: small, so a stalled one drops soon
 RATE = 0.4  # replay speed: slow, so the node still runs through the stream test
@@ -34,18 +35,9 @@ def served(log: Path, tmp_path_factory):  # noqa: F811 (test_wm_serve's fixture)
 
     kd_path = tmp_path_factory.mktemp("views-kd") / "live.duckdb"
     live = LiveNode(log, kd_path, rate=RATE).start()
-    port = _free_port()
     app = create_app(live, token=TOKEN, stream_queue=QUEUE)
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    deadline = time.time() + 30
-    while not srv.started and time.time() < deadline:
-        time.sleep(0.05)
-    assert srv.started, "uvicorn did not start"
-    yield live, f"http://127.0.0.1:{port}", app.state.stream_feed
-    srv.should_exit = True
-    thread.join(10)
+    with served_app(app) as base:
+        yield live, base, app.state.stream_feed
     live.stop()
 
 
