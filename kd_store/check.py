@@ -12,7 +12,11 @@ but a killed process, a hand edit or a bug could leave behind:
   event frame (entities and events share one id space);
 - ``event_missing_entity``: an event's ``involves`` pointer to an entity frame that is absent;
 - ``nonfinite_position``: a state, expectation or entity frame whose x, y or z (metres) is NaN
-  or infinite (an entity frame with no state at all has NULL there, which is allowed).
+  or infinite (an entity frame with no state at all has NULL there, which is allowed);
+- ``unknown_run`` (schema version 3 on): rows of a ``run_id`` that ``run_rows`` does not
+  record (the ids named are run ids);
+- ``run_mismatch``: a state or expectation row in another run than its entity frame, or a
+  relation in another run than its source frame (runs have separate world frames).
 
 The result is a typed :class:`KDCheck`; printing it is the command line's job (``wm check``).
 """
@@ -89,6 +93,34 @@ _CHECKS: tuple[tuple[str, str, str, str], ...] = (
 )  # fmt: skip
 
 
+def _run_checks() -> tuple[tuple[str, str, str, str], ...]:
+    """The checks of run ids (schema version 3 on), as :data:`_CHECKS`."""
+    unknown = tuple(
+        (
+            "unknown_run", t,
+            f"SELECT DISTINCT run_id AS id FROM {t} "
+            "WHERE run_id NOT IN (SELECT run_id FROM run_rows)",
+            "run ids with rows here that run_rows does not record",
+        )
+        for t in persist.RUN_TABLES
+    )  # fmt: skip
+    mismatch = tuple(
+        (
+            "run_mismatch", t,
+            f"SELECT DISTINCT r.{key} AS id FROM {t} r JOIN {frames} f ON f.id = r.{key} "
+            "WHERE r.run_id <> f.run_id",
+            f"{what} in another run than their frame",
+        )
+        for t, key, frames, what in (
+            ("entity_state_rows", "entity_id", "entity_frames", "entities with states"),
+            ("entity_expectation_rows", "entity_id", "entity_frames", "entities with expectations"),
+            ("relation_rows", "src_id", "entity_frames", "entities with relations"),
+            ("relation_rows", "src_id", "event_frames", "events with relations"),
+        )
+    )  # fmt: skip
+    return unknown + mismatch
+
+
 #: the tables the checks read
 _NEEDED = frozenset(
     {"entity_frames", "event_frames", "entity_state_rows", "entity_expectation_rows",
@@ -163,7 +195,8 @@ def _check(con: duckdb.DuckDBPyConnection, where: str) -> KDCheck:
         if t not in present and persist.TABLES_SINCE.get(t, 1) <= version
     ]
     if _NEEDED <= present:  # else the missing table is the defect, reported above
-        for kind, table, sql, what in _CHECKS:
+        runs = _run_checks() if version >= 3 and "run_rows" in present else ()
+        for kind, table, sql, what in (*_CHECKS, *runs):
             defect = _defect(con, kind, table, sql, what)
             if defect is not None:
                 defects.append(defect)

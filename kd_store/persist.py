@@ -37,9 +37,11 @@ from kd_store.relations import Relation, RelationKind
 from kd_store.states import StateColumns, rows_to_arrow
 from kd_store.tiles import MapTile, TileKey
 
-#: 1: frames, states, events, relations, classes. 2: adds ``map_tile_rows`` (files of
-#: version 1 are migrated when opened for writing, and read as having no tiles when read-only).
-SCHEMA_VERSION = 2
+#: 1: frames, states, events, relations, classes. 2: adds ``map_tile_rows``. 3: adds
+#: ``run_rows`` and a ``run_id`` on every row of the other data tables (rows of older files
+#: become run 0). Older files are migrated when opened for writing; read-only, they are read
+#: as they are (no tiles in version 1, every row in run 0).
+SCHEMA_VERSION = 3
 OLDEST_VERSION = 1
 TABLES = (
     "kd_meta",
@@ -50,9 +52,19 @@ TABLES = (
     "relation_rows",
     "class_prototypes",
     "map_tile_rows",
+    "run_rows",
 )
 #: Tables each schema version has (for Parquet imports of older exports).
-TABLES_SINCE = {"map_tile_rows": 2}
+TABLES_SINCE = {"map_tile_rows": 2, "run_rows": 3}
+#: Tables whose rows belong to one run (a ``run_id`` column since version 3).
+RUN_TABLES = (
+    "entity_frames",
+    "entity_state_rows",
+    "entity_expectation_rows",
+    "event_frames",
+    "relation_rows",
+    "map_tile_rows",
+)
 _ATTR = pa.struct([(k, pa.float64()) for k in ATTRIBUTE_FIELDS])
 _CELL = pa.struct([("map_level", pa.int32()), ("col", pa.int64()), ("row", pa.int64())])
 _STATE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw", "vx", "vy", "vz")
@@ -108,10 +120,21 @@ def connect(
 
 def _migrate(con: duckdb.DuckDBPyConnection, version: int) -> None:
     """Bring a file of an older schema version up to this one, in one transaction. The schema
-    script only adds (``IF NOT EXISTS`` / ``OR REPLACE``), so running it again is the step."""
+    script only adds (``IF NOT EXISTS`` / ``OR REPLACE``), so running it again is the step,
+    after the columns added since (``run_id``: rows written before runs existed are run 0,
+    recorded as such in ``run_rows``)."""
     con.execute("BEGIN TRANSACTION")
     try:
+        for table in RUN_TABLES:
+            if _has_table(con, table) and not has_runs(con, table):
+                con.execute(f"ALTER TABLE {table} ADD COLUMN run_id BIGINT NOT NULL DEFAULT 0")
         con.execute(resources.files("kd_store").joinpath("schema.sql").read_text())
+        if version < 3:
+            con.execute(
+                "INSERT INTO run_rows SELECT 0, ?, now()::TIMESTAMP "
+                "WHERE NOT EXISTS (SELECT 1 FROM run_rows WHERE run_id = 0)",
+                [f"written by schema version {version}"],
+            )
         con.execute(
             "UPDATE kd_meta SET value = ? WHERE key = 'schema_version'", [str(SCHEMA_VERSION)]
         )
@@ -124,6 +147,51 @@ def _migrate(con: duckdb.DuckDBPyConnection, version: int) -> None:
 def _has_table(con: duckdb.DuckDBPyConnection, name: str) -> bool:
     q = "SELECT count(*) FROM information_schema.tables WHERE table_name = ?"
     return bool(con.execute(q, [name]).fetchall()[0][0])
+
+
+def has_runs(con: duckdb.DuckDBPyConnection, table: str = "entity_frames") -> bool:
+    """Whether ``table`` has a ``run_id`` column (schema version 3 on; False for a read-only
+    file of an older version, whose rows all belong to run 0)."""
+    q = (
+        "SELECT count(*) FROM information_schema.columns "
+        "WHERE table_name = ? AND column_name = 'run_id'"
+    )
+    return bool(con.execute(q, [table]).fetchall()[0][0])
+
+
+# ---------------------------------------------------------------- runs
+
+
+def latest_run(con: duckdb.DuckDBPyConnection) -> int:
+    """The newest run in the file (the largest ``run_id``), 0 in a file without runs."""
+    if not _has_table(con, "run_rows"):
+        return 0
+    rows = con.execute("SELECT max(run_id) FROM run_rows").fetchall()
+    return int(rows[0][0]) if rows and rows[0][0] is not None else 0
+
+
+def run_ids(con: duckdb.DuckDBPyConnection) -> list[int]:
+    """Every run the file records, oldest first ([0] for a file without runs)."""
+    if not _has_table(con, "run_rows"):
+        return [0]
+    rows = con.execute("SELECT run_id FROM run_rows ORDER BY run_id").fetchall()
+    return [int(r[0]) for r in rows] or [0]
+
+
+def begin_run(con: duckdb.DuckDBPyConnection, source: str, new: bool) -> int:
+    """The run a writer adds to: a new one (``new``: one more than the newest, 0 in an empty
+    file) or the newest; recorded in ``run_rows`` with ``source`` (the log, or what the caller
+    names) when it is not there yet. Returns its ``run_id``."""
+    has_row = con.execute("SELECT count(*) FROM run_rows").fetchall()[0][0] > 0
+    run_id = latest_run(con) + 1 if new and has_row else latest_run(con)
+    known = con.execute("SELECT count(*) FROM run_rows WHERE run_id = ?", [run_id]).fetchall()
+    if not known[0][0]:
+        con.execute("INSERT INTO run_rows VALUES (?, ?, now()::TIMESTAMP)", [run_id, source])
+    return run_id
+
+
+def _with_run(rows: pa.Table, run_id: int) -> pa.Table:
+    return rows.append_column("run_id", pa.array(np.full(rows.num_rows, run_id, np.int64)))
 
 
 # ---------------------------------------------------------------- frames <-> Arrow
@@ -390,6 +458,7 @@ class Write:
     classes: list[ClassPrototype] = field(default_factory=list)
     tiles: list[MapTile] = field(default_factory=list)
     next_id: int = 0
+    run_id: int = 0  # of every row written
 
     def __bool__(self) -> bool:
         return bool(
@@ -420,11 +489,18 @@ def _append(con: duckdb.DuckDBPyConnection, table: str, rows: pa.Table) -> None:
 
 
 def write(con: duckdb.DuckDBPyConnection, w: Write) -> None:
-    """Write one flush in one transaction (all Arrow, no row-by-row inserts)."""
+    """Write one flush in one transaction (all Arrow, no row-by-row inserts); every row is
+    stamped with ``w.run_id``."""
+
+    def rows(table: pa.Table) -> pa.Table:
+        return _with_run(table, w.run_id)
+
     con.execute("BEGIN TRANSACTION")
     try:
         if w.entities:
-            _replace(con, "entity_frames", "id", entities_to_arrow(w.entities, w.entity_states))
+            _replace(
+                con, "entity_frames", "id", rows(entities_to_arrow(w.entities, w.entity_states))
+            )
             exp = expectations_to_arrow(w.entities)
             con.register("_kd_ids", pa.table({"id": [f.id for f in w.entities]}))
             con.execute(
@@ -432,16 +508,14 @@ def write(con: duckdb.DuckDBPyConnection, w: Write) -> None:
             )
             con.unregister("_kd_ids")
             if exp.num_rows:
-                _append(con, "entity_expectation_rows", exp)
+                _append(con, "entity_expectation_rows", rows(exp))
         if w.states:  # one INSERT of one contiguous table: DuckDB appends a single large
             # chunk about 1.5x faster than the same rows in one chunk per ingested batch
-            rows = rows_to_arrow(w.states)
-            _append(con, "entity_state_rows", rows)
+            _append(con, "entity_state_rows", rows(rows_to_arrow(w.states)))
         if w.events:
-            _replace(con, "event_frames", "id", events_to_arrow(w.events))
+            _replace(con, "event_frames", "id", rows(events_to_arrow(w.events)))
         if w.relations:
-            rows = relations_to_arrow(w.relations)
-            con.register("_kd_rows", rows)
+            con.register("_kd_rows", rows(relations_to_arrow(w.relations)))
             con.execute(
                 "DELETE FROM relation_rows r USING _kd_rows k WHERE r.src_id = k.src_id "
                 "AND r.kind = k.kind AND r.dst_id = k.dst_id AND r.t_from_ns = k.t_from_ns"
@@ -451,10 +525,11 @@ def write(con: duckdb.DuckDBPyConnection, w: Write) -> None:
         if w.classes:
             _replace(con, "class_prototypes", "name", classes_to_arrow(w.classes))
         if w.tiles:
-            con.register("_kd_rows", tiles_to_arrow(w.tiles))
+            con.register("_kd_rows", rows(tiles_to_arrow(w.tiles)))
             con.execute(
-                "DELETE FROM map_tile_rows r USING (SELECT DISTINCT level, tx, ty FROM _kd_rows) k "
-                "WHERE r.level = k.level AND r.tx = k.tx AND r.ty = k.ty"
+                "DELETE FROM map_tile_rows r USING "
+                "(SELECT DISTINCT level, tx, ty, run_id FROM _kd_rows) k "
+                "WHERE r.level = k.level AND r.tx = k.tx AND r.ty = k.ty AND r.run_id = k.run_id"
             )
             con.execute("INSERT INTO map_tile_rows BY NAME SELECT * FROM _kd_rows")
             con.unregister("_kd_rows")
@@ -476,17 +551,21 @@ class Stored:
     next_id: int
 
 
-def read(con: duckdb.DuckDBPyConnection) -> Stored:
-    def table(sql: str) -> pa.Table:
-        return con.sql(sql).to_arrow_table()
+def read(con: duckdb.DuckDBPyConnection, run_id: int | None = None) -> Stored:
+    """Run ``run_id``'s frames, events and relations (every run's when None), and the classes
+    (shared by all runs)."""
 
-    exp = expectations_from_arrow(table("SELECT * FROM entity_expectation_rows"))
+    def table(name: str, order: str = "") -> pa.Table:
+        where = "" if run_id is None else f" WHERE run_id = {int(run_id)}"
+        return con.sql(f"SELECT * FROM {name}{where}{order}").to_arrow_table()
+
+    exp = expectations_from_arrow(table("entity_expectation_rows"))
     rows = con.execute("SELECT value FROM kd_meta WHERE key = 'next_id'").fetchall()
     return Stored(
-        entities=entities_from_arrow(table("SELECT * FROM entity_frames ORDER BY id"), exp),
-        events=events_from_arrow(table("SELECT * FROM event_frames ORDER BY id")),
-        relations=relations_from_arrow(table("SELECT * FROM relation_rows")),
-        classes=classes_from_arrow(table("SELECT * FROM class_prototypes")),
+        entities=entities_from_arrow(table("entity_frames", " ORDER BY id"), exp),
+        events=events_from_arrow(table("event_frames", " ORDER BY id")),
+        relations=relations_from_arrow(table("relation_rows")),
+        classes=classes_from_arrow(con.sql("SELECT * FROM class_prototypes").to_arrow_table()),
         next_id=int(rows[0][0]) if rows else 0,
     )
 
@@ -520,19 +599,29 @@ def tiles_to_arrow(tiles: list[MapTile]) -> pa.Table:
     )
 
 
-def read_tile_keys(con: duckdb.DuckDBPyConnection) -> list[TileKey]:
-    """Keys of every stored tile (none in a read-only file of schema version 1)."""
+def _run_clause(run_id: int | None) -> str:
+    return "" if run_id is None else f" AND run_id = {int(run_id)}"
+
+
+def read_tile_keys(con: duckdb.DuckDBPyConnection, run_id: int | None = None) -> list[TileKey]:
+    """Keys of every tile of run ``run_id`` (of every run when None, as in a file older than
+    schema version 3; none in a read-only file of version 1)."""
     if not _has_table(con, "map_tile_rows"):
         return []
-    rows = con.execute("SELECT DISTINCT level, tx, ty FROM map_tile_rows").fetchall()
+    rows = con.execute(
+        f"SELECT DISTINCT level, tx, ty FROM map_tile_rows WHERE TRUE{_run_clause(run_id)}"
+    ).fetchall()
     return [(str(lv), int(tx), int(ty)) for lv, tx, ty in rows]
 
 
-def read_tile(con: duckdb.DuckDBPyConnection, key: TileKey) -> MapTile | None:
-    """One stored tile, or None. Refuses a row whose bytes do not match its dtype and shape."""
+def read_tile(
+    con: duckdb.DuckDBPyConnection, key: TileKey, run_id: int | None = None
+) -> MapTile | None:
+    """One stored tile of run ``run_id`` (as :func:`read_tile_keys`), or None. Refuses a row
+    whose bytes do not match its dtype and shape."""
     rows = con.execute(
         "SELECT layer, dtype, shape, data, t_ns FROM map_tile_rows "
-        "WHERE level = ? AND tx = ? AND ty = ?",
+        f"WHERE level = ? AND tx = ? AND ty = ?{_run_clause(run_id)}",
         list(key),
     ).fetchall()
     if not rows:

@@ -1,4 +1,6 @@
--- Long-term memory of the knowledge database, schema version 2 (2 added map_tile_rows).
+-- Long-term memory of the knowledge database, schema version 3 (2 added map_tile_rows;
+-- 3 added run_rows and a run_id on every row: one file may hold several runs, each in its
+-- own world frame, `wm run --append`).
 -- Units: metres, radians, m/s; times int64 nanoseconds (t_ns). Quaternions (qx, qy, qz, qw).
 -- cov_pv: the 21 upper-triangle entries, row-major, of the 6x6 covariance over
 -- (x, y, z, vx, vy, vz); var_rpy: variances of roll, pitch, yaw (rad^2).
@@ -34,7 +36,8 @@ CREATE TABLE IF NOT EXISTS entity_frames (
     qx DOUBLE, qy DOUBLE, qz DOUBLE, qw DOUBLE,
     vx DOUBLE, vy DOUBLE, vz DOUBLE,
     cov_pv DOUBLE[21],
-    var_rpy DOUBLE[3]
+    var_rpy DOUBLE[3],
+    run_id BIGINT NOT NULL DEFAULT 0
 );
 
 CREATE TABLE IF NOT EXISTS entity_state_rows (
@@ -45,7 +48,8 @@ CREATE TABLE IF NOT EXISTS entity_state_rows (
     qx DOUBLE NOT NULL, qy DOUBLE NOT NULL, qz DOUBLE NOT NULL, qw DOUBLE NOT NULL,
     vx DOUBLE NOT NULL, vy DOUBLE NOT NULL, vz DOUBLE NOT NULL,
     cov_pv DOUBLE[21] NOT NULL,
-    var_rpy DOUBLE[3] NOT NULL
+    var_rpy DOUBLE[3] NOT NULL,
+    run_id BIGINT NOT NULL DEFAULT 0
 );
 
 CREATE TABLE IF NOT EXISTS entity_expectation_rows (
@@ -56,7 +60,8 @@ CREATE TABLE IF NOT EXISTS entity_expectation_rows (
     qx DOUBLE NOT NULL, qy DOUBLE NOT NULL, qz DOUBLE NOT NULL, qw DOUBLE NOT NULL,
     vx DOUBLE NOT NULL, vy DOUBLE NOT NULL, vz DOUBLE NOT NULL,
     cov_pv DOUBLE[21] NOT NULL,
-    var_rpy DOUBLE[3] NOT NULL
+    var_rpy DOUBLE[3] NOT NULL,
+    run_id BIGINT NOT NULL DEFAULT 0
 );
 
 CREATE TABLE IF NOT EXISTS event_frames (
@@ -75,7 +80,8 @@ CREATE TABLE IF NOT EXISTS event_frames (
     worth_defeat DOUBLE NOT NULL,
     cost DOUBLE NOT NULL,
     risk DOUBLE NOT NULL,
-    noteworthy BOOLEAN NOT NULL
+    noteworthy BOOLEAN NOT NULL,
+    run_id BIGINT NOT NULL DEFAULT 0
 );
 
 CREATE TABLE IF NOT EXISTS relation_rows (
@@ -83,7 +89,8 @@ CREATE TABLE IF NOT EXISTS relation_rows (
     kind VARCHAR NOT NULL,
     dst_id BIGINT NOT NULL,
     t_from_ns BIGINT NOT NULL,
-    t_to_ns BIGINT
+    t_to_ns BIGINT,
+    run_id BIGINT NOT NULL DEFAULT 0
 );
 
 CREATE TABLE IF NOT EXISTS class_prototypes (
@@ -111,7 +118,16 @@ CREATE TABLE IF NOT EXISTS map_tile_rows (
     dtype VARCHAR NOT NULL,
     shape INTEGER[] NOT NULL,
     data BLOB NOT NULL,
-    t_ns BIGINT NOT NULL
+    t_ns BIGINT NOT NULL,
+    run_id BIGINT NOT NULL DEFAULT 0
+);
+
+-- One row per run written into this file (kd_store/persist.py begin_run). A run's entities,
+-- events, relations and map tiles carry its run_id; ids are unique across runs.
+CREATE TABLE IF NOT EXISTS run_rows (
+    run_id BIGINT NOT NULL,
+    source VARCHAR NOT NULL,
+    started_utc TIMESTAMP NOT NULL
 );
 
 -- ---------------------------------------------------------------- views for notebooks
@@ -121,15 +137,15 @@ SELECT id, name, name_uncertainty, level, status, confidence, generic_classes, s
        coalesce(specific_class, generic_classes[-1]) AS class_name,
        worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk,
        images, map_cells, attributes, created_ns, noteworthy,
-       t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy
+       t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy, run_id
 FROM entity_frames;
 
 CREATE OR REPLACE VIEW entity_states AS
-SELECT entity_id, t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy
+SELECT entity_id, t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy, run_id
 FROM entity_state_rows;
 
 CREATE OR REPLACE VIEW entity_expectations AS
-SELECT entity_id, t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy
+SELECT entity_id, t_ns, frame, x, y, z, qx, qy, qz, qw, vx, vy, vz, cov_pv, var_rpy, run_id
 FROM entity_expectation_rows;
 
 CREATE OR REPLACE VIEW entity_attributes AS
@@ -139,29 +155,29 @@ SELECT entity_id, name,
        struct_extract(a, 'estimated') AS estimated,
        struct_extract(a, 'estimated_var') AS estimated_var,
        struct_extract(a, 'predicted') AS predicted,
-       struct_extract(a, 'predicted_var') AS predicted_var
+       struct_extract(a, 'predicted_var') AS predicted_var, run_id
 FROM (SELECT id AS entity_id, unnest(map_keys(attributes)) AS name,
-             unnest(map_values(attributes)) AS a
+             unnest(map_values(attributes)) AS a, run_id
       FROM entity_frames);
 
 CREATE OR REPLACE VIEW events AS
 SELECT id, name, class_name, t_start_ns, t_end_ns,
        (t_end_ns - t_start_ns) / 1e9 AS duration_s, attributes, level, confidence,
        name_uncertainty, worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk,
-       noteworthy
+       noteworthy, run_id
 FROM event_frames;
 
 CREATE OR REPLACE VIEW relations AS
-SELECT src_id, kind, dst_id, CAST(NULL AS VARCHAR) AS dst_name, t_from_ns, t_to_ns
+SELECT src_id, kind, dst_id, CAST(NULL AS VARCHAR) AS dst_name, t_from_ns, t_to_ns, run_id
 FROM relation_rows
 UNION ALL
-SELECT id, 'is_a', NULL, c, created_ns, NULL
-FROM (SELECT id, created_ns, unnest(list_concat(generic_classes,
+SELECT id, 'is_a', NULL, c, created_ns, NULL, run_id
+FROM (SELECT id, created_ns, run_id, unnest(list_concat(generic_classes,
       CASE WHEN specific_class IS NULL THEN [] ELSE [specific_class] END)) AS c
       FROM entity_frames)
 UNION ALL
-SELECT id, 'appears_in', NULL, img, created_ns, NULL
-FROM (SELECT id, created_ns, unnest(images) AS img FROM entity_frames);
+SELECT id, 'appears_in', NULL, img, created_ns, NULL, run_id
+FROM (SELECT id, created_ns, run_id, unnest(images) AS img FROM entity_frames);
 
 CREATE OR REPLACE VIEW classes AS
 SELECT name, kind, level, is_a, attributes, weights,
@@ -169,8 +185,15 @@ SELECT name, kind, level, is_a, attributes, weights,
 FROM class_prototypes;
 
 CREATE OR REPLACE VIEW map_tiles AS
-SELECT level, tx, ty, layer, dtype, shape, data, octet_length(data) AS stored_bytes, t_ns
+SELECT level, tx, ty, layer, dtype, shape, data, octet_length(data) AS stored_bytes, t_ns,
+       run_id
 FROM map_tile_rows;
+
+CREATE OR REPLACE VIEW runs AS
+SELECT r.run_id, r.source, r.started_utc,
+       (SELECT count(*) FROM entity_frames f WHERE f.run_id = r.run_id) AS entities,
+       (SELECT count(*) FROM event_frames e WHERE e.run_id = r.run_id) AS events
+FROM run_rows r;
 
 CREATE OR REPLACE MACRO entity_states_as_of(t) AS TABLE
 SELECT * FROM entity_states WHERE t_ns <= t

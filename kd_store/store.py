@@ -20,7 +20,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 
 import duckdb
 import numpy as np
@@ -103,8 +103,17 @@ class KnowledgeDatabase:
     DuckDB cursor, a consistent snapshot per query).
     """
 
-    def __init__(self, con: duckdb.DuckDBPyConnection, path: str, config: KDConfig) -> None:
+    def __init__(
+        self,
+        con: duckdb.DuckDBPyConnection,
+        path: str,
+        config: KDConfig,
+        run_id: int | None = 0,
+    ) -> None:
         self.path = path
+        #: The run this KD reads and writes (``run_rows``); None: every row, in a read-only
+        #: file older than runs (schema version 3), where all rows are run 0.
+        self._run = run_id
         self.config = config
         self.promotion_rule: PromotionRule = config.promotion
         self._con = con
@@ -131,11 +140,24 @@ class KnowledgeDatabase:
         self._snapshot_targets: dict[str, Path] = {}  # publish_snapshot paths, checked
         self._snapshot_marked: set[Path] = set()  # ... and recorded in kd_meta
         self.tiles = TileMemory(
-            lambda: persist.read_tile_keys(self._con),
-            lambda key: persist.read_tile(self._con, key),
+            lambda: persist.read_tile_keys(self._con, self._run),
+            lambda key: persist.read_tile(self._con, key, self._run),
             config.tile_cache,
         )
-        self._load(persist.read(con))
+        self._load(persist.read(con, run_id))
+
+    @property
+    def run_id(self) -> int:
+        """The run this KD reads and writes: its rows carry this ``run_id`` in every view
+        (``runs`` lists them; :func:`open` picks the newest unless told)."""
+        return 0 if self._run is None else self._run
+
+    def run_filter(self, alias: str = "") -> str:
+        """SQL condition keeping the rows of this KD's run, for queries over the views
+        (``alias``: the table's alias in the query); ``TRUE`` in a file older than runs."""
+        if self._run is None:
+            return "TRUE"
+        return f"{alias}.run_id = {self._run}" if alias else f"run_id = {self._run}"
 
     # ================================================================ files
 
@@ -863,6 +885,7 @@ class KnowledgeDatabase:
             classes=[self.classes.get(c) for c in self.classes.dirty if c in self.classes],
             tiles=list(self.tiles.pending.values()) if tiles else [],
             next_id=self._next_id,
+            run_id=self.run_id,
         )
 
     # ================================================================ map tiles
@@ -884,7 +907,8 @@ class KnowledgeDatabase:
             self.tiles.put(tile)
             if len(self.tiles.pending) >= self.config.tile_write_batch and not self._read_only:
                 tiles = list(self.tiles.pending.values())
-                persist.write(self._con, persist.Write(tiles=tiles, next_id=self._next_id))
+                w = persist.Write(tiles=tiles, next_id=self._next_id, run_id=self.run_id)
+                persist.write(self._con, w)
                 self.tiles.written(tiles)
 
     def get_tile(self, level: str, tx: int, ty: int) -> dict[str, np.ndarray] | None:
@@ -1017,7 +1041,8 @@ class KnowledgeDatabase:
             )
         with self._lock:
             persist.import_parquet(self._con, folder)
-            stored = persist.read(self._con)
+            self._run = persist.latest_run(self._con)
+            stored = persist.read(self._con, self._run)
             self.tiles.reset()
         self.classes = ClassLibrary.default()
         self._load(stored)
@@ -1166,6 +1191,8 @@ def open(
     config: KDConfig | None = None,
     read_only: bool = False,
     settings: dict[str, object] | None = None,
+    run: int | Literal["latest", "new"] = "latest",
+    source: str = "",
 ) -> KnowledgeDatabase:
     """Open the KD in a DuckDB file (created if missing), or a throwaway one (``":memory:"``).
 
@@ -1175,8 +1202,46 @@ def open(
     configuration fixed at opening, over :func:`kd_store.query.kd_settings` (external access
     off, configuration locked: :meth:`KnowledgeDatabase.sql` cannot read or write outside the
     KD); a KD that serves untrusted SQL is opened with
-    :func:`kd_store.query.served_settings`."""
+    :func:`kd_store.query.served_settings`.
+
+    ``run``: which run of the file the KD holds in memory and adds to. A file may hold several
+    runs (``wm run --append``), each in its own world frame (odometry starts at identity
+    every run), so frames, events, relations and map tiles belong to one run (``run_id`` in
+    every view; ids stay unique across runs). ``"latest"`` (default) continues the newest,
+    ``"new"`` starts one more (nothing of earlier runs is loaded; a new file's first run is
+    0), an int opens that run. ``source`` names a new run's origin (the log) in ``runs``."""
     con = persist.connect(path, read_only=read_only, settings={**kd_settings(), **(settings or {})})
-    kd = KnowledgeDatabase(con, str(path), config or KDConfig())
+    try:
+        run_id = _pick_run(con, run, source, read_only, where=f"KD file {path}")
+    except BaseException:
+        con.close()
+        raise
+    kd = KnowledgeDatabase(con, str(path), config or KDConfig(), run_id)
     kd._read_only = read_only
     return kd
+
+
+def _pick_run(
+    con: duckdb.DuckDBPyConnection,
+    run: int | Literal["latest", "new"],
+    source: str,
+    read_only: bool,
+    where: str,
+) -> int | None:
+    """The run :func:`open` holds: None (every row) in a read-only file older than runs."""
+    if run not in ("latest", "new") and not (isinstance(run, int) and not isinstance(run, bool)):
+        raise KDError(f"{where}: run {run!r}: give 'latest', 'new' or a run id")
+    if not persist.has_runs(con):  # read-only and older than schema version 3
+        if run not in ("latest", 0):
+            raise KDError(f"{where}: run {run!r}: this file (before runs) holds run 0 only")
+        return None
+    if isinstance(run, int):
+        known = persist.run_ids(con)
+        if run not in known:
+            raise KDError(f"{where}: run {run} is not in the file (its runs: {known})")
+        return run
+    if read_only:
+        if run == "new":
+            raise KDError(f"{where}: a new run needs the file open for writing")
+        return persist.latest_run(con)
+    return persist.begin_run(con, source, new=run == "new")

@@ -141,7 +141,7 @@ def test_newer_schema_is_refused(tmp_path: Path) -> None:
     con = duckdb.connect(str(path))
     con.execute("UPDATE kd_meta SET value = '99' WHERE key = 'schema_version'")
     con.close()
-    with pytest.raises(KDError, match=r"schema version 99 is newer than this engine's 2"):
+    with pytest.raises(KDError, match=r"schema version 99 is newer than this engine's 3"):
         kd_store.open(path)
 
 

@@ -112,9 +112,14 @@ def test_a_version_1_file_opens_and_is_migrated(tmp_path: Path) -> None:
     path = tmp_path / "old.duckdb"
     with kd_store.open(path) as kd:
         kd.add_entity("tree", 4, id=7, status="confirmed", confidence=1.0)
-    con = duckdb.connect(str(path))  # make it what version 1 wrote: no tile table
+    con = duckdb.connect(str(path))  # make it what version 1 wrote: no tiles, no runs
     con.execute("DROP VIEW map_tiles")
     con.execute("DROP TABLE map_tile_rows")
+    con.execute("DROP VIEW runs")
+    con.execute("DROP TABLE run_rows")
+    for table in ("entity_frames", "entity_state_rows", "entity_expectation_rows",
+                  "event_frames", "relation_rows"):  # fmt: skip
+        con.execute(f"ALTER TABLE {table} DROP COLUMN run_id")
     con.execute("UPDATE kd_meta SET value = '1' WHERE key = 'schema_version'")
     con.close()
     with kd_store.open(path, read_only=True) as kd:  # read as it is: no tiles
@@ -130,8 +135,9 @@ def test_a_version_1_file_opens_and_is_migrated(tmp_path: Path) -> None:
         kd.put_tile("l", 0, 0, {"a": np.ones(3)})
     con = duckdb.connect(str(path), read_only=True)
     version = con.execute("SELECT value FROM kd_meta WHERE key = 'schema_version'").fetchall()
-    assert int(version[0][0]) == SCHEMA_VERSION == 2
+    assert int(version[0][0]) == SCHEMA_VERSION == 3
     assert con.execute("SELECT count(*) FROM map_tiles").fetchall()[0][0] == 1
+    assert con.execute("SELECT run_id FROM entities").fetchall() == [(0,)]
     con.close()
 
 

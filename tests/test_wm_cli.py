@@ -161,14 +161,15 @@ def test_check_of_a_file_that_is_not_a_kd_is_one_clear_line(tmp_path) -> None:
 # ---------------------------------------------------------------- wm run into a KD that exists
 
 
-def test_run_refuses_an_existing_kd_unless_overwrite(ran, tmp_path) -> None:
+def test_run_refuses_an_existing_kd_unless_overwrite_or_append(ran, tmp_path) -> None:
     log, kd, _ = ran
     old = tmp_path / "old.duckdb"
     shutil.copyfile(kd, old)
     before = old.read_bytes()
     r = run("run", str(log), "--kd", str(old), "--no-progress")
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
-    assert "the file exists; give --overwrite" in r.stderr and r.stdout == ""
+    assert "the file exists; give --append to add this run to it or --overwrite" in r.stderr
+    assert r.stdout == ""
     assert old.read_bytes() == before
     # not even --overwrite replaces a file that is no KD (the log, by a slip of the shell)
     r = run("run", str(log), "--kd", str(log), "--overwrite", "--no-progress")
@@ -184,6 +185,32 @@ def test_run_refuses_an_existing_kd_unless_overwrite(ran, tmp_path) -> None:
         n_first = first.sql(f"{states} WHERE e.name = 'self'").columns[0][0].as_py()
         n_new = new.sql(f"{states} WHERE e.name = 'self'").columns[0][0].as_py()
     assert 1 <= n_new < n_first
+    # --append: the same short run added to a copy of the first KD as run 1; run 0 untouched
+    both = tmp_path / "both.duckdb"
+    shutil.copyfile(kd, both)
+    r = run("run", str(log), "--kd", str(both), "--append", "--overwrite", "--no-progress")
+    assert r.returncode == 2 and "give one" in r.stderr, r.stderr
+    r = run("run", str(log), "--kd", str(both), "--append", "--seconds", "0.3",
+            "--no-progress", "--decode-in-process")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    per_run = (
+        "SELECT count(*) FROM entity_states s JOIN entities e ON e.id = s.entity_id "
+        "WHERE e.name = 'self' AND s.run_id = {run} AND e.run_id = {run}"
+    )
+    with kd_store.open(both, read_only=True) as b, kd_store.open(kd, read_only=True) as first:
+        assert b.run_id == 1
+        runs = b.sql("SELECT run_id, source FROM runs ORDER BY run_id").to_pylist()
+        assert runs == [{"run_id": 0, "source": str(log)}, {"run_id": 1, "source": str(log)}]
+        assert b.sql(per_run.format(run=0)).columns[0][0].as_py() == n_first
+        assert b.sql(per_run.format(run=1)).columns[0][0].as_py() == n_new
+        for view in ("entities", "events", "map_tiles"):
+            q = f"SELECT count(*) FROM {view}"
+            n0 = b.sql(f"{q} WHERE run_id = 0").columns[0][0].as_py()
+            assert n0 == first.sql(q).columns[0][0].as_py() > 0, view
+    assert run("check", str(both)).returncode == 0
+    r = run("whatis", str(both), "--run", "0")  # run 0's self, as in the first KD alone
+    assert r.returncode == 0 and r.stdout == run("whatis", str(kd)).stdout, r.stderr
+    assert run("whatis", str(both)).stdout != r.stdout  # the newest run: another self
 
 
 # ---------------------------------------------------------------- a run that produced nothing

@@ -3,8 +3,8 @@
     wm simulate SCENARIO --out LOG.mcap [--seconds S] [--seed N]
     wm log-info LOG [--skip-corrupt] [--check]
     wm query KD.duckdb "SELECT ..." [--parquet OUT [--overwrite]] [--max-rows N] [--max-mb MB]
-    wm run LOG --kd KD.duckdb [--overwrite] [--report report.json] [--render DIR]
-           [--poses odometry|truth] [--skip-corrupt]  (an existing KD only with --overwrite)
+    wm run LOG --kd KD.duckdb [--overwrite | --append] [--report report.json] [--render DIR]
+           [--poses odometry|truth] [--skip-corrupt]  (an existing KD only with one of them)
            [--snapshot S.duckdb [--snapshot-every 5]]  (a read-only copy others may open)
     wm check KD.duckdb                                 (integrity: rows point at frames)
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
@@ -189,23 +189,31 @@ def _check_log(path: str) -> Path:
     return p
 
 
-def _kd_target(value: str, overwrite: bool, log: Path) -> str:
-    """The KD file ``wm run --kd`` writes: refused when it exists (a rerun would mix a second
-    run into the first one's frames, with no run id to tell them apart) unless ``overwrite``,
-    which removes it and its write-ahead log first (a stale ``.wal`` left beside a new file
-    would be replayed into it). Even then a file that is not a DuckDB database (the log, by
-    a slip of the shell) is never removed."""
+def _kd_target(value: str, overwrite: bool, log: Path, append: bool = False) -> str:
+    """The KD file ``wm run --kd`` writes: refused when it exists (a typo must not mix a
+    second run into a KD or replace one) unless ``append`` (the run is added as a run of its
+    own: ``run_id`` in every view) or ``overwrite``, which removes it and its write-ahead log
+    first (a stale ``.wal`` left beside a new file would be replayed into it). Either way a
+    file that is not a DuckDB database (the log, by a slip of the shell) is never touched."""
     path = Path(value)
     if value == ":memory:":
         return value
+    if overwrite and append:
+        raise UserError("--overwrite and --append: give one (replace the KD, or add a run)")
     if path.is_dir():
         raise UserError(f"--kd {path}: is a folder; give a file name")
     if not (path.exists() or path.is_symlink()):
         return value
-    if not overwrite:
-        raise UserError(f"--kd {path}: the file exists; give --overwrite to replace it")
+    if not (overwrite or append):
+        raise UserError(
+            f"--kd {path}: the file exists; give --append to add this run to it or "
+            "--overwrite to replace it"
+        )
+    flag = "--append" if append else "--overwrite"
     if path.exists() and (path.resolve() == log.resolve() or not _is_duckdb(path)):
-        raise UserError(f"--kd {path}: not a DuckDB file; --overwrite replaces only a KD")
+        raise UserError(f"--kd {path}: not a DuckDB file; {flag} works only on a KD")
+    if append:
+        return value
     for stale in (path, Path(f"{path}.wal")):
         stale.unlink(missing_ok=True)
     return value
@@ -249,7 +257,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         snapshot_target(args.kd, config.snapshot_path)
     report = run_log(
         log,
-        _kd_target(args.kd, getattr(args, "overwrite", False), log),
+        _kd_target(args.kd, getattr(args, "overwrite", False), log, getattr(args, "append", False)),
         config=config,
         report_path=args.report,
         render_dir=args.render,
@@ -329,14 +337,16 @@ def _serve_limits(args: argparse.Namespace):
 
 
 def cmd_whatis(args: argparse.Namespace) -> int:
-    """What Is over a KD file: the self state and one entity (world frame), as of a time."""
+    """What Is over a KD file: the self state and one entity (world frame), as of a time, in
+    one run of the file (``--run``; default the newest)."""
     import kd_store
     from wm.whatis import WhatIs
 
     path = Path(args.kd)
     if not path.exists():
         raise FileNotFoundError(f"KD file {path} does not exist")
-    with kd_store.open(path, read_only=True) as kd:
+    run = "latest" if args.run is None else args.run
+    with kd_store.open(path, read_only=True, run=run) as kd:
         selves = [f.id for f in kd.entities() if f.name == "self"]
         wi = WhatIs(kd, self_id=selves[0] if selves else None)
         ids = [args.entity] if args.entity is not None else selves
@@ -590,6 +600,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("log", help="any supported log (see log-info)")
     r.add_argument("--kd", required=True, help="KD file to write (DuckDB); must not exist")
     r.add_argument("--overwrite", action="store_true", help="replace the --kd file if it exists")
+    r.add_argument(
+        "--append",
+        action="store_true",
+        help="add this run to an existing --kd file (each run has its run_id in every view)",
+    )
     r.add_argument("--report", default=None, help="write the summary as JSON here")
     r.add_argument("--render", default=None, help="write pictures of every map level here")
     r.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
@@ -614,6 +629,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("kd", help="KD file (DuckDB)")
     w.add_argument("--entity", type=int, default=None, help="entity id (default: self)")
     w.add_argument("--t-ns", type=int, default=None, help="as of this time (ns)")
+    w.add_argument(
+        "--run", type=int, default=None, help="which run of the KD (default: the newest)"
+    )
     w.set_defaults(func=cmd_whatis)
 
     f = sub.add_parser(

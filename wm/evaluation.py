@@ -291,7 +291,9 @@ def load_kd(kd: Any, config: EvalConfig = EvalConfig()) -> KDRun:
             raise FileNotFoundError(f"KD file {kd} does not exist")
         with kd_store.open(kd, read_only=True) as db:
             return load_kd(db, config)
-    selves = kd.sql("SELECT id FROM entities WHERE name = 'self'").column("id").to_pylist()
+    run = kd.run_filter()  # the KD's run: a file may hold several, each in its own frame
+    selves = kd.sql(f"SELECT id FROM entities WHERE name = 'self' AND {run}").column("id")
+    selves = selves.to_pylist()
     if not selves:
         raise EvaluationError("the KD has no 'self' entity: no poses to score at")
     s = kd.sql(
@@ -310,7 +312,7 @@ def load_kd(kd: Any, config: EvalConfig = EvalConfig()) -> KDRun:
     statuses = ", ".join(f"'{x}'" for x in config.statuses)
     ents = kd.sql(
         f"SELECT id, generic_classes, specific_class FROM entities WHERE level = {OBJECT_LEVEL} "
-        f"AND name <> 'self' AND status IN ({statuses})"
+        f"AND name <> 'self' AND status IN ({statuses}) AND {run}"
     ).to_pydict()
     lib = kd.sql("SELECT name, is_a FROM classes").to_pydict()
     is_a = {n: p for n, p in zip(lib["name"], lib["is_a"], strict=True) if p}
@@ -329,7 +331,8 @@ def load_kd(kd: Any, config: EvalConfig = EvalConfig()) -> KDRun:
     st = kd.sql(
         f"SELECT s.entity_id, s.t_ns, s.frame, s.x, s.y, s.z, s.vx, s.vy FROM entity_states s "
         f"JOIN entities e ON e.id = s.entity_id WHERE e.level = {OBJECT_LEVEL} "
-        f"AND e.name <> 'self' AND e.status IN ({statuses}) ORDER BY s.entity_id, s.t_ns"
+        f"AND e.name <> 'self' AND e.status IN ({statuses}) AND {kd.run_filter('e')} "
+        "ORDER BY s.entity_id, s.t_ns"
     ).to_pydict()
     bad = {f for f in st["frame"] if f != frame}
     if bad:

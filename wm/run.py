@@ -200,7 +200,7 @@ def run_log(
     with (
         compute_threads(config.compute_threads),
         _reader(source, decode_process) as (frames_in, reader),
-        kd_store.open(kd_path) as kd,
+        kd_store.open(kd_path, run="new", source=str(log_path)) as kd,
     ):
         stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
         node = WorldModelNode(kd, config, stack)
@@ -385,7 +385,7 @@ def _report(node, kd, log_path, kd_path, first_t, last_t, wall) -> RunReport:
     # what the KD file holds (kd.sql flushes first), not only what the node kept in RAM
     in_kd = kd.sql(
         f"SELECT (SELECT count(*) FROM entity_states WHERE entity_id = {node.self_id}) AS self, "
-        "(SELECT count(*) FROM entities) AS entities"
+        f"(SELECT count(*) FROM entities WHERE {kd.run_filter()}) AS entities"
     ).to_pylist()[0]
     n = max(node.stats.sweeps, 1)
     duration = (last_t - first_t) / NS_PER_S if first_t is not None and last_t is not None else 0.0
@@ -464,7 +464,7 @@ def run_node(
     file gets the map tiles and the final windows, as after :func:`run_log`."""
     source = open_log(Path(log_path))
     config = config or NodeConfig()
-    kd = kd_store.open(kd_path)
+    kd = kd_store.open(kd_path, run="new", source=str(log_path))
     stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
     node = WorldModelNode(kd, config, stack)
     first_t = None

@@ -174,7 +174,10 @@ class LiveNode:
             source = self._open_source()
             if self.kd_path != ":memory:":
                 Path(self.kd_path).parent.mkdir(parents=True, exist_ok=True)
-            self.kd = kd_store.open(self.kd_path, settings=served_settings())
+            source_name = str(self.log_path) if self.log_path is not None else "ingest"
+            self.kd = kd_store.open(  # a KD file that exists gets one more run
+                self.kd_path, settings=served_settings(), run="new", source=source_name
+            )
             stack = map_stack_over_kd(self.kd) if self.kd_path != ":memory:" else None
             self.node = WorldModelNode(self.kd, self.config or NodeConfig(), stack)
         except Exception as e:  # reported by start()
