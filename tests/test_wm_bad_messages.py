@@ -85,20 +85,22 @@ def _shifted(frames, after_s: float, by_ns: int = HOUR_NS) -> list:
     return [dataclasses.replace(f, t_ns=f.t_ns + by_ns) if f.t_ns > cut else f for f in frames]
 
 
-def test_a_real_time_gap_starts_a_new_segment_and_the_run_goes_on(frames) -> None:
+@pytest.mark.parametrize("gap_ns", [HOUR_NS, 30 * 10**9], ids=["hour", "30s"])
+def test_a_real_time_gap_starts_a_new_segment_and_the_run_goes_on(frames, gap_ns) -> None:
     import kd_store
     from wm.config import NodeConfig
     from wm.node import WorldModelNode
 
     clean, _ = self_poses(frames)
-    gapped = _shifted(frames, 1.2)
+    gapped = _shifted(frames, 1.2, by_ns=gap_ns)  # 30 s: within the 600 s cap, beyond the
+    # bound the log's rhythm sets (a pause of seconds is integrated by nothing either)
     kd = kd_store.open(":memory:")
     with WorldModelNode(kd, NodeConfig()) as node:  # SP on, odometry in its own process
         cycles = [c for f in gapped for c in node.feed(f)]
         cycles += node.finish()  # the block's end finishes again: nothing more
     assert node.stats.events == {"time_jump_new_segment": 1}
     assert not node.stats.skipped  # the frames after the gap were taken, none skipped
-    after = [c for c in cycles if c.t_ns > HOUR_NS]
+    after = [c for c in cycles if c.t_ns > gap_ns]
     assert len(cycles) == len(clean) and len(after) >= 10
     assert any("new segment" in n for n in node.stats.notes)
     # the odometry restarted from the last pose: no jump of the gap times the speed; the
@@ -109,12 +111,12 @@ def test_a_real_time_gap_starts_a_new_segment_and_the_run_goes_on(frames) -> Non
     # the KD goes on too: self states and entities updated after the gap
     me = kd.sql(
         f"SELECT count(*) AS n FROM entity_states WHERE entity_id = {node.self_id} "
-        f"AND t_ns > {HOUR_NS}"
+        f"AND t_ns > {gap_ns}"
     )["n"][0].as_py()
     assert me == len(after)
     cols = kd.current_columns()
     others = cols["id"] != node.self_id
-    assert int(np.sum(cols["t_ns"][others] > HOUR_NS)) >= 3
+    assert int(np.sum(cols["t_ns"][others] > gap_ns)) >= 3
     kd.close()
 
 
@@ -125,6 +127,22 @@ def test_a_few_frames_far_in_the_future_are_skipped_not_a_new_segment(frames) ->
     spoiled, node = self_poses(frames[:k] + burst + frames[k:])
     assert not node.stats.events
     assert dict(node.stats.skipped) == {"time jump": 2}
+    for a, b in zip(clean, spoiled, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=POSE_ATOL)
+
+
+def test_one_stamp_a_minute_ahead_costs_no_minute_of_frames(frames) -> None:
+    clean, _ = self_poses(frames)
+    k = next(
+        i for i, f in enumerate(frames)
+        if isinstance(f, LadarScan) and f.t_ns > frames[0].t_ns + 1_500_000_000
+    )  # fmt: skip
+    ahead = dataclasses.replace(frames[k], t_ns=frames[k].t_ns + 60 * 10**9)
+    spoiled, node = self_poses([*frames[:k], ahead, *frames[k:]])
+    assert 2 * 10**9 <= node.jump_bound_ns() < 60 * 10**9  # the log's rhythm, not 600 s
+    assert dict(node.stats.skipped) == {"time jump": 1}  # not the 10 sweeps after it
+    assert not node.stats.events
+    assert len(spoiled) == len(clean)
     for a, b in zip(clean, spoiled, strict=True):
         np.testing.assert_allclose(a, b, rtol=0.0, atol=POSE_ATOL)
 

@@ -178,6 +178,12 @@ class NodeConfig:
     # not taken (a corrupted stamp would otherwise carry the self pose and every state far
     # into the future, or make every later frame look out of order)
     max_time_jump_ns: int = 600_000_000_000
+    # ... once the log's rhythm is known, this many median gaps between its frames, but at
+    # least min_time_jump_ns (max_time_jump_ns caps both): a recording paused for seconds
+    # starts a new segment (nothing integrates across the pause) and one stamp a minute ahead
+    # costs no minute of frames
+    time_jump_gaps: float = 50.0
+    min_time_jump_ns: int = 2_000_000_000
     # ... and this many such frames in a row, each within max_time_jump_ns of the one before,
     # are a real jump of the log's clock (the recording paused, or its clock restarted
     # earlier): the node starts a new segment there and takes them; fewer, followed by a frame
@@ -199,6 +205,13 @@ class NodeConfig:
         if not (isinstance(self.segment_confirm_frames, int) and self.segment_confirm_frames >= 2):
             raise ValueError(f"NodeConfig.segment_confirm_frames must be an int >= 2, got "
                              f"{self.segment_confirm_frames!r}")  # fmt: skip
+        if not (math.isfinite(self.time_jump_gaps) and self.time_jump_gaps > 0):
+            raise ValueError(f"NodeConfig.time_jump_gaps must be a finite number > 0, got "
+                             f"{self.time_jump_gaps!r}")  # fmt: skip
+        if not (self.min_time_jump_ns > 0 and self.max_time_jump_ns > 0):
+            raise ValueError(f"NodeConfig.min_time_jump_ns and max_time_jump_ns must be > 0 (ns), "
+                             f"got {self.min_time_jump_ns!r}, "
+                             f"{self.max_time_jump_ns!r}")  # fmt: skip
 
 
 @dataclass(frozen=True)

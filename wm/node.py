@@ -26,10 +26,12 @@ flushes the KD file. Used as a context manager (``with WorldModelNode(kd) as nod
 finishes when the block ends, and an error inside the block still flushes what the KD holds
 and stops the odometry process before it propagates.
 
-Time jumps: a frame stamped more than ``NodeConfig.max_time_jump_ns`` after the log's latest
-one, or that far before it, is held back. A frame in time after it shows it was a corrupted
-stamp: it is skipped (``stats.skipped["time jump"]``). ``segment_confirm_frames`` such frames
-in a row, each within the bound of the one before, are a real jump of the log's clock: a gap
+Time jumps: a frame stamped more than :meth:`WorldModelNode.jump_bound_ns` after the log's
+latest one, or that far before it, is held back (the bound follows the log's rhythm: 50 median
+gaps between frames, 2 s at least, ``NodeConfig.max_time_jump_ns`` at most). A frame in time
+after it shows it was a corrupted stamp: it is skipped (``stats.skipped["time jump"]``).
+``segment_confirm_frames`` such frames in a row, each within the bound of the one before, are
+a real jump of the log's clock: a gap
 forward (the recording paused) or back (the clock restarted earlier and runs on from there).
 Either way the node ends the segment before the jump (its sweeps run, the KD is flushed),
 starts a new one (``stats.events["time_jump_new_segment"]``, a note saying which way it
@@ -89,6 +91,8 @@ from wm.truth import truth_boxes_to_world
 from wm.whatis import WhatIs
 
 log = logging.getLogger(__name__)
+#: gaps between frames the node learns before it bounds time jumps by them, and relearns after
+_GAPS_NEEDED = 16
 
 
 def initial_pose(wheel: OdometryFrame) -> np.ndarray:
@@ -255,6 +259,9 @@ class WorldModelNode:
         self.truth_boxes: ObjectBoxes | None = None
         self.last_t_ns: int | None = None
         self.held: list[Frame] = []  # frames beyond a time jump, not taken yet (module docstring)
+        self._gaps: deque[int] = deque(maxlen=4 * _GAPS_NEEDED)  # ns between taken frames
+        self._n_gaps = 0
+        self._jump_bound_ns: int | None = None  # jump_bound_ns, once learnt
         self.level_due_ns = {lvl.name: -(2**62) for lvl in self.stack.levels}
         self.attention_world_xyz: np.ndarray | None = None
         self.plan_xy: np.ndarray | None = None  # the controller's current plan (set_plan)
@@ -338,6 +345,7 @@ class WorldModelNode:
         elif isinstance(frame, LadarScan):
             self.last_sweep_t_ns = frame.t_ns
             self.pending.append(frame)
+        self._learn_gap(int(frame.t_ns))
         self.last_t_ns = frame.t_ns if self.last_t_ns is None else max(self.last_t_ns, frame.t_ns)
         if self._log_start_ns is None:
             self._log_start_ns = int(frame.t_ns)
@@ -356,17 +364,40 @@ class WorldModelNode:
         except OdometryError as e:  # the odometry process tells its own with the next sweep
             self._skipped(frame, f"bad odometry pose: {e}")
 
+    def jump_bound_ns(self) -> int:
+        """How far (ns) a frame may be stamped from the log's latest one and be taken: the
+        median gap between the log's frames times ``time_jump_gaps``, within
+        [``min_time_jump_ns``, ``max_time_jump_ns``] (the upper bound alone until
+        ``_GAPS_NEEDED`` gaps are known). A bound in the log's own rhythm: a stamp one
+        bad message moves a minute ahead would otherwise pass, and every frame of that minute
+        after it would be out of order and lost."""
+        if self._jump_bound_ns is None:
+            return self.config.max_time_jump_ns
+        return self._jump_bound_ns
+
+    def _learn_gap(self, t_ns: int) -> None:
+        """Keep the gap from the log's latest frame to a frame taken after it; the bound
+        (:meth:`jump_bound_ns`) follows every ``_GAPS_NEEDED`` gaps."""
+        if self.last_t_ns is None or t_ns <= self.last_t_ns:
+            return
+        self._gaps.append(t_ns - self.last_t_ns)
+        self._n_gaps += 1
+        if self._n_gaps % _GAPS_NEEDED == 0:
+            c = self.config
+            typical = float(np.median(self._gaps)) * c.time_jump_gaps
+            self._jump_bound_ns = int(min(c.max_time_jump_ns, max(c.min_time_jump_ns, typical)))
+
     def _beyond_jump(self, frame: Frame) -> bool:
-        """The frame is stamped more than ``max_time_jump_ns`` after the log's latest one,
+        """The frame is stamped more than :meth:`jump_bound_ns` after the log's latest one,
         or more than that before it (a clock that jumped back)."""
         last = self.last_t_ns
-        return last is not None and abs(int(frame.t_ns) - last) > self.config.max_time_jump_ns
+        return last is not None and abs(int(frame.t_ns) - last) > self.jump_bound_ns()
 
     def _hold(self, frame: Frame) -> list[CycleResult]:
         """Hold a frame beyond a time jump; once ``segment_confirm_frames`` held frames agree
         (each within the bound of the one before), start a new segment with them. A frame
         that does not agree with those held replaces them (they are skipped)."""
-        bound = self.config.max_time_jump_ns
+        bound = self.jump_bound_ns()
         if self.held and abs(int(frame.t_ns) - int(self.held[-1].t_ns)) > bound:
             self._skip_held()
         self.held.append(frame)
@@ -385,7 +416,7 @@ class WorldModelNode:
         way = "after" if gap_s >= 0 else "before"
         return (
             f"time jump: {abs(gap_s):.3g} s {way} the log's latest frame "
-            f"(limit {self.config.max_time_jump_ns * 1e-9:g} s)"
+            f"(limit {self.jump_bound_ns() * 1e-9:g} s)"
         )
 
     def _skipped(self, frame: Frame, why: str) -> None:
