@@ -291,3 +291,57 @@ def test_wm_serve_runs_as_its_own_process_and_stops_cleanly(log, tmp_path) -> No
         stored = kd.sql("SELECT id, status FROM entities").to_pydict()
     held = {i for i, s in zip(stored["id"], stored["status"], strict=True) if s == "confirmed"}
     assert confirmed <= held
+
+
+def test_sigterm_mid_replay_stops_the_server_with_the_kd_flushed(log, tmp_path) -> None:
+    """A service manager stops ``wm serve`` with SIGTERM while it replays: it exits with
+    status 0 within seconds, and its KD passes the integrity check and holds every cycle the
+    API had reported (the self state of each), as one run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import kd_store
+    from kd_store.check import check_file
+
+    port = free_port()
+    kd_path = tmp_path / "served.duckdb"
+    # a quarter of real time: the 6 s log lasts 24 s, so the replay (which starts before the
+    # web server listens) is still going when the test first reaches it on a loaded machine
+    cmd = [sys.executable, "-m", "wm.cli", "serve", "--replay", str(log), "--rate", "0.25",
+           "--kd", str(kd_path), "--port", str(port), "--token-env", "WM_TOKEN"]  # fmt: skip
+    env = os.environ | {"WM_TOKEN": TOKEN}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline, st = time.time() + 120, None
+        while time.time() < deadline:
+            try:
+                code, st = call(base, "/v1/status")
+                if code == 200 and st["cycles"] >= 8:
+                    break
+            except OSError:  # not listening yet
+                pass
+            time.sleep(0.1)
+        assert st is not None and st["cycles"] >= 8 and not st["done"], st  # mid-replay
+        seen = st["cycles"]
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+        stop_s = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err.decode()[-2000:]
+    assert stop_s < 10.0, stop_s
+    result = check_file(kd_path)
+    assert result.ok, [d.text() for d in result.defects]
+    with kd_store.open(kd_path, read_only=True) as kd:
+        n_self = kd.sql(
+            "SELECT count(*) AS n FROM entity_states s JOIN entities e ON e.id = s.entity_id "
+            "WHERE e.name = 'self'"
+        )["n"][0].as_py()
+        assert kd.sql("SELECT count(*) AS n FROM runs")["n"][0].as_py() == 1
+    assert n_self >= seen

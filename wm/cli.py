@@ -26,6 +26,7 @@ clear line on stderr with exit status 2; ``--debug`` shows the traceback as well
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -316,11 +317,26 @@ def cmd_serve(args: argparse.Namespace) -> int:
         what = f"{args.replay} at {args.rate:g}x"
     print(f"serving {what} on http://{args.host}:{args.port}/v1 "
           f"(schema: /openapi.json); KD {args.kd}; Ctrl-C stops")  # fmt: skip
+    # SIGTERM (a service manager's stop) ends the server like Ctrl-C: the web server shuts
+    # down, then raises the signal again for the handler it found, which must not be the
+    # default one (that kills the process before the node flushes and closes the KD)
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         serve(live, args.host, args.port, token, limits)
+    except _Terminated:
+        print("wm serve: stopped (SIGTERM); the KD is flushed", file=sys.stderr)
     finally:
         live.stop()
+        signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+class _Terminated(Exception):
+    """SIGTERM arrived (raised by :func:`_raise_terminated`)."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise _Terminated()
 
 
 def _serve_limits(args: argparse.Namespace):
