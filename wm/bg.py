@@ -9,6 +9,12 @@ and curvature controls, slowest first. The planning period is ``PlannerConfig.bu
 wall time: once it is over no further batch is hypothesized (the first always is). Replans
 every ``replan_period_s``. It uses only the What If and VJ interfaces, and optionally tells the
 node its plan through a callback (``WorldModelNode.set_plan``), never the KD's internals.
+
+What If is anything with :class:`WhatIfService`'s two methods: :class:`wm.whatif.WhatIf` in the
+node's process, or :class:`wm.remote.RemoteWhatIf` over a live node's HTTP API, which is how
+``wm bg`` (equally ``python -m wm.bg``) plans in a process of its own:
+
+    wm bg --url http://127.0.0.1:8765 --goal 60,20 [--cycles 10] [--json]
 """
 
 from __future__ import annotations
@@ -16,12 +22,25 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from wm import vj
 from wm.config import PlannerConfig, VJConfig
-from wm.whatif import ControlPlan, Plan, Start, WaypointPlan, WhatIf, WhatIfResult
+from wm.whatif import ControlPlan, Plan, Start, WaypointPlan, WhatIfResult
+
+
+class WhatIfService(Protocol):
+    """What the planner asks of What If (:class:`wm.whatif.WhatIf` has both)."""
+
+    def start_from_kd(self) -> Start:
+        """The vehicle's present state (world frame)."""
+        ...
+
+    def simulate(self, plans: list[Plan], *, level: str, start: Start | None) -> WhatIfResult:
+        """Every plan rolled out at ``level`` from ``start``."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -64,7 +83,7 @@ class Planner:
 
     def __init__(
         self,
-        whatif: WhatIf,
+        whatif: WhatIfService,
         config: PlannerConfig | None = None,
         vj_config: VJConfig | None = None,
         on_select: Callable[[np.ndarray], None] | None = None,
@@ -160,3 +179,11 @@ class Planner:
         if self.on_select is not None:
             self.on_select(sel.xy.copy())
         return sel
+
+
+if __name__ == "__main__":  # python -m wm.bg ...: the same as ``wm bg ...``
+    import sys
+
+    from wm.cli import main
+
+    sys.exit(main(["bg", *sys.argv[1:]]))

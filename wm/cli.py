@@ -17,6 +17,10 @@
              [--snapshot S.duckdb [--snapshot-every 5]]
     wm serve --ingest [--queue 64] [--kd KD.duckdb] ...  (clients POST ROS 2 messages to /v1/ingest)
            [--rate-limit R [--burst N]]  (per client: N requests at once, then R a second)
+    wm bg --url http://127.0.0.1:8765 --goal X,Y [--token-env VAR] [--period-s 0.5]
+          [--cycles N] [--budget-s 1] [--min-clearance-m 0.5] [--level subsystem] [--json]
+          [--no-tell]
+          (a planner in its own process over a live node's API; also python -m wm.bg ...)
     wm demo [--out DIR]
 
 Errors a user can cause (an unknown scenario, a corrupt log, a missing file) are printed as one
@@ -337,6 +341,38 @@ class _Terminated(Exception):
 
 def _raise_terminated(signum: int, frame: object) -> None:
     raise _Terminated()
+
+
+def cmd_bg(args: argparse.Namespace) -> int:
+    """Behavior generation in this process against a live node's HTTP API (wm.remote): one
+    line per plan; exit status 2 when the server cannot be reached or refuses a request."""
+    import os
+
+    from wm.client import Client
+    from wm.config import PlannerConfig
+    from wm.remote import check_url, parse_goal, run_bg
+
+    url, goal = check_url(args.url), parse_goal(args.goal)
+    for name in ("period_s", "budget_s"):
+        v = getattr(args, name)
+        if not (np.isfinite(v) and v > 0):
+            raise UserError(f"--{name.replace('_', '-')} {v}: need a finite number of seconds > 0")
+    if not (np.isfinite(args.min_clearance_m) and args.min_clearance_m >= 0):
+        raise UserError(f"--min-clearance-m {args.min_clearance_m}: need a finite distance >= 0 m")
+    if args.cycles is not None and args.cycles < 1:
+        raise UserError(f"--cycles {args.cycles}: need at least 1 plan")
+    token = os.environ.get(args.token_env) if args.token_env else None
+    if args.token_env and not token:
+        raise UserError(f"--token-env {args.token_env}: that environment variable is empty")
+    config = PlannerConfig(
+        level=args.level, replan_period_s=args.period_s, budget_s=args.budget_s,
+        min_clearance_m=args.min_clearance_m,
+    )  # fmt: skip
+    made = run_bg(Client(url, token), goal, config, args.cycles, args.json, not args.no_tell)
+    ended = args.cycles is None or made < args.cycles  # stopped by the end of the node's log
+    print(f"wm bg: {made} plans" + ("; the node's log has ended" if ended else ""),
+          file=sys.stderr)  # fmt: skip
+    return 0
 
 
 def _serve_limits(args: argparse.Namespace):
@@ -707,6 +743,39 @@ def build_parser() -> argparse.ArgumentParser:
     pose_flag(v)
     snapshot_flags(v)
     v.set_defaults(func=cmd_serve)
+
+    b = sub.add_parser(
+        "bg", help="a behavior-generation planner in its own process, over a live node's API"
+    )
+    b.add_argument("--url", required=True, help="the node's address, e.g. http://127.0.0.1:8765")
+    b.add_argument(
+        "--goal", required=True,
+        help="'x,y': the goal in the node's world frame, m (a negative x as --goal=-5,3)",
+    )  # fmt: skip
+    b.add_argument(
+        "--token-env", default=None,
+        help="name of an environment variable holding the server's bearer token",
+    )  # fmt: skip
+    b.add_argument(
+        "--period-s", type=float, default=0.5,
+        help="replan every S seconds of log time, at the first new cycle after (default 0.5)",
+    )  # fmt: skip
+    b.add_argument("--cycles", type=int, default=None, help="stop after N plans (default: "
+                   "when the node's log has ended)")  # fmt: skip
+    b.add_argument(
+        "--budget-s", type=float, default=1.0,
+        help="wall seconds a planning cycle may take before no further batch of plans is sent "
+        "(default 1: each batch is a request that waits for the node's cycle in progress)",
+    )  # fmt: skip
+    b.add_argument(
+        "--min-clearance-m", type=float, default=0.5,
+        help="plans passing closer than this (m) to a perceived object are unsafe (default "
+        "0.5); more leaves room for objects perception sees smaller than they are",
+    )  # fmt: skip
+    b.add_argument("--level", default="subsystem", help="map level (default subsystem)")
+    b.add_argument("--json", action="store_true", help="one JSON object a plan, path included")
+    b.add_argument("--no-tell", action="store_true", help="do not tell the node the plan")
+    b.set_defaults(func=cmd_bg)
 
     d = sub.add_parser("demo", help="simulate the default scenario and run the world model on it")
     d.add_argument("--out", default="out", help="folder for the demo's files (default: out/)")

@@ -109,14 +109,33 @@ class Client:
         level: str = "subsystem",
         horizon_s: float | None = None,
         goal_xy: tuple[float, float] | None = None,
+        start: dict | None = None,
+        traces: bool = False,
     ) -> dict:
         """What If with value judgment (``POST /v1/whatif``): ``plans`` as dictionaries, each
         ``{"name", "t_s", "xy"}`` (waypoints, world m) or ``{"name", "t_s", "speed_mps",
         "curvature_1pm"}`` (controls); per plan cost, risk, benefit, score, first collision,
-        why, and the rolled-out path; ``best`` the highest score's index."""
+        why, and the rolled-out path; ``best`` the highest score's index. ``start``: the state
+        to roll out from (``{"xy", "yaw_rad", "speed_mps", "t0_ns"}``, world frame, as
+        :meth:`whatif_start` gives it; default the self state now); ``traces``: also the
+        per-step arrays at full precision (:class:`wm.remote.RemoteWhatIf` reads them)."""
         body = {"plans": plans, "level": level, "horizon_s": horizon_s,
                 "goal_xy": None if goal_xy is None else list(goal_xy)}  # fmt: skip
+        if start is not None:  # left out otherwise, so older servers get the body they know
+            body["start"] = start
+        if traces:
+            body["traces"] = True
         return self._call("/v1/whatif", body=body)
+
+    def whatif_start(self) -> dict:
+        """The state What If rolls out from now (``GET /v1/whatif/start``): ``xy`` world m,
+        ``yaw_rad``, ``speed_mps``, ``t0_ns``, and the ``cycle_t_ns`` it comes from."""
+        return self._call("/v1/whatif/start")
+
+    def set_plan(self, xy: list[list[float]] | None) -> dict:
+        """Tell the node the current plan (``POST /v1/plan``): its path ``[[x, y], ...]``
+        (world m), or None for none; the node's attention weighs entities near it higher."""
+        return self._call("/v1/plan", body={"xy": xy})
 
     def map_window(
         self, level: str | int, x: float, y: float, half_m: float = 10.0,

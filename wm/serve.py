@@ -26,6 +26,12 @@ limited in size (413) and, if asked, each client's request rate (429): :mod:`wm.
 With ``--ingest`` the node has no log: clients post ROS 2 messages to ``/v1/ingest``
 (:mod:`wm.ingest`).
 
+For a planner in another process (behavior generation, :mod:`wm.remote`): ``GET
+/v1/whatif/start`` gives the state What If starts from; ``POST /v1/whatif`` takes it back as
+``start`` (so the batches of one planning cycle share it while the node runs on) and, with
+``traces``, answers the per-step rollout arrays the planner judges itself; ``POST /v1/plan``
+tells the node the plan chosen (``WorldModelNode.set_plan``).
+
 :mod:`wm.serve_views` adds views beyond What Is: map windows per level and layer
 (``/v1/maps/{level}``, JSON, ``.npy`` or Arrow), the entities of attention per level with why
 (``/v1/attention``) and a push stream of what each cycle changed (``/v1/stream``, server-sent
@@ -59,6 +65,10 @@ MAX_SQL_ROWS = 100_000  # rows of one /v1/sql answer; a larger result gets a 413
 # bytes (Arrow) of one /v1/sql result: its JSON takes several times that, so it is kept
 # below the command line's 256 MB
 MAX_SQL_BYTES = 64 * 2**20
+# a What If ``start`` further than this (s of log time) from the newest cycle is refused: the
+# entities it is checked against are the KD's present ones, moved at constant velocity to the
+# start's time, which says little about another time
+MAX_START_OFFSET_S = 10.0
 
 
 class ServeError(EngineError, ValueError):
@@ -324,14 +334,43 @@ class PlanModel(BaseModel):
     curvature_1pm: list[Finite] | None = Field(None, max_length=1000)
 
 
+# a world coordinate (m) a client may send where it is used as a place, not only compared:
+# bounded so that rollouts and distances stay finite
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-1e7, le=1e7)]
+
+
+class StartModel(BaseModel):
+    """A vehicle state to roll plans out from, world frame, as ``GET /v1/whatif/start`` gives
+    it: position ``xy`` (m), ``yaw_rad`` (about z, within one turn), ``speed_mps`` (m/s), at
+    ``t0_ns`` (int64 ns of log time, within ``MAX_START_OFFSET_S`` of the newest cycle)."""
+
+    xy: list[Coordinate] = Field(..., min_length=2, max_length=2)
+    yaw_rad: float = Field(..., allow_inf_nan=False, ge=-math.tau, le=math.tau)
+    speed_mps: float = Field(..., allow_inf_nan=False, ge=0.0, le=100.0)
+    t0_ns: int = Field(..., ge=0, le=2**63 - 1)
+
+
 class WhatIfRequest(BaseModel):
-    """Plans to roll out from the vehicle's present state, at a map level, over a horizon (s,
-    default the level's), judged towards ``goal_xy`` (world m) if given."""
+    """Plans to roll out from the vehicle's present state (or from ``start``), at a map level,
+    over a horizon (s, default the level's), judged towards ``goal_xy`` (world m) if given.
+    ``traces``: also answer every plan's per-step arrays at full precision (what a planner in
+    another process needs to judge the plans itself: :class:`wm.remote.RemoteWhatIf`)."""
 
     plans: list[PlanModel] = Field(..., min_length=1, max_length=100)
     level: str = "subsystem"
     horizon_s: Finite | None = Field(None, gt=0, le=600)
     goal_xy: list[Finite] | None = Field(None, min_length=2, max_length=2)
+    start: StartModel | None = None
+    traces: bool = False
+
+
+class PlanPathRequest(BaseModel):
+    """The controller's current plan: its path ``xy`` (world m, in time order), or null when it
+    has none."""
+
+    xy: list[Annotated[list[Coordinate], Field(min_length=2, max_length=2)]] | None = Field(
+        ..., min_length=1, max_length=1000
+    )
 
 
 def _plan_of(p: PlanModel, i: int) -> Any:
@@ -349,6 +388,46 @@ def _plan_of(p: PlanModel, i: int) -> Any:
             raise WhatIfError(f"plan {i} ({p.name!r}): xy must be [[x, y], ...], got {p.xy[:3]}")
         return WaypointPlan(t, xy, p.name)
     return ControlPlan(t, np.asarray(p.speed_mps), np.asarray(p.curvature_1pm), p.name)
+
+
+def _start_of(req: StartModel | None, cycle_t_ns: int) -> Any:
+    """The :class:`~wm.whatif.Start` a request gives (None: What If takes the KD's self state),
+    refused (4xx naming the value) before any cycle or too far from the newest cycle's time."""
+    from wm.whatif import Start
+
+    if req is None:
+        return None
+    if cycle_t_ns < 0:
+        raise HTTPException(400, f"start.t0_ns={req.t0_ns}: the node has run no cycle yet")
+    if abs(req.t0_ns - cycle_t_ns) > MAX_START_OFFSET_S * NS_PER_S:
+        raise HTTPException(
+            400, f"start.t0_ns={req.t0_ns}: more than {MAX_START_OFFSET_S:g} s from the newest "
+            f"cycle's time {cycle_t_ns} ns (the entities are the KD's present ones)",
+        )  # fmt: skip
+    return Start(np.asarray(req.xy, dtype=np.float64), req.yaw_rad, req.speed_mps, req.t0_ns)
+
+
+def _start_json(xy: np.ndarray, yaw: float, speed: float, t0_ns: int) -> dict:
+    """A start state as :class:`StartModel` reads it (world frame, m, rad, m/s, ns)."""
+    return {"t0_ns": int(t0_ns), "frame": "world", "xy": _vec(xy),
+            "yaw_rad": float(yaw), "speed_mps": float(speed)}  # fmt: skip
+
+
+def _finite_list(a: np.ndarray) -> list[float | None]:
+    """A 1-D float array as a JSON list, NaN and infinities as null (JSON has no words for
+    them; the reader knows which each field means: see the ``/v1/whatif`` route)."""
+    return [v if math.isfinite(v) else None for v in np.asarray(a, dtype=np.float64).tolist()]
+
+
+def _traces_json(result: Any, i: int) -> dict:
+    """Plan ``i``'s per-step arrays (S+1,) at full precision, by :meth:`WhatIfResult.trace`'s
+    names; xy (S+1, 2) world m."""
+    tr = result.trace(i)
+    out: dict[str, Any] = {"xy": tr["xy"].tolist(), "nearest_entity": tr["nearest_entity"].tolist()}
+    for k in ("yaw", "speed", "elevation", "slope", "traversability", "cost",
+              "unknown_fraction", "clearance_m", "entity_risk"):  # fmt: skip
+        out[k] = _finite_list(tr[k])
+    return out
 
 
 def _why(result: Any, i: int) -> str:
@@ -573,12 +652,12 @@ def create_app(
             "truncated": False,
         }
 
-    @app.post("/v1/whatif")
-    def whatif(req: WhatIfRequest) -> dict:
-        """Roll out every plan from the present (What If, 4.2 item 4) and judge it (value
-        judgment, 4.3): cost, risk, benefit, score, first collision, and why; ``best`` is the
-        index of the highest score."""
-        from wm import vj
+    @app.get("/v1/whatif/start")
+    def whatif_start() -> dict:
+        """The vehicle state What If rolls plans out from when a request gives no ``start``:
+        the self entity's newest state (world frame; ``xy`` m, ``yaw_rad``, ``speed_mps``,
+        ``t0_ns``). Posted back as ``start``, it lets several requests simulate from one state
+        while the node runs on. 400 before the first fused sweep (no self state yet)."""
         from wm.whatif import WhatIf, WhatIfError
 
         with live.lock:
@@ -586,9 +665,47 @@ def create_app(
                 raise HTTPException(503, "the live node is not running (not started, or stopped)")
             node, cycle = live.node, live.status.cycle_t_ns
             try:
+                s = WhatIf(node.kd, node.stack, self_id=node.self_id).start_from_kd()
+            except WhatIfError as e:  # no self state yet: a 400, as /v1/self answers it
+                raise bad(e) from None
+        return {"cycle_t_ns": cycle, **_start_json(s.xy, s.yaw, s.speed_mps, s.t0_ns)}
+
+    @app.post("/v1/plan")
+    def plan(req: PlanPathRequest) -> dict:
+        """Tell the node the controller's current plan (``WorldModelNode.set_plan``): until the
+        next call, attention ranks entities near the path higher (4.3, relevance to the plan).
+        ``xy`` null: no plan."""
+        with live.lock:
+            if live.node is None or live.closed:
+                raise HTTPException(503, "the live node is not running (not started, or stopped)")
+            try:
+                live.node.set_plan(None if req.xy is None else np.asarray(req.xy, np.float64))
+            except EngineError as e:
+                raise bad(e) from None
+            cycle = live.status.cycle_t_ns
+        return {"cycle_t_ns": cycle, "frame": "world", "points": len(req.xy or ())}
+
+    @app.post("/v1/whatif")
+    def whatif(req: WhatIfRequest) -> dict:
+        """Roll out every plan from the present, or from ``start`` (What If, 4.2 item 4), and
+        judge it (value judgment, 4.3): cost, risk, benefit, score, first collision, and why;
+        ``best`` is the index of the highest score. With ``traces`` the answer also holds the
+        step times ``t_s`` (s after ``t0_ns``), the ``start`` rolled out from, and per plan
+        ``limited_steps`` and ``trace``: per-step arrays (xy world m, yaw rad, speed m/s, map
+        samples, clearance m, nearest entity, entity risk) at full precision, where null is NaN
+        (unknown) for map samples and +inf (no entity near) for ``clearance_m``."""
+        from wm import vj
+        from wm.whatif import WhatIf, WhatIfError
+
+        with live.lock:
+            if live.node is None or live.closed:
+                raise HTTPException(503, "the live node is not running (not started, or stopped)")
+            node, cycle = live.node, live.status.cycle_t_ns
+            start = _start_of(req.start, cycle)
+            try:
                 plans = [_plan_of(p, i) for i, p in enumerate(req.plans)]
                 wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
-                result = wi.simulate(plans, level=req.level, horizon_s=req.horizon_s)
+                result = wi.simulate(plans, level=req.level, horizon_s=req.horizon_s, start=start)
                 ev = vj.evaluate(result, req.goal_xy, node.config.vj)
             except WhatIfError as e:
                 raise bad(e) from None
@@ -605,10 +722,17 @@ def create_app(
                 "why": _why(result, i),
                 "xy": result.xy[i].round(3).tolist(),
             })  # fmt: skip
-        return {
+            if req.traces:
+                out[i]["limited_steps"] = int(result.limited_steps[i])
+                out[i]["trace"] = _traces_json(result, i)
+        answer = {
             "cycle_t_ns": cycle, "t0_ns": int(result.t0_ns), "frame": "world",
             "level": result.level, "dt_s": result.dt_s, "best": ev.best, "plans": out,
         }  # fmt: skip
+        if req.traces:  # step 0 of every rollout is the start
+            s0 = (result.xy[0, 0], result.yaw[0, 0], result.speed[0, 0], result.t0_ns)
+            answer |= {"t_s": result.t_s.tolist(), "start": _start_json(*s0)}
+        return answer
 
     from wm.ingest import add_ingest_routes
     from wm.limits import LimitsMiddleware, ServeLimits
