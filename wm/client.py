@@ -147,6 +147,66 @@ class Client:
         params = {"x": x, "y": y, "half_m": half_m, "layers": ",".join(layers)}
         return self._call(f"/v1/maps/{level}", params)
 
+    def get_grid_map(
+        self,
+        position_x: float,
+        position_y: float,
+        length_x: float,
+        length_y: float,
+        layers: tuple[str, ...] = (),
+        level: str = "subsystem",
+        frame_id: str = "world",
+    ) -> dict:
+        """grid_map's GetGridMap (``POST /v1/grid_map/get_grid_map``): the submap of
+        ``length_x`` x ``length_y`` m around world (``position_x``, ``position_y``) of map
+        ``level``, the ``layers`` asked (all when empty); ``map`` is a grid_map_msgs/GridMap
+        (column-major, index (0, 0) at the largest x and y; wm.serve_ros)."""
+        body = {"frame_id": frame_id, "position_x": position_x, "position_y": position_y,
+                "length_x": length_x, "length_y": length_y, "layers": list(layers),
+                "level": level}  # fmt: skip
+        return self._call("/v1/grid_map/get_grid_map", body=body)
+
+    def check_safety(
+        self,
+        polygons: list[dict | list[tuple[float, ...]]],
+        compute_untraversable_polygon: bool = False,
+        level: str = "subsystem",
+    ) -> dict:
+        """elevation_mapping's CheckSafety (``POST /v1/elevation_mapping/check_safety``):
+        ``polygons`` as geometry_msgs/PolygonStamped dictionaries or as lists of world (x, y)
+        or (x, y, z) m points; per polygon ``is_safe``, ``traversability`` (0..1, None when no
+        cell is known), ``untraversable_polygons`` and ``why``."""
+        body = {
+            "polygons": [p if isinstance(p, dict) else _polygon_stamped(p) for p in polygons],
+            "compute_untraversable_polygon": compute_untraversable_polygon,
+            "level": level,
+        }
+        return self._call("/v1/elevation_mapping/check_safety", body=body)
+
+    def is_path_valid(
+        self,
+        path: dict | list[tuple[float, float]],
+        max_cost: int = 254,
+        consider_unknown_as_obstacle: bool = False,
+        stop_at_first_collision: bool = True,
+        max_lookahead_distance: float = -1.0,
+        level: str = "subsystem",
+    ) -> dict:
+        """Nav2's IsPathValid (``POST /v1/nav2/is_path_valid``): ``path`` as a nav_msgs/Path
+        dictionary or a list of world (x, y) m positions (unstamped: driven at the default
+        speed); ``is_valid``, ``invalid_pose_indices``, ``why`` and the What If ``plan`` it
+        was judged by (wm.serve_ros)."""
+        if not isinstance(path, dict):
+            path = {"header": {"frame_id": "world"}, "poses": [
+                {"header": {"frame_id": "world"}, "pose": {"position": {"x": x, "y": y}}}
+                for x, y in path
+            ]}  # fmt: skip
+        body = {"path": path, "max_cost": max_cost,
+                "consider_unknown_as_obstacle": consider_unknown_as_obstacle,
+                "stop_at_first_collision": stop_at_first_collision,
+                "max_lookahead_distance": max_lookahead_distance, "level": level}  # fmt: skip
+        return self._call("/v1/nav2/is_path_valid", body=body)
+
     def attention(self, level: str | int = 4) -> dict:
         """Entities of SP ``level`` the node attends to, each with ``why``."""
         return self._call("/v1/attention", {"level": level})
@@ -171,6 +231,12 @@ class Client:
         (``truncated`` always false: a result over the server's row or byte limit raises
         ClientError with status 413 and the limit in its words)."""
         return self._call("/v1/sql", body={"query": query})
+
+
+def _polygon_stamped(points: list[tuple[float, ...]]) -> dict:
+    """A geometry_msgs/PolygonStamped in the world frame of (x, y) or (x, y, z) m points."""
+    pts = [dict(zip(("x", "y", "z"), (*p, 0.0)[:3], strict=True)) for p in points]
+    return {"header": {"frame_id": "world"}, "polygon": {"points": pts}}
 
 
 def _sse_events(lines: Any) -> Iterator[dict]:

@@ -36,7 +36,10 @@ tells the node the plan chosen (``WorldModelNode.set_plan``).
 (``/v1/maps/{level}``, JSON, ``.npy`` or Arrow), the entities of attention per level with why
 (``/v1/attention``) and a push stream of what each cycle changed (``/v1/stream``, server-sent
 events, a bounded queue per client that drops its oldest cycles rather than slow the node;
-its counts in ``/v1/status`` under ``stream``).
+its counts in ``/v1/status`` under ``stream``). :mod:`wm.serve_ros` answers map and What If
+queries in the shapes of three ROS 2 services: grid_map's GetGridMap
+(``/v1/grid_map/get_grid_map``), elevation_mapping's CheckSafety
+(``/v1/elevation_mapping/check_safety``) and Nav2's IsPathValid (``/v1/nav2/is_path_valid``).
 
 This module imports FastAPI; the command line imports it only for ``wm serve``.
 """
@@ -736,8 +739,10 @@ def create_app(
 
     from wm.ingest import add_ingest_routes
     from wm.limits import LimitsMiddleware, ServeLimits
+    from wm.serve_ros import add_ros_routes
 
     add_ingest_routes(app, live)  # POST /v1/ingest, for a node fed by clients
+    add_ros_routes(app, live)  # GetGridMap, CheckSafety and IsPathValid shapes
     app.add_middleware(LimitsMiddleware, limits=limits or ServeLimits())
     return app
 

@@ -65,6 +65,7 @@ log = logging.getLogger(__name__)
 
 MAX_JSON_VALUES = 10_000  # cells x layers of one JSON map window
 MAX_BINARY_VALUES = 1_000_000  # ... of one .npy or Arrow map window (8 MB as float64)
+MAX_COORD_M = 1e9  # |x|, |y| of a position asked about, m: beyond any map, cell indices exact
 STREAM_QUEUE_CYCLES = 64  # cycles one stream client may fall behind before the oldest drop
 STREAM_POLL_S = 0.02  # how often an idle stream looks at its queue, s
 STREAM_KEEPALIVE_S = 5.0  # an SSE comment after this long without a message, s
@@ -98,7 +99,8 @@ class MapWindow:
 def find_level(stack: Any, key: str) -> Any:
     """The stack's level named ``key``, or numbered so (2..5, :data:`MAP_LEVEL_NUMBERS`);
     HTTP 404 naming the key and the levels there are."""
-    name = MAP_LEVEL_NUMBERS.get(int(key), key) if key.isdigit() else key
+    # ASCII decimal digits only: "²" is a digit to isdigit() but int() refuses it
+    name = MAP_LEVEL_NUMBERS.get(int(key), key) if key.isascii() and key.isdecimal() else key
     for lvl in stack.levels:
         if lvl.name == name:
             return lvl
@@ -106,28 +108,44 @@ def find_level(stack: Any, key: str) -> Any:
     raise HTTPException(404, f"map level {key!r}: unknown; the levels are {have}")
 
 
+def window_span(resolution_m: float, c: float, half_m: float) -> tuple[int, int]:
+    """``(i0, n)`` along one axis: the global index of the window's first cell and its cells,
+    ``n = 2k+1`` around the cell holding world coordinate ``c`` m, ``k = ceil(half_m / res)``."""
+    k = math.ceil(half_m / resolution_m)
+    return math.floor(c / resolution_m) - k, 2 * k + 1
+
+
 def window_cells(resolution_m: float, x: float, y: float, half_m: float) -> tuple[int, int, int]:
     """``(ix0, iy0, n)``: the global index of the window's south-west cell and its cells per
     side, ``n = 2k+1`` around the cell holding world (x, y) m, ``k = ceil(half_m / res)``."""
-    k = math.ceil(half_m / resolution_m)
-    return math.floor(x / resolution_m) - k, math.floor(y / resolution_m) - k, 2 * k + 1
+    (ix0, n), (iy0, _) = window_span(resolution_m, x, half_m), window_span(resolution_m, y, half_m)
+    return ix0, iy0, n
 
 
-def map_window(level: Any, x: float, y: float, half_m: float, layers: list[str]) -> MapWindow:
+def map_window(
+    level: Any, x: float, y: float, half_m: float, layers: list[str], half_y_m: float | None = None
+) -> MapWindow:
     """The ``layers`` of ``level`` (a :class:`maps.level.MapLevel`) in the window around world
-    (x, y) m of half-width ``half_m`` m (module docstring); cells outside the level's current
-    window hold the layer's empty value. Call it between two of the node's cycles."""
+    (x, y) m of half-width ``half_m`` m (module docstring); ``half_y_m``, if given, is the
+    half-height (along y) of a rectangular window, ``half_m`` then the half-width along x.
+    Cells outside the level's current window hold the layer's empty value. Call it between two
+    of the node's cycles."""
     res = level.resolution_m
-    ix0, iy0, n = window_cells(res, x, y, half_m)
-    rows = np.arange(n, dtype=np.int64) + iy0 - int(level.origin_cell[1])
-    cols = np.arange(n, dtype=np.int64) + ix0 - int(level.origin_cell[0])
+    ix0, nx = window_span(res, x, half_m)
+    iy0, ny = window_span(res, y, half_m if half_y_m is None else half_y_m)
+    # offsets into the level's window, clamped (a window far beyond the level lies wholly
+    # outside it either way) so that a centre of 1e300 m does not overflow int64
+    r0 = min(max(iy0 - int(level.origin_cell[1]), -ny), level.size)
+    c0 = min(max(ix0 - int(level.origin_cell[0]), -nx), level.size)
+    rows = np.arange(ny, dtype=np.int64) + r0
+    cols = np.arange(nx, dtype=np.int64) + c0
     r_in = (rows >= 0) & (rows < level.size)
     c_in = (cols >= 0) & (cols < level.size)
     srow, scol = level.window_to_storage(rows[r_in], cols[c_in])
     out = {}
     for name in layers:
         arr = level.storage(name)
-        vals = np.full((n, n), level.specs[name].fill, dtype=arr.dtype)
+        vals = np.full((ny, nx), level.specs[name].fill, dtype=arr.dtype)
         # the level's storage is toroidal: index it cell by cell, no copy of the whole layer
         vals[np.ix_(r_in, c_in)] = arr[np.ix_(srow, scol)]
         out[name] = vals
@@ -214,6 +232,8 @@ def _check_window(
     """Refuse a non-finite centre or a window of more than ``limit`` values (cells x layers)."""
     if not (math.isfinite(x) and math.isfinite(y)):
         raise HTTPException(400, f"centre (x, y) = ({x}, {y}): values must be finite")
+    if max(abs(x), abs(y)) > MAX_COORD_M:
+        raise HTTPException(400, f"centre (x, y) = ({x}, {y}): beyond +-{MAX_COORD_M:g} m")
     if not (math.isfinite(half_m) and half_m > 0):
         raise HTTPException(400, f"half_m {half_m}: need a finite number > 0 (metres)")
     n = window_cells(level.resolution_m, x, y, min(half_m, 1e12))[2]
@@ -236,7 +256,7 @@ def sp_level_of(key: str) -> int:
     by_name = {name: n for n, name in MAP_LEVEL_NUMBERS.items()}
     if key in by_name:
         return by_name[key]
-    if key.isdigit() and 1 <= int(key) <= 5:
+    if key.isascii() and key.isdecimal() and 1 <= int(key) <= 5:
         return int(key)
     raise HTTPException(400, f"level {key!r}: give an SP level 1..5 or one of {list(by_name)}")
 
