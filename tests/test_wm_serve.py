@@ -309,8 +309,11 @@ def test_sigterm_mid_replay_stops_the_server_with_the_kd_flushed(log, tmp_path) 
     kd_path = tmp_path / "served.duckdb"
     # a quarter of real time: the 6 s log lasts 24 s, so the replay (which starts before the
     # web server listens) is still going when the test first reaches it on a loaded machine
+    # (true poses: the test is of the stop, and an odometry process starting on a machine
+    # loaded by other tests can take a minute before the first cycle)
     cmd = [sys.executable, "-m", "wm.cli", "serve", "--replay", str(log), "--rate", "0.25",
-           "--kd", str(kd_path), "--port", str(port), "--token-env", "WM_TOKEN"]  # fmt: skip
+           "--poses", "truth", "--kd", str(kd_path), "--port", str(port),
+           "--token-env", "WM_TOKEN"]  # fmt: skip
     env = os.environ | {"WM_TOKEN": TOKEN}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     base = f"http://127.0.0.1:{port}"

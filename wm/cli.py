@@ -324,23 +324,20 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # SIGTERM (a service manager's stop) ends the server like Ctrl-C: the web server shuts
     # down, then raises the signal again for the handler it found, which must not be the
     # default one (that kills the process before the node flushes and closes the KD)
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         serve(live, args.host, args.port, token, limits)
-    except _Terminated:
-        print("wm serve: stopped (SIGTERM); the KD is flushed", file=sys.stderr)
     finally:
         live.stop()
         signal.signal(signal.SIGTERM, previous)
     return 0
 
 
-class _Terminated(Exception):
-    """SIGTERM arrived (raised by :func:`_raise_terminated`)."""
-
-
-def _raise_terminated(signum: int, frame: object) -> None:
-    raise _Terminated()
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    """SIGTERM, once the web server has shut down: leave through ``finally`` (the node
+    stops, the KD is flushed and closed) with exit status 0, a requested stop."""
+    print("wm serve: stopping on SIGTERM", file=sys.stderr)
+    raise SystemExit(0)
 
 
 def cmd_bg(args: argparse.Namespace) -> int:
