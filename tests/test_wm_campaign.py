@@ -4,6 +4,7 @@ process behind or a KD that fails `wm check`."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,8 @@ def _assert_clean(result) -> None:
         assert result.logs[bad] == 0, [b for b in result.bad if b.get("outcome") == bad]
     assert result.kills["orphans"] == 0, result.bad
     assert result.kills["kd_defect"] == 0 and result.kills["kd_missing"] == 0, result.bad
+    assert result.kills["lost_flushed"] == 0, result.bad  # every reported flush is in the KD
+    assert result.kills["max_flush_gap_ms"] <= 1100  # a kill loses at most 1 s of log
 
 
 def test_a_small_campaign_finds_no_traceback_hang_or_orphan(tmp_path) -> None:
@@ -26,6 +29,23 @@ def test_a_small_campaign_finds_no_traceback_hang_or_orphan(tmp_path) -> None:
     report(result, tmp_path / "out", "pytest tests/test_wm_campaign.py")
     assert sum(result.logs.values()) == 12 and result.kills["killed"] >= 1
     _assert_clean(result)
+
+
+def test_a_run_reports_each_flush_and_the_kd_holds_it(tmp_path, capsys) -> None:
+    """The lines the kill campaign reads: with stderr not a terminal, ``wm run`` says at each
+    flush (every second of log time) up to when the KD holds the run; the file holds it."""
+    from fixtures.simulate import simulate_to_log
+    from wm.campaign import flush_lines, newest_self_t_ns
+    from wm.run import run_log
+
+    log = simulate_to_log("default", tmp_path / "f.mcap", seconds=3.5, seed=5, progress=False)
+    run_log(log, tmp_path / "f.kd", progress=True)
+    flushed = flush_lines(capsys.readouterr().err)
+    assert len(flushed) >= 3 and flushed == sorted(set(flushed))
+    gaps_s = [(b - a) / 1e9 for a, b in itertools.pairwise(flushed)]
+    assert all(0.9 <= g <= 1.1 for g in gaps_s), gaps_s  # every second of log, one sweep
+    newest = newest_self_t_ns(tmp_path / "f.kd")
+    assert newest is not None and newest >= flushed[-1]
 
 
 @pytest.mark.eval

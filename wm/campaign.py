@@ -11,7 +11,11 @@ hang (the time limit), a memory blow-up (the RSS bound, or MemoryError) or ``oth
 
 (b) ``K`` SIGKILLs of ``wm run`` at random moments on a ~5 s log, each followed by
 ``wm check KD`` (exit 0: sound) and, 2 s later, a scan of /proc for orphans: children of the
-killed run still running, or any process whose command line names its KD.
+killed run still running, or any process whose command line names its KD. The loss: the run
+prints a line at each KD flush (``KD flushed to t_ns=...``, every second of log time); the
+killed KD must hold the self state of the last flush it reported (``lost_flushed`` counts the
+KDs that do not), and the log time between reported flushes bounds what a kill loses
+(``max_flush_gap_s``).
 
 Counts per outcome go to ``--out`` as one JSON file per figure (bench.results.record's
 format) and are printed as a table. Linux only (/proc).
@@ -20,9 +24,11 @@ format) and are printed as a table. Linux only (/proc).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import random
+import re
 import signal
 import struct
 import subprocess
@@ -294,22 +300,54 @@ def orphans(kd: Path, kids: set[int]) -> list[str]:
 
 @dataclass
 class KillOutcome:
-    """One SIGKILL of ``wm run``: when, whether the KD checks sound, what was left running."""
+    """One SIGKILL of ``wm run``: when, whether the KD checks sound, what was left running,
+    the last flush the run reported and the newest self state its KD holds (ns of log time,
+    None: none), the largest log time between two reported flushes (s)."""
 
     at_s: float
     killed: bool  # False: the run ended before the moment came
     kd: str  # "ok", "defect", "missing"
     orphans: list[str]
     check_stderr: str = ""
+    flushed_t_ns: int | None = None
+    kd_newest_t_ns: int | None = None
+    max_flush_gap_s: float = 0.0
+
+    @property
+    def lost_flushed(self) -> bool:
+        """The KD lacks what the run had reported flushed."""
+        if self.flushed_t_ns is None:
+            return False
+        return self.kd_newest_t_ns is None or self.kd_newest_t_ns < self.flushed_t_ns
+
+
+_FLUSHED = re.compile(r"KD flushed to t_ns=(-?\d+)")
+
+
+def flush_lines(stderr: str) -> list[int]:
+    """The log times (ns) of the flushes a ``wm run`` reported on stderr, in order."""
+    return [int(m.group(1)) for m in _FLUSHED.finditer(stderr)]
+
+
+def newest_self_t_ns(kd: Path) -> int | None:
+    """The newest self state's time (ns) in the KD file ``kd`` (None: no self state)."""
+    import kd_store
+
+    with kd_store.open(kd, read_only=True) as db:
+        t = db.sql(
+            "SELECT max(s.t_ns) AS t FROM entity_states s JOIN entities e "
+            "ON e.id = s.entity_id WHERE e.name = 'self'"
+        )["t"][0].as_py()
+    return None if t is None else int(t)
 
 
 def kill_once(log: Path, kd: Path, at_s: float, timeout_s: float) -> KillOutcome:
     """Start ``wm run``, SIGKILL it ``at_s`` s later, then ``wm check`` its KD and look for
     orphans 2 s after the kill."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    cmd = _wm("run", str(log), "--kd", str(kd), "--no-progress")
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)  # fmt: skip
+    cmd = _wm("run", str(log), "--kd", str(kd))  # stderr is a file: a line per KD flush
+    err = tempfile.TemporaryFile()
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err)
     kids: set[int] = set()
     t0 = time.monotonic()
     # the moment counts from when the run has started its decoder and odometry: a kill
@@ -329,12 +367,19 @@ def kill_once(log: Path, kd: Path, at_s: float, timeout_s: float) -> KillOutcome
     left = orphans(kd, kids)
     for p in left:  # do not leave them for the next kill to find
         _kill_tree(int(p.split(":")[0]))
+    err.seek(0)
+    flushed = flush_lines(err.read().decode(errors="replace"))
+    err.close()
+    gaps = [(b - a) / 1e9 for a, b in itertools.pairwise(flushed)]
+    last = flushed[-1] if flushed else None
     if not kd.exists():
-        return KillOutcome(at_s, killed, "missing", left)
+        return KillOutcome(at_s, killed, "missing", left, "", last, None, max(gaps, default=0.0))
     check = subprocess.run(_wm("check", str(kd)), cwd=REPO, env=env, capture_output=True,
                            text=True, timeout=timeout_s)  # fmt: skip
     state = "ok" if check.returncode == 0 else "defect"
-    return KillOutcome(at_s, killed, state, left, check.stderr[-500:])
+    newest = newest_self_t_ns(kd) if state == "ok" else None
+    return KillOutcome(at_s, killed, state, left, check.stderr[-500:], last, newest,
+                       max(gaps, default=0.0))  # fmt: skip
 
 
 def kills(log: Path, k: int, work: Path, seed: int, run_s: float, timeout_s: float) -> list:
@@ -360,8 +405,9 @@ class CampaignResult:
     def figures(self) -> dict[str, tuple[int, str]]:
         """Figure name -> (value, unit)."""
         out = {f"campaign_damaged_{o}": (self.logs[o], "commands") for o in OUTCOMES}
-        for o in ("killed", "kd_ok", "kd_defect", "kd_missing", "orphans"):
+        for o in ("killed", "kd_ok", "kd_defect", "kd_missing", "orphans", "lost_flushed"):
             out[f"campaign_kill_{o}"] = (self.kills[o], "runs")
+        out["campaign_kill_max_flush_gap_s"] = (self.kills["max_flush_gap_ms"] / 1e3, "s")
         return out
 
 
@@ -405,8 +451,10 @@ def campaign(
             kc["killed"] += ko.killed
             kc[f"kd_{ko.kd}"] += 1
             kc["orphans"] += len(ko.orphans)
+            kc["lost_flushed"] += ko.lost_flushed
+            kc["max_flush_gap_ms"] = max(kc["max_flush_gap_ms"], round(ko.max_flush_gap_s * 1e3))
             every.append(asdict(ko))
-            if ko.orphans or ko.kd == "defect":
+            if ko.orphans or ko.kd == "defect" or ko.lost_flushed:
                 bad.append(asdict(ko))
     return CampaignResult(logs, kc, bad, every)
 
@@ -422,9 +470,11 @@ def report(result: CampaignResult, out: Path | None, command: str) -> None:
     if out is None:
         return
     out.mkdir(parents=True, exist_ok=True)
-    bad_kinds = {"traceback", "hang", "memory", "other", "kd_defect", "orphans"}
+    bad_kinds = {"traceback", "hang", "memory", "other", "kd_defect", "orphans", "lost_flushed"}
     for name, (value, unit) in result.figures().items():
         target = "0" if any(name.endswith(k) for k in bad_kinds) else None
+        if name == "campaign_kill_max_flush_gap_s":  # the flush every 1 s of log, one sweep
+            target = "<= 1.1"
         rec = {
             "name": name,
             "value": float(value),

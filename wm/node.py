@@ -707,6 +707,12 @@ class WorldModelNode:
         if last is None or t_ns - last >= every_ns or t_ns < last:  # < : the clock jumped back
             self.publish_snapshot(tiles=tiles, t_ns=t_ns)
 
+    @property
+    def flushed_t_ns(self) -> int | None:
+        """Log time (ns) up to which the KD file holds the run: every cycle up to this time
+        was flushed (None before the first flush, and again after a jump of the clock)."""
+        return self._flushed_ns
+
     def publish_snapshot(self, tiles: bool = True, t_ns: int | None = None) -> None:
         """Publish the read-only copy of the KD file (``NodeConfig.snapshot_path``; nothing
         when None) now, stamped ``t_ns`` (log time; default the newest frame's) for the next

@@ -207,6 +207,7 @@ def run_log(
         odo = OdometryScore()
         first_t, last_t = None, None
         frames = _cpu_timed(frames_in, read_cpu_s)
+        lines = FlushLines(progress and not sys.stderr.isatty(), Path(log_path).name)
         # on an error (a bad log, Ctrl-C) the node flushes what the KD holds before the KD
         # closes, and its odometry process stops (no orphan, no hang)
         with node:
@@ -217,6 +218,7 @@ def run_log(
                 last_t = frame.t_ns
                 for c in node.feed(frame):
                     _score(node, c, odo)
+                lines.after(node, first_t)
             for c in node.finish():
                 _score(node, c, odo)
         if stack is not None:
@@ -333,6 +335,31 @@ def _safe(get) -> dict:
         return get()
     except Exception:  # a log format without attachments or metadata
         return {}
+
+
+class FlushLines:
+    """Progress where no progress bar shows (stderr is a file or a pipe: a service log, a
+    batch job): one line each time the node flushes the KD, which is every second of log
+    time, saying up to when the file holds the run, so that whoever reads the log after a
+    crash knows what the KD kept."""
+
+    def __init__(self, show: bool, name: str) -> None:
+        self.show, self.name = show, name
+        self.last: int | None = None
+        self.t0 = time.perf_counter()
+
+    def after(self, node: WorldModelNode, first_t_ns: int | None) -> None:
+        """Print a line if the node flushed since the last one."""
+        t = node.flushed_t_ns
+        if not self.show or t is None or t == self.last or first_t_ns is None:
+            return
+        self.last = t
+        print(
+            f"wm run {self.name}: KD flushed to t_ns={t} ({(t - first_t_ns) / NS_PER_S:.1f} s "
+            f"of log, {node.stats.sweeps} sweeps, {time.perf_counter() - self.t0:.1f} s wall)",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def _progress(frames, total: int, show: bool, name: str):
