@@ -28,6 +28,8 @@ def test_a_small_campaign_finds_no_traceback_hang_or_orphan(tmp_path) -> None:
     result = campaign(6, 2, tmp_path, seed=1, timeout_s=180.0, kill_within_s=6.0)
     report(result, tmp_path / "out", "pytest tests/test_wm_campaign.py")
     assert sum(result.logs.values()) == 12 and result.kills["killed"] >= 1
+    kills = [e for e in result.every if "flushed_t_ns" in e]
+    assert len(kills) == 2 and kills[1]["flushed_t_ns"] is not None  # killed while producing
     _assert_clean(result)
 
 

@@ -341,18 +341,27 @@ def newest_self_t_ns(kd: Path) -> int | None:
     return None if t is None else int(t)
 
 
-def kill_once(log: Path, kd: Path, at_s: float, timeout_s: float) -> KillOutcome:
-    """Start ``wm run``, SIGKILL it ``at_s`` s later, then ``wm check`` its KD and look for
-    orphans 2 s after the kill."""
+def kill_once(
+    log: Path, kd: Path, at_s: float, timeout_s: float, after_flush: bool = True
+) -> KillOutcome:
+    """Start ``wm run``, SIGKILL it ``at_s`` s after its first KD flush (``after_flush``: the
+    run is producing) or after its children started (its start-up), then ``wm check`` its KD
+    and look for orphans 2 s after the kill."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     cmd = _wm("run", str(log), "--kd", str(kd))  # stderr is a file: a line per KD flush
-    err = tempfile.TemporaryFile()
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err)
+    err_path = kd.with_suffix(".stderr")
+    with err_path.open("ab") as err:  # appended by the run, read by path here
+        proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err)
     kids: set[int] = set()
     t0 = time.monotonic()
-    # the moment counts from when the run has started its decoder and odometry: a kill
-    # during the interpreter's start-up tests nothing of the run
+    # the moment counts from when the run has started its decoder and odometry (a kill
+    # during the interpreter's start-up tests nothing of the run), or from its first flush
+    # (on a loaded machine the first sweep can take many seconds after that)
     while proc.poll() is None and len(kids) < 2 and time.monotonic() - t0 < timeout_s:
+        kids |= children(proc.pid)
+        time.sleep(0.02)
+    while (after_flush and proc.poll() is None and time.monotonic() - t0 < timeout_s
+           and not flush_lines(err_path.read_text(errors="replace"))):  # fmt: skip
         kids |= children(proc.pid)
         time.sleep(0.02)
     t0 = time.monotonic()
@@ -367,9 +376,7 @@ def kill_once(log: Path, kd: Path, at_s: float, timeout_s: float) -> KillOutcome
     left = orphans(kd, kids)
     for p in left:  # do not leave them for the next kill to find
         _kill_tree(int(p.split(":")[0]))
-    err.seek(0)
-    flushed = flush_lines(err.read().decode(errors="replace"))
-    err.close()
+    flushed = flush_lines(err_path.read_text(errors="replace"))
     gaps = [(b - a) / 1e9 for a, b in itertools.pairwise(flushed)]
     last = flushed[-1] if flushed else None
     if not kd.exists():
@@ -383,11 +390,15 @@ def kill_once(log: Path, kd: Path, at_s: float, timeout_s: float) -> KillOutcome
 
 
 def kills(log: Path, k: int, work: Path, seed: int, run_s: float, timeout_s: float) -> list:
-    """``k`` kills at moments uniform over ``run_s`` seconds after the run's children
-    started, one run at a time (the orphan scan must not see another run's children)."""
+    """``k`` kills, one run at a time (the orphan scan must not see another run's children):
+    every fourth in the run's start-up (uniform over 2 s after its children started), the
+    others at moments uniform over ``run_s`` seconds after its first KD flush."""
     rng = random.Random(seed + 1)
-    return [kill_once(log, work / f"killed_{i:03d}.kd", rng.uniform(0.0, run_s), timeout_s)
-            for i in range(k)]  # fmt: skip
+    return [
+        kill_once(log, work / f"killed_{i:03d}.kd", rng.uniform(0.0, 2.0 if i % 4 == 0 else run_s),
+                  timeout_s, after_flush=i % 4 != 0)
+        for i in range(k)
+    ]  # fmt: skip
 
 
 # --- the campaign -------------------------------------------------------------------------
@@ -427,8 +438,8 @@ def campaign(
     timeout_s: float = 120.0,
     max_rss_mb: float = 3000.0,
     jobs: int = 2,
-    kill_log_s: float = 5.0,
-    kill_within_s: float = 8.0,
+    kill_log_s: float = 12.0,
+    kill_within_s: float = 5.0,
 ) -> CampaignResult:
     """Run both parts (module docstring) in ``work``; logs are simulated there once."""
     if not Path("/proc/self/task").exists():
