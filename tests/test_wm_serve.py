@@ -56,6 +56,21 @@ def call(base: str, path: str, body: dict | None = None, token: str | None = TOK
         return e.code, json.loads(e.read() or b"null")
 
 
+def wait_status(base: str, done, timeout_s: float) -> dict | None:
+    """Poll ``/v1/status`` of a server in another process until ``done(status)`` or the time
+    runs out; the last status read (None if it never answered)."""
+    deadline, st = time.time() + timeout_s, None
+    while time.time() < deadline:
+        try:
+            code, st = call(base, "/v1/status")
+            if code == 200 and done(st):
+                break
+        except OSError:  # not listening yet
+            pass
+        time.sleep(0.1)
+    return st
+
+
 def _truth_xy(log: Path, t_ns: int) -> np.ndarray:
     from wm.evaluation import load_truth
 
@@ -270,15 +285,7 @@ def test_wm_serve_runs_as_its_own_process_and_stops_cleanly(log, tmp_path) -> No
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline, st = time.time() + 600, None
-        while time.time() < deadline:
-            try:
-                code, st = call(base, "/v1/status")
-                if code == 200 and st["done"]:
-                    break
-            except OSError:  # not listening yet
-                pass
-            time.sleep(0.2)
+        st = wait_status(base, lambda s: s["done"], timeout_s=600)
         assert st is not None and st["done"] and not st["error"], st
         _, reg = call(base, "/v1/entities?x_min=-1e4&y_min=-1e4&x_max=1e4&y_max=1e4&level=4")
         confirmed = {e["entity_id"] for e in reg["entities"] if e["status"] == "confirmed"}
@@ -318,15 +325,7 @@ def test_sigterm_mid_replay_stops_the_server_with_the_kd_flushed(log, tmp_path) 
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline, st = time.time() + 120, None
-        while time.time() < deadline:
-            try:
-                code, st = call(base, "/v1/status")
-                if code == 200 and st["cycles"] >= 8:
-                    break
-            except OSError:  # not listening yet
-                pass
-            time.sleep(0.1)
+        st = wait_status(base, lambda s: s["cycles"] >= 8, timeout_s=120)
         assert st is not None and st["cycles"] >= 8 and not st["done"], st  # mid-replay
         seen = st["cycles"]
         t0 = time.monotonic()
