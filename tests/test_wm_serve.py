@@ -239,6 +239,9 @@ def test_what_if_judges_many_plans_and_says_why(server) -> None:
         ([{"t_s": [0.0, 1.0], "xy": [[0, 0], [1, 0]]}], {"level": "galaxy"}, 400, "galaxy"),
         ([{"t_s": [0.0, 1.0]}], {}, 400, "not neither"),
         ([{"t_s": [0.0], "xy": [[0, 0]]}] * 101, {}, 422, "plans"),
+        # a place beyond 1e7 m: rollouts and distances would overflow to inf
+        ([{"t_s": [0.0, 1.0], "xy": [[0, 0], [1e300, 0]]}], {}, 422, "less than or equal"),
+        ([{"t_s": [0.0, 1.0], "xy": [[0, 0], [1, 0]]}], {"goal_xy": [1e300, 0]}, 422, "goal_xy"),
     ],
 )
 def test_bad_plans_get_a_4xx_naming_the_value(server, plans, extra, code, names) -> None:

@@ -323,6 +323,11 @@ class SQLRequest(BaseModel):
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
+# a world coordinate (m) a client may send where it is used as a place, not only compared:
+# bounded so that rollouts and distances stay finite
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-1e7, le=1e7)]
+
+
 class PlanModel(BaseModel):
     """A plan as What If takes it: timed waypoints (``t_s`` s after the start, ``xy`` world m)
     or timed controls (``speed_mps``, ``curvature_1pm``), exactly one of the two."""
@@ -330,16 +335,11 @@ class PlanModel(BaseModel):
     name: str = Field("", max_length=200)
     t_s: list[Finite] = Field(..., min_length=1, max_length=1000)
     # pairs, so that a ragged list is a 422 naming it, not an array numpy cannot make
-    xy: list[Annotated[list[Finite], Field(min_length=2, max_length=2)]] | None = Field(
+    xy: list[Annotated[list[Coordinate], Field(min_length=2, max_length=2)]] | None = Field(
         None, max_length=1000
     )
     speed_mps: list[Finite] | None = Field(None, max_length=1000)
     curvature_1pm: list[Finite] | None = Field(None, max_length=1000)
-
-
-# a world coordinate (m) a client may send where it is used as a place, not only compared:
-# bounded so that rollouts and distances stay finite
-Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-1e7, le=1e7)]
 
 
 class StartModel(BaseModel):
@@ -362,7 +362,7 @@ class WhatIfRequest(BaseModel):
     plans: list[PlanModel] = Field(..., min_length=1, max_length=100)
     level: str = "subsystem"
     horizon_s: Finite | None = Field(None, gt=0, le=600)
-    goal_xy: list[Finite] | None = Field(None, min_length=2, max_length=2)
+    goal_xy: list[Coordinate] | None = Field(None, min_length=2, max_length=2)
     start: StartModel | None = None
     traces: bool = False
 
