@@ -41,25 +41,26 @@ def circle(
     )
 
 
-def polygon(level: MapLevel, vertices_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cells whose centres lie inside the simple polygon ``vertices_xy`` (K >= 3, 2) metres.
+def inside_polygon(xy: np.ndarray, vertices_xy: np.ndarray) -> np.ndarray:
+    """(N,) bool: which points ``xy`` (N, 2) lie inside the simple polygon ``vertices_xy``
+    (K, 2), same units. Even-odd crossing rule, one vectorised pass per edge (memory O(N))."""
+    x, y = xy[:, 0], xy[:, 1]
+    inside = np.zeros(len(xy), dtype=bool)
+    for (x0, y0), (x1, y1) in zip(vertices_xy, np.roll(vertices_xy, -1, axis=0), strict=True):
+        if y0 == y1:
+            continue  # a horizontal edge is never crossed by the horizontal ray
+        straddles = (y0 > y) != (y1 > y)
+        inside ^= straddles & (x < x0 + (y - y0) * (x1 - x0) / (y1 - y0))
+    return inside
 
-    Even-odd crossing rule, vectorised over cells x edges.
-    """
+
+def polygon(level: MapLevel, vertices_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cells whose centres lie inside the simple polygon ``vertices_xy`` (K >= 3, 2) metres
+    (:func:`inside_polygon`)."""
     v = np.asarray(vertices_xy, dtype=np.float64)
     if v.ndim != 2 or v.shape[0] < 3 or v.shape[1] != 2 or not np.all(np.isfinite(v)):
         raise SubmapError(f"polygon needs (K >= 3, 2) finite vertices, got shape {v.shape}")
-
-    def inside(c: np.ndarray) -> np.ndarray:
-        x, y = c[:, :1], c[:, 1:]
-        x0, y0 = v[:, 0][None], v[:, 1][None]
-        x1, y1 = np.roll(v[:, 0], -1)[None], np.roll(v[:, 1], -1)[None]
-        straddles = (y0 > y) != (y1 > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x_cross = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
-        return (np.count_nonzero(straddles & (x < x_cross), axis=1) % 2) == 1
-
-    return _centres_where(level, v.min(axis=0), v.max(axis=0), inside)
+    return _centres_where(level, v.min(axis=0), v.max(axis=0), lambda c: inside_polygon(c, v))
 
 
 def line(level: MapLevel, p0_xy: np.ndarray, p1_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -206,8 +206,9 @@ def test_check_safety_around_true_objects_and_on_open_ground(served, log) -> Non
     second ago, no object within 5 m, is safe, its cells known and passable."""
     from alignment import move_boxes, move_points
 
+    from maps.submap import inside_polygon
     from wm.client import Client
-    from wm.serve_ros import box_corners, inside_polygon
+    from wm.serve_ros import box_corners
 
     live, base = served
     truth, T, t = _truth_in_kd_world(live, log)
@@ -257,7 +258,8 @@ def test_check_safety_around_true_objects_and_on_open_ground(served, log) -> Non
 def test_polygon_geometry_helpers() -> None:
     """Point in polygon (a concave one), box overlap by corner, by edges crossing only, and
     apart; a convex hull."""
-    from wm.serve_ros import box_corners, box_overlaps_polygon, convex_hull, inside_polygon
+    from maps.submap import inside_polygon
+    from wm.serve_ros import box_corners, box_overlaps_polygon, convex_hull
 
     L = np.array([[0, 0], [4, 0], [4, 1], [1, 1], [1, 4], [0, 4]], dtype=float)  # an L
     got = inside_polygon(np.array([[0.5, 3.0], [3.0, 0.5], [3.0, 3.0], [5.0, 0.5]]), L)

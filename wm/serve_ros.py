@@ -95,6 +95,7 @@ import numpy as np
 from fastapi import FastAPI, HTTPException
 from pydantic import BaseModel, Field
 
+from maps.submap import inside_polygon
 from wm.config import PlannerConfig, VehicleConfig
 from wm.serve import Finite, _why
 from wm.serve_views import (
@@ -413,19 +414,6 @@ def _check_grid_window(level: Any, req: GetGridMapRequest, layers: list[str]) ->
 # --- CheckSafety -------------------------------------------------------------------------------
 
 
-def inside_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """(N,) bool: which points (N, 2) lie inside the polygon (K, 2) (even-odd rule)."""
-    x, y = pts[:, 0], pts[:, 1]
-    inside = np.zeros(len(pts), dtype=bool)
-    for (x1, y1), (x2, y2) in zip(poly, np.roll(poly, -1, axis=0), strict=True):
-        if y1 == y2:
-            continue  # a horizontal edge is never crossed by the horizontal ray
-        crosses = (y1 > y) != (y2 > y)
-        x_at = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
-        inside ^= crosses & (x < x_at)
-    return inside
-
-
 def polygon_area(poly: np.ndarray) -> float:
     """Area (m^2) of a simple polygon (K, 2), shoelace formula."""
     x, y = poly[:, 0], poly[:, 1]
@@ -462,26 +450,14 @@ def box_overlaps_polygon(corners: np.ndarray, poly: np.ndarray) -> bool:
 
 
 def convex_hull(pts: np.ndarray) -> np.ndarray:
-    """(H, 2) convex hull of points (N, 2), counter-clockwise (monotone chain); fewer than
-    three distinct points give themselves."""
-    p = np.unique(np.round(pts, 9), axis=0)  # sorted by x, then y
-    if len(p) < 3:
-        return p
+    """(H, 2) convex hull of points (N, 2) world m, counter-clockwise: OpenCV picks the
+    points (in float32, about their mean, so it decides right far from the origin); the
+    hull is made of the input points themselves."""
+    import cv2
 
-    def half(points: np.ndarray) -> list:
-        out: list = []
-        for q in points:
-            while len(out) >= 2 and _turn(out[-2], out[-1], q) <= 0:
-                out.pop()
-            out.append(q)
-        return out[:-1]
-
-    return np.array(half(p) + half(p[::-1]))
-
-
-def _turn(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    """The z of (a - o) x (b - o): > 0 when o, a, b turn counter-clockwise."""
-    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+    rel = (pts - pts.mean(axis=0)).astype(np.float32)
+    idx = cv2.convexHull(rel, clockwise=False, returnPoints=False).reshape(-1)
+    return pts[idx].astype(np.float64)
 
 
 def polygon_cells(level: Any, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
