@@ -31,7 +31,15 @@ from core.errors import EngineError
 from wm.bg import Planner, Selected
 from wm.client import Client
 from wm.config import PlannerConfig
-from wm.whatif import ControlPlan, Plan, Start, WaypointPlan, WhatIfResult, check_plan
+from wm.whatif import (
+    STEP_FLOATS,
+    ControlPlan,
+    Plan,
+    Start,
+    WaypointPlan,
+    WhatIfResult,
+    check_plan,
+)
 
 #: wall seconds between two looks at ``/v1/status`` while waiting for a new cycle
 POLL_S = 0.05
@@ -88,10 +96,7 @@ def result_of(answer: dict) -> WhatIfResult:
     per_step: dict[str, list[np.ndarray]] = {}
     for p in plans:
         tr = p["trace"]
-        for k, null in (("yaw", math.nan), ("speed", math.nan), ("elevation", math.nan),
-                        ("slope", math.nan), ("traversability", math.nan), ("cost", math.nan),
-                        ("unknown_fraction", math.nan), ("clearance_m", math.inf),
-                        ("entity_risk", math.nan)):  # fmt: skip
+        for k, null in STEP_FLOATS.items():
             per_step.setdefault(k, []).append(_floats(tr[k], null))
         per_step.setdefault("xy", []).append(np.array(tr["xy"], dtype=np.float64))
         per_step.setdefault("nearest_entity", []).append(np.array(tr["nearest_entity"], np.int64))

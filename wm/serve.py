@@ -427,8 +427,9 @@ def _traces_json(result: Any, i: int) -> dict:
     names; xy (S+1, 2) world m."""
     tr = result.trace(i)
     out: dict[str, Any] = {"xy": tr["xy"].tolist(), "nearest_entity": tr["nearest_entity"].tolist()}
-    for k in ("yaw", "speed", "elevation", "slope", "traversability", "cost",
-              "unknown_fraction", "clearance_m", "entity_risk"):  # fmt: skip
+    from wm.whatif import STEP_FLOATS
+
+    for k in STEP_FLOATS:
         out[k] = _finite_list(tr[k])
     return out
 

@@ -67,6 +67,15 @@ class Start:
     t0_ns: int
 
 
+#: A plan's per-step float arrays (S+1,) by name, each with what a non-finite value means
+#: there: NaN an unknown map sample (or no motion state), +inf no entity near.
+STEP_FLOATS: dict[str, float] = {
+    "yaw": np.nan, "speed": np.nan, "elevation": np.nan, "slope": np.nan,
+    "traversability": np.nan, "cost": np.nan, "unknown_fraction": np.nan,
+    "clearance_m": np.inf, "entity_risk": np.nan,
+}  # fmt: skip
+
+
 @dataclass
 class WhatIfResult:
     """Per-step traces of P plans over S + 1 steps (step 0 is the start), and totals.
@@ -108,8 +117,7 @@ class WhatIfResult:
 
     def trace(self, i: int) -> dict[str, np.ndarray]:
         """Plan ``i``'s per-step arrays by name (each (S+1,) or (S+1, 2))."""
-        keys = ("xy", "yaw", "speed", "elevation", "slope", "traversability", "cost",
-                "unknown_fraction", "clearance_m", "nearest_entity", "entity_risk")  # fmt: skip
+        keys = ("xy", *STEP_FLOATS, "nearest_entity")
         return {"t_s": self.t_s, **{k: getattr(self, k)[i] for k in keys}}
 
 
