@@ -36,6 +36,10 @@ def server(log: Path, tmp_path_factory):
 
     kd_path = tmp_path_factory.mktemp("serve-kd") / "live.duckdb"
     live = LiveNode(log, kd_path, rate=2.0).start()
+    deadline = time.time() + 300  # the tests ask about the vehicle: its first cycle is due
+    while live.status.cycles < 1 and not live.status.error and time.time() < deadline:
+        time.sleep(0.05)
+    assert live.status.cycles >= 1, f"no cycle within 300 s: {live.status}"
     with served(create_app(live, token=TOKEN)) as base:
         yield live, base, kd_path
     live.stop()

@@ -137,3 +137,15 @@ def test_map_window_carries_the_last_fused_sweep_time_and_world_geometry() -> No
     # the time moves with every fused sweep
     stack.fuse(pts, t_ns=4 * NS_PER_S, variance_m2=0.01)
     assert wi.map_window("coarse").t_ns == 4 * NS_PER_S
+
+
+def test_an_unknown_frame_is_named_before_any_state_exists() -> None:
+    """A frame that does not exist is the question's fault, answered the same before the
+    entity has a state (a controller asking at start-up) as after."""
+    kd = kd_store.open()
+    e = kd.add_entity("self", Level.OBJECT, status=Status.CONFIRMED, confidence=1.0)
+    wi = WhatIs(kd, self_id=e.id)
+    with pytest.raises(WhatIsError, match="unknown frame 'mars'"):
+        wi.entity(e.id, frame="mars")
+    with pytest.raises(WhatIsError, match="has no state"):  # a known frame: the state is asked
+        wi.entity(e.id, frame="base_link")

@@ -538,6 +538,7 @@ def create_app(
             return now
 
         def go(w: Any) -> Any:
+            w.check_frame(frame)
             if w.self_id is None:
                 raise WhatIsError("no self state yet: no sweep has been fused")
             return w.entity(w.self_id, t_ns, frame)

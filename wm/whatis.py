@@ -187,6 +187,7 @@ class WhatIs:
 
     def entity(self, entity_id: int, t_ns: int | None = None, frame: str = "world") -> EntityAnswer:
         """Entity ``entity_id`` as of ``t_ns`` in ``frame`` (module docstring)."""
+        self.check_frame(frame)  # a wrong frame is wrong whatever the KD holds yet
         s, source = self.state_at(entity_id, t_ns)
         if s.frame != "world":
             raise WhatIsError(f"entity {entity_id}: state held in {s.frame!r}, not 'world'")
@@ -203,6 +204,15 @@ class WhatIs:
         return EntityAnswer(entity_id, s.t_ns, frame, p, v, f.status.value, f.confidence,
                             f.most_specific_class, source, note)  # fmt: skip
 
+    def check_frame(self, frame: str) -> None:
+        """WhatIsError naming ``frame`` unless answers can be given in it."""
+        if frame.startswith("map:"):
+            self._level(frame[4:])
+        elif frame not in ("world", "base_link", "ladar", "egosphere"):
+            raise WhatIsError(
+                f"unknown frame {frame!r}; frames: world, base_link, ladar, egosphere, map:<level>"
+            )
+
     def _to_frame(self, p_w: np.ndarray, v_w: np.ndarray, frame: str, t_ns: int):
         if frame == "world":
             return p_w.copy(), v_w.copy()
@@ -214,10 +224,8 @@ class WhatIs:
         T_world = self.T_world_body(t_ns)
         if frame in ("ladar", "egosphere"):
             T_world = T_world @ self.T_body_ladar
-        elif frame != "base_link":
-            raise WhatIsError(
-                f"unknown frame {frame!r}; frames: world, base_link, ladar, egosphere, map:<level>"
-            )
+        else:
+            self.check_frame(frame)
         T = se3_inverse(T_world)
         p = T[:3, :3] @ p_w + T[:3, 3]
         v = T[:3, :3] @ v_w
