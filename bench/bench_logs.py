@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.results import median_times_interleaved, record
-from maps.frames import rot_z, se3
-from sp.logs import (
+from core.geometry import rot_z, se3
+from logs import (
     CameraFrame,
     Compression,
     LadarScan,
@@ -36,7 +36,7 @@ from sp.logs import (
     OdometryFrame,
     open_log,
 )
-from sp.logs.ros_encode import encode_frame, serialize
+from logs.ros_encode import encode_frame, serialize
 
 N_SWEEPS = 50
 RINGS, COLUMNS = 32, 1024

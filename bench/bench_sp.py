@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 
 from bench.results import median_time, median_times_interleaved, record
+from logs.types import LadarScan
 from maps.pyramid import exhaustive_multiply_adds, register
 from sp.egosphere import EgosphereConfig, to_egosphere
 from sp.flow import correlation_flow
-from sp.logs.types import LadarScan
 
 REAL = Path(
     os.environ.get("WM_REAL_DATA", Path(__file__).resolve().parents[2] / "shared/data/real")
@@ -158,7 +158,7 @@ def bench_flow() -> None:
 
 def _sim_sweeps(seconds: float = 3.0) -> tuple[list[LadarScan], np.ndarray]:
     from fixtures.simulate import simulate
-    from sp.logs.types import TransformFrame
+    from logs.types import TransformFrame
 
     scans, T_body_ladar = [], np.eye(4)
     for f in simulate("default", seconds=seconds):

@@ -25,7 +25,7 @@ from bench.results import median_times_interleaved, record
 from fixtures.scenario import load_scenario
 from fixtures.sensors import LADAR_BENCH, SensorSuiteConfig
 from fixtures.simulate import Simulator
-from sp.logs.types import CameraFrame, GroundTruthPose, LadarScan, TransformFrame
+from logs.types import CameraFrame, GroundTruthPose, LadarScan, TransformFrame
 from sp.pipeline import SensoryProcessor
 from sp.tracking import F_Q, Measurements, Tracker, TrackerConfig
 

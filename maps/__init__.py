@@ -1,6 +1,6 @@
 """Rolling multiresolution maps (one geometry per level, many named layers) and shared geometry.
 
-Modules (imported one by one: this package stays import-light so ``maps.frames`` is cheap):
+Modules (imported one by one: this package stays import-light so ``core.geometry`` is cheap):
 
 * ``maps.level``: one rolling level (toroidal layers, world <-> cell <-> storage indices);
   ``maps.layers`` the layer table; ``maps.submap`` box / circle / polygon / line selections.
@@ -11,5 +11,5 @@ Modules (imported one by one: this package stays import-light so ``maps.frames``
 * ``maps.registration``: local map vs a priori / earlier map by pyramid correlation.
 * ``maps.tiles``: long-term memory of tiles leaving the window.
 * ``maps.pictures``: PNG pictures of layers and of all levels side by side.
-* ``maps.frames`` (shared geometry) and ``maps.pyramid`` (pyramids of scale, correlation).
+* ``core.geometry`` (shared geometry) and ``maps.pyramid`` (pyramids of scale, correlation).
 """

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.errors import EngineError
-from maps.frames import check_pose, se3_inverse
+from core.geometry import check_pose, se3_inverse
+from logs.types import CameraFrame
 from sp.camera import PinholeCamera
-from sp.logs.types import CameraFrame
 
 
 class AppearanceError(EngineError, ValueError):

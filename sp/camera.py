@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.errors import EngineError
-from maps.frames import check_pose, transform_points
-from sp.logs.types import CameraFrame
+from core.geometry import check_pose, transform_points
+from logs.types import CameraFrame
 
 
 class CameraError(EngineError, ValueError):
@@ -56,7 +56,7 @@ class PinholeCamera:
 
     @classmethod
     def from_frame(cls, frame: CameraFrame) -> PinholeCamera:
-        """The camera of a :class:`~sp.logs.types.CameraFrame` (size from its image)."""
+        """The camera of a :class:`~logs.types.CameraFrame` (size from its image)."""
         w, h = frame.size_wh
         return cls(K=frame.K, width=w, height=h, dist=frame.dist)
 

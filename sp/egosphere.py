@@ -30,8 +30,8 @@ import numba
 import numpy as np
 
 from core.errors import EngineError
-from maps.frames import check_pose, se3, transform_points
-from sp.logs.types import LadarScan
+from core.geometry import check_pose, se3, transform_points
+from logs.types import LadarScan
 
 
 class EgosphereError(EngineError, ValueError):
@@ -221,7 +221,7 @@ def _pixel_of(
 
 
 def check_scan(scan: LadarScan) -> None:
-    """Refuse a scan whose arrays do not match :class:`~sp.logs.types.LadarScan`."""
+    """Refuse a scan whose arrays do not match :class:`~logs.types.LadarScan`."""
     pts = np.asarray(scan.points_xyz)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise EgosphereError(f"scan at t_ns={scan.t_ns}: points_xyz shape {pts.shape}, not (N, 3)")

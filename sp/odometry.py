@@ -5,7 +5,7 @@ Reference 001, 4.5 and docs/architecture.md, the node cycle (steps 1-2: the pose
 self state into the KD); the fusion follows the estimator form
 ``x(t|t) = x*(t|t-1) + K (y(t) - y*(t|t-1))``.
 
-Per sweep (one :class:`~sp.logs.types.LadarScan`):
+Per sweep (one :class:`~logs.types.LadarScan`):
 
 1. predict the sweep's motion: from wheel odometry when it is there, else constant velocity;
 2. deskew the sweep with its per-point times and register it to KISS-ICP's local map (KISS-ICP's
@@ -40,7 +40,7 @@ from enum import StrEnum
 import numpy as np
 
 from core.errors import EngineError
-from maps.frames import (
+from core.geometry import (
     check_pose,
     interpolate_pose,
     rotvec_of,
@@ -48,7 +48,7 @@ from maps.frames import (
     se3_inverse,
     transform_points,
 )
-from sp.logs.types import LadarScan, OdometryFrame
+from logs.types import LadarScan, OdometryFrame
 from sp.voxels import first_per_voxel
 
 

@@ -47,8 +47,9 @@ import numpy as np
 
 import kd_store
 from core.errors import EngineError
+from core.geometry import check_pose, interpolate_pose, matrix_to_quat, rot_z
 from kd_store import Attribute, Level, StateBatch, Status
-from maps.frames import check_pose, interpolate_pose, matrix_to_quat, rot_z
+from logs.types import CameraFrame, LadarScan
 from sp.appearance import object_appearance
 from sp.classify import Classifier, ClassifyConfig
 from sp.computation import SegmentAttributes, ground_below, ground_plane, segment_attributes
@@ -70,7 +71,6 @@ from sp.lists import (
     mean_intensity,
     patch_grid,
 )
-from sp.logs.types import CameraFrame, LadarScan
 from sp.segments import (
     SegmentConfig,
     label_objects,

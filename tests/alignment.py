@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 import kd_store
-from maps.frames import pose_from_xyz_quat, se3_inverse
-from sp.logs import open_log
-from sp.logs.types import GroundTruthPose, ObjectBoxes
+from core.geometry import pose_from_xyz_quat, se3_inverse
+from logs import open_log
+from logs.types import GroundTruthPose, ObjectBoxes
 from wm.poses import PoseTrack
 
 

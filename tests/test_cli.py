@@ -74,7 +74,7 @@ def test_simulate_refuses_an_output_that_is_not_mcap(tmp_path):
 def test_check_reports_non_finite_points(tmp_path):
     import numpy as np
 
-    from sp.logs import LadarScan, McapLogWriter
+    from logs import LadarScan, McapLogWriter
 
     pts = np.zeros((10, 3), np.float32)
     pts[:, 0] = np.arange(1, 11)

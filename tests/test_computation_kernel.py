@@ -209,7 +209,7 @@ def pipeline_calls():
     import kd_store
     import sp.pipeline
     from fixtures.simulate import simulate
-    from sp.logs.types import GroundTruthPose, LadarScan, TransformFrame
+    from logs.types import GroundTruthPose, LadarScan, TransformFrame
 
     calls = []
 

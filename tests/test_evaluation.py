@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import kd_store
+from core.geometry import matrix_to_quat, rot_z, se3, transform_points
 from kd_store import Level, State, Status
-from maps.frames import matrix_to_quat, rot_z, se3, transform_points
-from sp.logs.types import ObjectBoxes
+from logs.types import ObjectBoxes
 from wm.evaluation import (
     EvalConfig,
     Sweep,

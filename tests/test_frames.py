@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from maps import frames as F
+from core import geometry as F
 
 angles = st.floats(-np.pi, np.pi, allow_nan=False)
 

@@ -11,8 +11,8 @@ import pyarrow.feather as feather
 import pytest
 
 import kd_store
+from core.geometry import matrix_to_quat, quat_to_matrix
 from kd_store import Attribute, Circle, Level, StateBatch
-from maps.frames import matrix_to_quat, quat_to_matrix
 
 #: AV2 category -> generic class of the default library (bicycles and strollers have none).
 CLASS_OF = {

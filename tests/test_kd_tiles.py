@@ -316,9 +316,9 @@ def test_wm_run_keeps_the_map_in_the_kd_file(tmp_path: Path) -> None:
     ``elevation_*``, wm.truth.OdometryScore.T_align) before scoring."""
     from alignment import kd_self_track, true_pose_track
 
+    from core.geometry import se3_inverse
     from fixtures.simulate import simulate_to_log
-    from maps.frames import se3_inverse
-    from sp.logs import open_log
+    from logs import open_log
     from wm.config import NodeConfig, PoseSource
     from wm.run import run_log
     from wm.truth import TerrainTruth, elevation_error

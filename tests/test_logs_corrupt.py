@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType, Writer
 
-from sp.logs import (
+from logs import (
     Compression,
     LadarScan,
     LogError,
@@ -21,8 +21,8 @@ from sp.logs import (
     OdometryFrame,
     open_log,
 )
-from sp.logs.ros_encode import encode_frame, serialize
-from sp.logs.ros_types import ros2msg_schema
+from logs.ros_encode import encode_frame, serialize
+from logs.ros_types import ros2msg_schema
 from wm.campaign import chunks as _chunks
 from wm.campaign import duplicate_chunk as _duplicate_chunk
 

@@ -1,8 +1,8 @@
 """The fast MCAP decoding path gives exactly the frames, stats and errors of the reference path.
 
 Each piece replaced for speed kept its old form as ``*_reference``: the ``mcap`` library's
-chunk reading (:func:`sp.logs.mcap_log._chunk_records_reference`), rosbags' own typestore,
-:func:`~sp.logs.ros_decode.decode_pointcloud2_reference` and
+chunk reading (:func:`logs.mcap_log._chunk_records_reference`), rosbags' own typestore,
+:func:`~logs.ros_decode.decode_pointcloud2_reference` and
 ``FrameAssembler._boxes_reference``. These tests read the same logs both ways (fresh logs from
 the project's writer and from the ``mcap`` library's, uncompressed and compressed, intact and
 damaged) and compare every array bit for bit, with its dtype and shape, and every stat and
@@ -28,8 +28,8 @@ from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from maps.frames import GeometryError
-from sp.logs import (
+from core.geometry import GeometryError
+from logs import (
     CameraFrame,
     Compression,
     GroundTruthPose,
@@ -46,8 +46,8 @@ from sp.logs import (
     open_log,
     ros_decode,
 )
-from sp.logs.ros_encode import encode_frame, serialize
-from sp.logs.ros_types import ros2msg_schema, typestore
+from logs.ros_encode import encode_frame, serialize
+from logs.ros_types import ros2msg_schema, typestore
 
 PC2 = "sensor_msgs/msg/PointCloud2"
 KINDS = (LadarScan, CameraFrame, OdometryFrame, GroundTruthPose, ImuFrame, TransformFrame)

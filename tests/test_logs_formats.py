@@ -12,8 +12,8 @@ from mcap.records import Chunk, Message, MessageIndex
 from mcap.stream_reader import StreamReader, breakup_chunk
 from test_logs_mcap import assert_same_frame, make_frames
 
-from maps.frames import rpy_to_matrix, se3
-from sp.logs import (
+from core.geometry import rpy_to_matrix, se3
+from logs import (
     CameraFrame,
     Compression,
     LadarScan,
@@ -23,10 +23,10 @@ from sp.logs import (
     OdometryFrame,
     open_log,
 )
-from sp.logs.kitti_log import KittiLogSource
-from sp.logs.ros_encode import encode_frame, serialize
-from sp.logs.ros_types import ODOMETRY, typestore
-from sp.logs.rosbag_log import RosbagLogSource
+from logs.kitti_log import KittiLogSource
+from logs.ros_encode import encode_frame, serialize
+from logs.ros_types import ODOMETRY, typestore
+from logs.rosbag_log import RosbagLogSource
 
 
 def test_odometry_packing_matches_the_rosbags_serialiser() -> None:
@@ -213,7 +213,7 @@ def test_damaged_ros1_bag(real_data, tmp_path) -> None:
 def test_foreign_images_without_camera_info_have_nan_intrinsics(tmp_path) -> None:
     from mcap.writer import Writer
 
-    from sp.logs.ros_types import IMAGE, ros2msg_schema
+    from logs.ros_types import IMAGE, ros2msg_schema
 
     path = tmp_path / "images_only.mcap"
     with open(path, "wb") as f:

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from maps.frames import rpy_to_matrix, se3
-from sp.logs import (
+from core.geometry import rpy_to_matrix, se3
+from logs import (
     CameraFrame,
     Compression,
     GroundTruthPose,

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from test_logs_mcap import assert_same_frame, make_frames
 
-from sp.logs import LogError, McapLogWriter, open_log
-from sp.logs.prefetch import FramePrefetcher, PrefetchError
+from logs import LogError, McapLogWriter, open_log
+from logs.prefetch import FramePrefetcher, PrefetchError
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +39,7 @@ def test_prefetched_frames_are_the_frames(log, batch_frames) -> None:
 
 
 def test_frame_filters_pass_through(log) -> None:
-    from sp.logs import LadarScan
+    from logs import LadarScan
 
     want = [f.t_ns for f in open_log(log).frames(kinds=LadarScan)]
     with FramePrefetcher(open_log(log), kinds=LadarScan) as pf:

@@ -9,7 +9,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from sp.logs import (
+from logs import (
     CameraFrame,
     GroundTruthPose,
     ImuFrame,
@@ -20,11 +20,11 @@ from sp.logs import (
     format_log_info,
     open_log,
 )
-from sp.logs.av2_log import Av2LogSource
-from sp.logs.kitti_log import KittiLogSource
-from sp.logs.mcap_log import McapLogSource
-from sp.logs.rgbd_log import RgbdLogSource
-from sp.logs.rosbag_log import RosbagLogSource
+from logs.av2_log import Av2LogSource
+from logs.kitti_log import KittiLogSource
+from logs.mcap_log import McapLogSource
+from logs.rgbd_log import RgbdLogSource
+from logs.rosbag_log import RosbagLogSource
 
 pytestmark = pytest.mark.real_data
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from bench.results import record
+from core.geometry import interpolate_pose, transform_points
 from fixtures.simulate import Simulator
-from maps.frames import interpolate_pose, transform_points
+from logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 from maps.fusion import range_variance
 from maps.stack import MapStack
-from sp.logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 
 POSE_BINS = 16  # pose slices per sweep (a 0.1 s sweep at 10 m/s moves 6 cm per slice)
 

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from maps.frames import rot_z, se3
+from core.geometry import rot_z, se3
 from maps.level import LevelConfig, MapLevel
 from maps.pictures import (
     LEGEND_PX,

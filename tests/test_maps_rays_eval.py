@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from bench.results import record
+from core.geometry import interpolate_pose, transform_points
 from fixtures.simulate import Simulator
-from maps.frames import interpolate_pose, transform_points
+from logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 from maps.stack import MapStack
-from sp.logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 
 POSE_BINS = 8
 SOLID = {"building", "wall", "rock", "post", "bush", "vehicle", "person"}

@@ -224,9 +224,9 @@ def test_psd_kernel_refuses_a_wrong_shape():
 def _random_sweep(seed: int, p_invalid: float):
     """A random 16 x 64 sweep (some beams empty, NaN where no return) as an egosphere image,
     with a random sensor pose and per-column poses."""
-    from maps.frames import interpolate_pose, rotvec_to_matrix, se3
+    from core.geometry import interpolate_pose, rotvec_to_matrix, se3
+    from logs.types import LadarScan
     from sp.egosphere import EgosphereConfig, to_egosphere
-    from sp.logs.types import LadarScan
 
     rng = np.random.default_rng(seed)
     n = 16 * 64
@@ -314,7 +314,7 @@ def test_deskew_kernel_gives_the_reference_points(seed, order, dtype):
     """Sweep points moved to the world slice by slice: the compiled pass and the numpy form
     agree (points in firing order or not, float32 or float64 input), and a point at the
     start and one at the end of the sweep move with the first and last slice's pose."""
-    from maps.frames import interpolate_pose, rotvec_to_matrix, se3, transform_points
+    from core.geometry import interpolate_pose, rotvec_to_matrix, se3, transform_points
     from wm.poses import PoseTrack, deskew_to_world, deskew_to_world_reference
 
     rng = np.random.default_rng(seed)

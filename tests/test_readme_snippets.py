@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from node_runs import in_file
 
-from sp.logs import LadarScan, open_log
+from logs import LadarScan, open_log
 
 REPO = Path(__file__).resolve().parents[1]
 SECONDS = 3.0

@@ -19,7 +19,7 @@ import pytest
 
 import kd_store
 from kd_store import Level, Status
-from sp.logs import open_log
+from logs import open_log
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
 from wm.truth import CLASS_ALIASES

@@ -165,8 +165,8 @@ def sweep():
     """A simulated sweep as the pipeline groups it: float64 points, float32 ranges (inf where
     empty), a non-ground mask, Python float angular steps."""
     from fixtures.simulate import simulate
+    from logs.types import LadarScan
     from sp.egosphere import EgosphereConfig, to_egosphere
-    from sp.logs.types import LadarScan
 
     scan = next(f for f in simulate("default", seconds=0.25) if isinstance(f, LadarScan))
     img = to_egosphere(scan, EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1))

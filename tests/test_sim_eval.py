@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from bench.results import record
+from core.geometry import se3_inverse
 from fixtures.simulate import Simulator
-from maps.frames import se3_inverse
 
 
 def kiss_icp_drift_percent(name: str, seconds: float) -> tuple[float, float]:

@@ -10,6 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from core.geometry import NS_PER_S
 from fixtures.scenario import (
     ObjectClass,
     ObjectSpec,
@@ -22,8 +23,7 @@ from fixtures.scenario import (
 from fixtures.sensors import Camera, CameraConfig, Ladar, LadarConfig
 from fixtures.simulate import Simulator
 from fixtures.world import CLASS_INDEX, World
-from maps.frames import NS_PER_S
-from sp.logs.types import ObjectBoxes
+from logs.types import ObjectBoxes
 
 BUILDING = ObjectClass.BUILDING
 

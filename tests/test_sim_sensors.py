@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.geometry import NS_PER_S, se3_inverse, transform_points
 from fixtures.scenario import (
     AgentSpec,
     ObjectClass,
@@ -16,7 +17,6 @@ from fixtures.scenario import (
 )
 from fixtures.sensors import Camera, CameraConfig, Ladar, LadarConfig, Odometry, OdometryConfig
 from fixtures.world import World
-from maps.frames import NS_PER_S, se3_inverse, transform_points
 
 MOUNT = (0.0, 0.0, 2.0)  # LADAR mount in the body frame for these tests
 BOX_MIN, BOX_MAX = np.array([13.0, 2.0, -0.5]), np.array([17.0, 8.0, 3.0])  # building, z0 = 0

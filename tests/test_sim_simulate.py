@@ -9,11 +9,11 @@ from collections import Counter
 import numpy as np
 import pytest
 
+from core.geometry import BODY, CAMERA, LADAR, NS_PER_S, WORLD
 from fixtures.scenario import Scenario, load_scenario
 from fixtures.sensors import CameraConfig, LadarConfig, OdometryConfig, SensorSuiteConfig
 from fixtures.simulate import Simulator, simulate, simulate_to_log
-from maps.frames import BODY, CAMERA, LADAR, NS_PER_S, WORLD
-from sp.logs.types import (
+from logs.types import (
     CameraFrame,
     GroundTruthPose,
     ImuFrame,
@@ -98,7 +98,7 @@ def test_other_scenarios_simulate(name: str) -> None:
 
 
 def test_simulate_to_log_writes_frames_terrain_and_scenario(tmp_path) -> None:
-    from sp.logs.mcap_log import McapLogSource
+    from logs.mcap_log import McapLogSource
 
     scenario = small()
     path = simulate_to_log(scenario, tmp_path / "sim.mcap", seconds=0.25, seed=3, progress=False)

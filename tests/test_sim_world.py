@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.geometry import NS_PER_S, check_pose, yaw_of
 from fixtures.scenario import load_scenario
 from fixtures.world import World
-from maps.frames import NS_PER_S, check_pose, yaw_of
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from logs.types import LadarScan
 from sp.attributes import (
     AttributeImageError,
     egosphere_attributes,
@@ -16,7 +17,6 @@ from sp.attributes import (
     temporal_gradient,
 )
 from sp.egosphere import EgosphereConfig, to_egosphere
-from sp.logs.types import LadarScan
 
 
 def ground_scan(height_m: float, noise_m: float = 0.0, t_ns: int = 0, seed: int = 0) -> LadarScan:

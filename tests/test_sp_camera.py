@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from maps.frames import se3
+from core.geometry import se3
 from sp.camera import CameraError, PinholeCamera, ladar_range_in_camera
 
 K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])

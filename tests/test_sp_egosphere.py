@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from maps.frames import rpy_to_matrix, se3, transform_points
+from core.geometry import rpy_to_matrix, se3, transform_points
+from logs.types import LadarScan
 from sp.egosphere import (
     EgosphereConfig,
     EgosphereError,
@@ -15,7 +16,6 @@ from sp.egosphere import (
     spherical,
     to_egosphere,
 )
-from sp.logs.types import LadarScan
 
 
 def scan_of(points: np.ndarray, ring: np.ndarray | None = None, t_ns: int = 0) -> LadarScan:

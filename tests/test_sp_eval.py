@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 
 from bench.results import record
-from maps.frames import interpolate_pose
-from sp.camera import PinholeCamera
-from sp.flow import correlation_flow
-from sp.logs.types import (
+from core.geometry import interpolate_pose
+from logs.types import (
     CameraFrame,
     GroundTruthPose,
     LadarScan,
     OdometryFrame,
     TransformFrame,
 )
+from sp.camera import PinholeCamera
+from sp.flow import correlation_flow
 from sp.odometry import LadarOdometry, OdometryConfig, TrackStatus, WheelOdometry
 from sp.stereo import stereo_disparity
 
@@ -99,7 +99,7 @@ def _orthonormal(T: np.ndarray) -> np.ndarray:
 
 
 def test_odometry_7scenes_absolute_trajectory_error(real_data):
-    from sp.logs.source import open_log
+    from logs.source import open_log
 
     cfg = OdometryConfig(
         max_range_m=6.0,

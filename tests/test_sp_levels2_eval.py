@@ -12,7 +12,7 @@ from test_sp_levels_eval import MotTally, points_in_boxes, score_cycle
 
 import kd_store
 from bench.results import record
-from sp.logs.types import CameraFrame, GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
+from logs.types import CameraFrame, GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 from sp.pipeline import SensoryProcessor, SPConfig
 
 CMD = "make eval"

@@ -24,8 +24,8 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 import kd_store
+from logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 from sp.egosphere import EgosphereConfig
-from sp.logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 from sp.pipeline import SensoryProcessor, SPConfig
 
 MIN_POINTS = 20
@@ -310,7 +310,7 @@ def _feather(path: Path) -> dict[str, np.ndarray]:
 
 
 def _av2_pose(c: dict[str, np.ndarray], row: int) -> np.ndarray:
-    from maps.frames import quat_to_matrix
+    from core.geometry import quat_to_matrix
 
     T = np.eye(4)
     q = np.array([c["qx"][row], c["qy"][row], c["qz"][row], c["qw"][row]], dtype=np.float64)

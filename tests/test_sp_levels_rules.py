@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 import kd_store
+from logs.types import CameraFrame, LadarScan
 from sp.appearance import object_appearance
 from sp.computation import ground_below, segment_attributes
 from sp.egosphere import EgosphereConfig
-from sp.logs.types import CameraFrame, LadarScan
 from sp.pipeline import SensoryProcessor, SPConfig, evident_speed, terrain_patch
 from sp.segments import merge_collinear
 from sp.tracking import (

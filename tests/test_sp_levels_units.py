@@ -11,11 +11,11 @@ from filterpy.kalman import KalmanFilter
 
 import kd_store
 from kd_store import Level, Status
+from logs.types import LadarScan
 from sp.classify import Classifier
 from sp.computation import ground_below, segment_attributes
 from sp.ground import GroundConfig, ground_mask
 from sp.groups import group_labels, match_groups
-from sp.logs.types import LadarScan
 from sp.pipeline import IMAGE_NAMES, SensoryProcessor
 from sp.segments import label_objects, range_edges
 from sp.tracking import (

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from maps.frames import rot_z, se3, se3_inverse, transform_points
-from sp.logs.types import LadarScan, OdometryFrame
+from core.geometry import rot_z, se3, se3_inverse, transform_points
+from logs.types import LadarScan, OdometryFrame
 from sp.odometry import (
     LadarOdometry,
     OdometryConfig,
@@ -258,7 +258,7 @@ def test_fusion_keeps_the_wheels_along_a_direction_the_scene_does_not_constrain(
 
 
 def _tilted_wheel(t_ns: int, pitch: float, yaw: float, var: float) -> OdometryFrame:
-    from maps.frames import rpy_to_matrix
+    from core.geometry import rpy_to_matrix
 
     cov = np.diag([0.01, 0.01, 0.01, var, var, 0.01])
     return OdometryFrame(
@@ -269,7 +269,7 @@ def _tilted_wheel(t_ns: int, pitch: float, yaw: float, var: float) -> OdometryFr
 
 def _body_pose(odo: LadarOdometry, pitch: float, yaw: float) -> np.ndarray:
     """``T_map_sensor`` of a body at pitch / yaw (world frame) over the odometry's map."""
-    from maps.frames import rpy_to_matrix
+    from core.geometry import rpy_to_matrix
 
     T_world_body = se3(rpy_to_matrix(0.0, pitch, yaw), [5.0, 1.0, 0.3])
     return se3_inverse(odo.T_world_map) @ T_world_body @ odo.T_body_sensor
@@ -279,7 +279,7 @@ def test_levelling_pulls_roll_and_pitch_toward_the_inertial_attitude_and_leaves_
     """A fused pose 10 mrad off in pitch, with as much doubt as the wheel odometry's attitude,
     moves half way to the attitude it reports; its heading (which no gravity reference
     measures) and position stay."""
-    from maps.frames import matrix_to_rpy
+    from core.geometry import matrix_to_rpy
 
     odo = odometry()
     for j in range(3):
@@ -299,7 +299,7 @@ def test_levelling_bounds_a_steady_pitch_error_and_ignores_planar_odometry() -> 
     60 sweeps; with a gravity reference of 10 mrad the estimate stays within a few mrad of
     it. A planar odometry (roll and pitch exactly zero) is no gravity reference: nothing is
     levelled."""
-    from maps.frames import matrix_to_rpy
+    from core.geometry import matrix_to_rpy
 
     odo = odometry()
     pitch = 0.0

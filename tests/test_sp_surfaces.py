@@ -12,9 +12,9 @@ import pytest
 
 import kd_store
 from kd_store import Level, Status
+from logs.types import LadarScan
 from sp.egosphere import EgosphereConfig
 from sp.lists import ListConfig, patch_grid
-from sp.logs.types import LadarScan
 from sp.pipeline import IMAGE_NAMES, SensoryProcessor, SPConfig
 from sp.surfaces import (
     N_PLANE,
@@ -560,7 +560,7 @@ def _in_boxes(p: np.ndarray, boxes, margin: float) -> np.ndarray:
 
 def test_simulated_sweep_surfaces_cover_the_true_walls() -> None:
     from fixtures.simulate import simulate
-    from sp.logs.types import GroundTruthPose, ObjectBoxes, TransformFrame
+    from logs.types import GroundTruthPose, ObjectBoxes, TransformFrame
 
     kd = kd_store.open(":memory:")
     sp = SensoryProcessor(kd)

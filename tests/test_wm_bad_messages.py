@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from node_runs import self_poses
 
-from sp.logs import open_log
-from sp.logs.types import LadarScan, OdometryFrame
+from logs import open_log
+from logs.types import LadarScan, OdometryFrame
 
 # poses of a run with bad frames equal the clean run's to summation order: the registration's
 # parallel reductions may add in another order from one run to the next (1e-17 m seen)

@@ -217,8 +217,8 @@ def test_run_refuses_an_existing_kd_unless_overwrite_or_append(ran, tmp_path) ->
 
 
 def test_run_of_a_log_without_sweeps_says_what_it_lacked_and_exits_2(tmp_path) -> None:
-    from maps.frames import se3
-    from sp.logs import McapLogWriter, OdometryFrame
+    from core.geometry import se3
+    from logs import McapLogWriter, OdometryFrame
 
     log = tmp_path / "odometry_only.mcap"
     with McapLogWriter(log) as w:  # 0.4 s of wheel odometry at 50 Hz, no LADAR

@@ -27,11 +27,11 @@ import pytest
 from alignment import T_est_true, kd_self_track, move_boxes
 
 import kd_store
+from core.geometry import se3_inverse, transform_points
 from fixtures.scenario import AgentSpec, ObjectClass, Scenario, load_scenario
 from kd_store import Level, Status
-from maps.frames import se3_inverse, transform_points
-from sp.logs import open_log
-from sp.logs.types import GroundTruthPose, ObjectBoxes, TransformFrame
+from logs import open_log
+from logs.types import GroundTruthPose, ObjectBoxes, TransformFrame
 from wm.config import NodeConfig, PoseSource, PredictionConfig
 from wm.poses import PoseTrack
 from wm.run import run_log, run_node

@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from sp.logs import open_log
-from sp.logs.types import (
+from logs import open_log
+from logs.types import (
     CameraFrame,
     GroundTruthPose,
     ImuFrame,

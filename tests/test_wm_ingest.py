@@ -100,7 +100,7 @@ def _run_kd(log: Path, kd_path: Path) -> None:
     """The KD of a run of ``log`` (wm.run's loop: every frame to the node, then finish;
     without its scoring, which takes longer than the run)."""
     import kd_store
-    from sp.logs import open_log
+    from logs import open_log
     from wm.config import NodeConfig
     from wm.node import WorldModelNode
     from wm.tiles import map_stack_over_kd

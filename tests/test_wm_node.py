@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from alignment import T_est_true, kd_self_track, move_boxes, origin_aligned_errors
 
+from core.geometry import se3_inverse, transform_points, yaw_of
 from kd_store import Attribute, Level, State, Status
-from maps.frames import se3_inverse, transform_points, yaw_of
-from sp.logs import open_log
-from sp.logs.types import GroundTruthPose, ObjectBoxes
+from logs import open_log
+from logs.types import GroundTruthPose, ObjectBoxes
 from wm.bg import Planner
 from wm.config import NodeConfig, PoseSource
 from wm.poses import PoseTrack
@@ -238,8 +238,8 @@ def test_attention_lists_rank_the_nearest_dangerous_entities_first(node, truth) 
 def test_a_log_with_ladar_only_runs_and_says_what_was_missing(log, tmp_path) -> None:
     """Truth poses only where the truth pose source itself is tested: it refuses a log
     without ground truth."""
-    from sp.logs import McapLogWriter
-    from sp.logs.types import LadarScan, TransformFrame
+    from logs import McapLogWriter
+    from logs.types import LadarScan, TransformFrame
 
     only = tmp_path / "ladar_only.mcap"
     with McapLogWriter(only) as w:

@@ -16,7 +16,7 @@ import pytest
 from node_runs import in_file
 
 import kd_store
-from sp.logs import LadarScan, LogError, open_log
+from logs import LadarScan, LogError, open_log
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
 from wm.run import run_log

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from node_runs import self_poses
 
-from maps.frames import matrix_to_rpy, rpy_to_matrix, se3
-from sp.logs import open_log
-from sp.logs.types import GroundTruthPose, ObjectBoxes, OdometryFrame
+from core.geometry import matrix_to_rpy, rpy_to_matrix, se3
+from logs import open_log
+from logs.types import GroundTruthPose, ObjectBoxes, OdometryFrame
 from wm.node import initial_pose
 from wm.poses import PoseTrack
 from wm.truth import OdometryScore

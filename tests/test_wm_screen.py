@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from node_runs import self_poses
 
-from sp.logs import open_log
-from sp.logs.types import (
+from logs import open_log
+from logs.types import (
     CameraFrame,
     GroundTruthPose,
     ImuFrame,

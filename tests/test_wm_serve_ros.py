@@ -184,7 +184,7 @@ def test_grid_map_gives_every_layer_when_none_is_asked(served) -> None:
 def _truth_in_kd_world(live, log_path: Path):
     """(truth, T_est_true at the self state's time, that time): the truth boxes move into the
     KD's world with ``T_est_true`` (tests/alignment.py)."""
-    from maps.frames import quat_to_matrix, se3, se3_inverse
+    from core.geometry import quat_to_matrix, se3, se3_inverse
     from wm.evaluation import load_truth
 
     truth = load_truth(log_path)

@@ -17,10 +17,10 @@ from alignment import kd_self_track, true_pose_track
 
 import kd_store
 import wm.run
+from core.geometry import se3_inverse, transform_points
 from fixtures.simulate import simulate_to_log
 from kd_store import Level, State, Status
-from maps.frames import se3_inverse, transform_points
-from sp.logs import open_log
+from logs import open_log
 from wm.cli import main
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode

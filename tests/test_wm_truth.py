@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from maps.frames import rot_z, se3
+from core.geometry import rot_z, se3
 from maps.level import LevelConfig, MapLevel
 from wm.truth import TerrainTruth, elevation_error
 

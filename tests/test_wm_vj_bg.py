@@ -13,9 +13,9 @@ import yaml
 import kd_store
 from kd_store import Attribute, EntityFrame, Level, State, Status, Value
 from kd_store.classes import ClassKind, ClassPrototype
+from logs.types import GroundTruthPose, LadarScan
 from maps.level import LevelConfig, MapLevel
 from maps.stack import MapStack
-from sp.logs.types import GroundTruthPose, LadarScan
 from wm import vj
 from wm.bg import Planner
 from wm.config import NodeConfig, PlannerConfig, PoseSource, PredictionConfig, VJConfig

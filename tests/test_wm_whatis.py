@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import kd_store
+from core.geometry import NS_PER_S
 from kd_store import Level, State, Status
-from maps.frames import NS_PER_S
 from maps.fusion import FusionConfig
 from maps.level import LevelConfig
 from maps.stack import MapStack, StackConfig

@@ -285,7 +285,7 @@ def kind_of(pid: int) -> str:
     cmd = _cmdline(pid)
     if not cmd:
         return "gone"
-    return "decoder" if "sp.logs.prefetch" in cmd else "odometry" if "wm.cli" in cmd else cmd
+    return "decoder" if "logs.prefetch" in cmd else "odometry" if "wm.cli" in cmd else cmd
 
 
 def orphans(kd: Path, kids: set[int]) -> list[str]:

@@ -71,7 +71,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_log_info(args: argparse.Namespace) -> int:
     """What a log holds; with ``--check`` every frame is decoded and every defect that would
     stop ``wm run`` is listed, one line each (exit status 2 when there is any)."""
-    from sp.logs import format_log_info, open_log
+    from logs import format_log_info, open_log
 
     path = Path(args.log)
     if not path.exists():
@@ -238,7 +238,7 @@ def _produced_nothing(report, log: Path) -> str | None:
         skipped = ", ".join(f"{k}={v}" for k, v in report.skipped.items()) or "none"
         return f"{log}: no usable LADAR sweep of {report.frames['LadarScan']} (skipped: {skipped})"
     if not report.sweeps:
-        from sp.logs import open_log
+        from logs import open_log
 
         topics = ", ".join(f"{t.name} ({t.msgtype})" for t in open_log(log).info().topics)
         return f"{log}: no PointCloud2 sweep on any topic; topics are: {topics or 'none'}"
@@ -482,7 +482,7 @@ def whatif_lines(
 ) -> list[str]:  # fmt: skip
     """Simulate the plan ``t_s`` (K,) s, ``xy_body`` (K, 2) m in the body frame of
     ``T_world_body`` over ``stack`` and ``kd`` at ``level``; the lines a user reads."""
-    from maps.frames import transform_points
+    from core.geometry import transform_points
     from wm import vj
     from wm.config import VJConfig
     from wm.whatif import WaypointPlan, WhatIf

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.errors import EngineError
-from maps.frames import pose_from_xyz_quat, se3_inverse, transform_points
+from core.geometry import pose_from_xyz_quat, se3_inverse, transform_points
 from wm.poses import PoseTrack, deskew_to_world
 from wm.truth import CLASS_ALIASES, footprint_distance
 
@@ -108,7 +108,7 @@ class Truth:
     fit in memory."""
 
     poses: PoseTrack
-    boxes: list[Any]  # sp.logs.types.ObjectBoxes, frame "world", classes after CLASS_ALIASES
+    boxes: list[Any]  # logs.types.ObjectBoxes, frame "world", classes after CLASS_ALIASES
     seen: list[Seen]
     T_body_ladar: np.ndarray = field(default_factory=lambda: np.eye(4))
 
@@ -173,7 +173,7 @@ def load_truth(
     set nearest its middle is in, and then let go. Raises EvaluationError when the log has no
     true poses or no truth boxes, or when the log cannot be read (ground truth unavailable;
     ``skip_corrupt`` reads on past damaged records)."""
-    from sp.logs import LogError, open_log
+    from logs import LogError, open_log
 
     try:
         return _load_truth(log_path, config, open_log(log_path, skip_corrupt=skip_corrupt))
@@ -183,7 +183,7 @@ def load_truth(
 
 def _load_truth(log_path: str | Path, config: EvalConfig, source: Any) -> Truth:
     """:func:`load_truth` from an open log source."""
-    from sp.logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
+    from logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 
     truth = Truth(unbounded_track(), [], [])
     waiting_boxes: list[ObjectBoxes] = []  # body-frame sets whose pose is not in yet

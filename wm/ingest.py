@@ -11,7 +11,7 @@ messages in log-time order, as a log reader would give them. ``kind`` (optional)
 channel's ``frame_kind`` where the type alone is ambiguous (``ground_truth_pose`` for an
 Odometry that is ground truth; a topic under ``/ground_truth`` says so too).
 
-Each message is decoded as the MCAP reader decodes it (:class:`sp.logs.mcap_log.CdrFrameDecoder`:
+Each message is decoded as the MCAP reader decodes it (:class:`logs.mcap_log.CdrFrameDecoder`:
 the same deserialisers, the same assembly of one instant's messages into frames), so a log
 posted message by message gives the node the frames ``wm run`` gives it. The messages of one
 log time become frames when a message of a later time arrives (or the node stops). Frames go
@@ -98,8 +98,8 @@ class IngestNode(LiveNode):
         if queue_size < 1:
             raise ServeError(f"ingest queue size {queue_size}: need at least 1")
         super().__init__(None, kd_path, config, rate=0.0)
-        from sp.logs.mcap_log import CdrFrameDecoder
-        from sp.logs.types import ReadStats
+        from logs.mcap_log import CdrFrameDecoder
+        from logs.types import ReadStats
 
         self.queue: queue.Queue = queue.Queue(maxsize=queue_size)
         self.counts = IngestCounts()
@@ -264,7 +264,7 @@ def _full_type(msgtype: str) -> str:
 
 def _known_type(topic: str, msgtype: str) -> None:
     """Refuse a type the standard definitions (ROS 2 Humble and vision_msgs) do not hold."""
-    from sp.logs.ros_types import typestore
+    from logs.ros_types import typestore
 
     if msgtype not in typestore().fielddefs:
         raise IngestError(

@@ -58,8 +58,7 @@ import numpy as np
 
 import kd_store
 from core.errors import EngineError
-from kd_store import Level, State, Status
-from maps.frames import (
+from core.geometry import (
     BODY,
     CAMERA,
     LADAR,
@@ -69,9 +68,8 @@ from maps.frames import (
     rpy_to_matrix,
     se3,
 )
-from maps.stack import MapStack
-from maps.terrain import update_terrain
-from sp.logs.types import (
+from kd_store import Level, State, Status
+from logs.types import (
     CameraFrame,
     Frame,
     GroundTruthPose,
@@ -80,6 +78,8 @@ from sp.logs.types import (
     OdometryFrame,
     TransformFrame,
 )
+from maps.stack import MapStack
+from maps.terrain import update_terrain
 from sp.odometry import OdometryError
 from sp.pipeline import SensoryProcessor
 from wm import predict, vj

@@ -30,7 +30,7 @@ import numpy as np
 
 from core.errors import EngineError
 from core.process import die_with_parent
-from sp.logs.types import LadarScan, OdometryFrame
+from logs.types import LadarScan, OdometryFrame
 
 RESULT_TIMEOUT_S = 120.0
 _POLL_S = 0.2  # how often a node waiting for a reply checks that the process still runs

@@ -1,6 +1,6 @@
 """A time-indexed track of rigid poses ``T_world_body``: interpolation, extrapolation, deskew.
 
-Poses are 4x4 float64 ``T_a_b`` (``p_a = T_a_b @ p_b``, maps.frames); times int64 ns.
+Poses are 4x4 float64 ``T_a_b`` (``p_a = T_a_b @ p_b``, core.geometry); times int64 ns.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numba
 import numpy as np
 
 from core.errors import EngineError
-from maps.frames import interpolate_pose, se3_inverse, transform_points
+from core.geometry import interpolate_pose, se3_inverse, transform_points
 
 
 class PoseError(EngineError, ValueError):

@@ -20,10 +20,10 @@ import numpy as np
 import open3d as o3d  # ray casting; imported with the module, not inside the first cycle
 
 import kd_store
+from core.geometry import se3_inverse, transform_points
 from kd_store import Level, State, Status
-from maps.frames import se3_inverse, transform_points
+from logs.types import LadarScan
 from maps.level import MapLevel
-from sp.logs.types import LadarScan
 from wm.config import PredictionConfig
 from wm.shapes import boxes_of
 

@@ -1,6 +1,6 @@
 """The main job: a log through the world-modeling node into a KD, with a summary and pictures.
 
-``run_log(log, kd_path)`` reads any supported log (sp.logs.open_log), feeds every frame to a
+``run_log(log, kd_path)`` reads any supported log (logs.open_log), feeds every frame to a
 :class:`~wm.node.WorldModelNode`, scores against the log's ground truth when it has some
 (:mod:`wm.truth` for odometry and maps, :mod:`wm.evaluation` for the KD's entities), flushes
 the KD and returns a :class:`RunReport` (also written as JSON).
@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 
 import kd_store
+from core.geometry import NS_PER_S
 from kd_store.persist import snapshot_target
-from maps.frames import NS_PER_S
-from sp.logs import LogSource, open_log
-from sp.logs.prefetch import FramePrefetcher
-from sp.logs.types import CameraFrame, Frame, LadarScan, ObjectBoxes, OdometryFrame
+from logs import LogSource, open_log
+from logs.prefetch import FramePrefetcher
+from logs.types import CameraFrame, Frame, LadarScan, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
 from wm.tiles import keep_windows, map_stack_over_kd
@@ -177,7 +177,7 @@ def run_log(
 ) -> RunReport:
     """Run the node over a whole log (or its first ``seconds``); see the module docstring.
     With ``decode_process`` the log is decoded ahead in a child interpreter
-    (:class:`~sp.logs.prefetch.FramePrefetcher`), which takes its few ms per sweep off the
+    (:class:`~logs.prefetch.FramePrefetcher`), which takes its few ms per sweep off the
     node's process (``wm run`` does this unless told ``--decode-in-process``); off here by
     default, since a child's start-up (about 0.3 s) outweighs it on short logs.
 

@@ -2,7 +2,7 @@
 
 :func:`check_frame` looks at one frame on its own (no state of the node): its time is an
 int64-like number of nanoseconds, its arrays have the shapes and dtypes of
-:mod:`sp.logs.types`, its values are finite, its rotations are rotations, its boxes have
+:mod:`logs.types`, its values are finite, its rotations are rotations, its boxes have
 sizes >= 0, its camera intrinsics are a pinhole camera's (:class:`sp.camera.PinholeCamera`,
 the one place those are checked). It returns why the frame must be skipped as
 ``"reason: detail"`` (the node counts it under ``reason``), or None. The node's own checks,
@@ -23,9 +23,8 @@ from collections.abc import Callable
 import numpy as np
 
 from core.errors import EngineError
-from maps.frames import GeometryError, check_pose
-from sp.camera import CameraError, PinholeCamera
-from sp.logs.types import (
+from core.geometry import GeometryError, check_pose
+from logs.types import (
     CameraFrame,
     Frame,
     GroundTruthPose,
@@ -35,6 +34,7 @@ from sp.logs.types import (
     OdometryFrame,
     TransformFrame,
 )
+from sp.camera import CameraError, PinholeCamera
 
 #: a frame time must lie within +-2^62 ns (146 years): room for the offsets added to it in
 #: int64 arithmetic (sweep point times, pose interpolation) without overflow

@@ -122,7 +122,7 @@ class CycleSnapshot:
 class LiveNode:
     """A world-model node fed from a log in a thread of its own (see the module docstring).
 
-    ``log_path``: any log :func:`sp.logs.open_log` reads (None for a node fed otherwise:
+    ``log_path``: any log :func:`logs.open_log` reads (None for a node fed otherwise:
     :class:`wm.ingest.IngestNode`); ``kd_path``: the KD file it writes (``":memory:"`` for
     none); ``rate``: replay speed against the log's stamps (1.0 real time, 0 as fast as
     possible)."""
@@ -209,7 +209,7 @@ class LiveNode:
             self.status.done = True
 
     def _open_source(self) -> Any:
-        from sp.logs import open_log
+        from logs import open_log
 
         return open_log(self.log_path)
 

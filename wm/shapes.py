@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.geometry import quat_to_matrix, yaw_of
 from kd_store import EntityFrame
-from maps.frames import quat_to_matrix, yaw_of
 
 DEFAULT_SIZE_M = (1.0, 1.0, 1.5)
 

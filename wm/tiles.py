@@ -23,7 +23,7 @@ import numpy as np
 
 import kd_store
 from core.errors import EngineError
-from maps.frames import pose_from_xyz_quat
+from core.geometry import pose_from_xyz_quat
 from maps.stack import MapStack, StackConfig
 from maps.tiles import Tile, TileKey
 

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from core.geometry import se3_inverse
+from logs.types import ObjectBoxes
 from maps.apriori import ElevationRaster, load_av2_ground_height
-from maps.frames import se3_inverse
 from maps.level import MapLevel
-from sp.logs.types import ObjectBoxes
 from wm.poses import PoseError, PoseTrack
 
 

@@ -258,7 +258,7 @@ class WhatIf:
         s = self.kd.get(self.self_id).state
         if s is None:
             raise WhatIfError(f"self entity {self.self_id} has no state yet")
-        from maps.frames import quat_to_matrix, yaw_of
+        from core.geometry import quat_to_matrix, yaw_of
 
         yaw = yaw_of(quat_to_matrix(s.orientation_xyzw))
         speed = float(np.hypot(*s.velocity_xyz[:2]))

@@ -30,8 +30,8 @@ import pyarrow as pa
 
 import kd_store
 from core.errors import EngineError
+from core.geometry import quat_to_matrix, se3, se3_inverse
 from kd_store import Box, Circle, State, Status
-from maps.frames import quat_to_matrix, se3, se3_inverse
 from maps.stack import MapStack
 from wm.poses import PoseError, PoseTrack
 

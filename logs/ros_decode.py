@@ -2,7 +2,7 @@
 
 :class:`FrameAssembler` joins the messages of one instant: an image with the depth image and
 camera info of its camera, a box array with its velocities (the topics and layouts are those of
-:mod:`sp.logs.ros_encode`). Frames carry their header stamp (the sensor's time) as ``t_ns``,
+:mod:`logs.ros_encode`). Frames carry their header stamp (the sensor's time) as ``t_ns``,
 while sources yield them in log-time order. ROS 1 messages decoded by rosbags have the same
 field names, so the same code reads them.
 """
@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from maps.frames import NS_PER_S, quat_to_matrix
-from sp.logs.ros_types import ROLE_KIND, Role, frame_topic
-from sp.logs.types import (
+from core.geometry import NS_PER_S, quat_to_matrix
+from logs.ros_types import ROLE_KIND, Role, frame_topic
+from logs.types import (
     CameraFrame,
     Frame,
     GroundTruthPose,

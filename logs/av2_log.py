@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from maps.frames import BODY, WORLD, interpolate_pose, quat_to_matrix
-from sp.logs.source import LogSource, TopicInfo
-from sp.logs.types import Frame, GroundTruthPose, LadarScan, LogError, ObjectBoxes
+from core.geometry import BODY, WORLD, interpolate_pose, quat_to_matrix
+from logs.source import LogSource, TopicInfo
+from logs.types import Frame, GroundTruthPose, LadarScan, LogError, ObjectBoxes
 
 LADAR_TOPIC = "/ladar/points"
 POSE_TOPIC = "/ground_truth/pose"

@@ -12,7 +12,7 @@ threads (DuckDB, numba, BLAS, a test runner) inherits their objects without thei
 and a garbage collection in the child that finalises one of them can crash it (seen: SIGSEGV
 while collecting inside rosbags' type compiler). A fresh interpreter also never re-runs the
 caller's ``__main__``. It opens the log anew as ``type(source)(source.path,
-skip_corrupt=source.skip_corrupt)``, as :func:`~sp.logs.source.open_log` does.
+skip_corrupt=source.skip_corrupt)``, as :func:`~logs.source.open_log` does.
 
 The child never outlives the consumer: on Linux the kernel kills it when the consumer's
 process dies (:func:`core.process.die_with_parent`), and anywhere it exits when the pipe's
@@ -36,11 +36,11 @@ from typing import Any
 
 from core.errors import EngineError
 from core.process import die_with_parent
-from sp.logs.source import LogSource
-from sp.logs.types import Frame
+from logs.source import LogSource
+from logs.types import Frame
 
 _HEADER = struct.Struct("<Q")  # byte length of the pickled message that follows
-_CHILD = "from sp.logs.prefetch import _child_main; _child_main()"
+_CHILD = "from logs.prefetch import _child_main; _child_main()"
 
 
 class PrefetchError(EngineError, RuntimeError):

@@ -6,7 +6,7 @@ ROS 2 message definitions, messages in ``cdr`` encoding, chunked with CRCs, full
 (the tests read them with ``rosbags`` and with the ``mcap`` library's reader and ROS 2
 decoder, which ROS 2 tooling builds on). How each frame maps to
 messages and topics (and why box velocities travel on ``<topic>/velocities``) is in
-:mod:`sp.logs.ros_encode`. Each channel's metadata says the frame kind it carries
+:mod:`logs.ros_encode`. Each channel's metadata says the frame kind it carries
 (``frame_kind``), so ground-truth poses and odometry, both nav_msgs/Odometry, stay apart.
 
 Log time = publish time = the frame's ``t_ns`` (which must be >= 0); header stamps = ``t_ns``.
@@ -46,10 +46,10 @@ from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 
-from sp.logs.mcap_file import MAGIC, McapFileWriter, crc32
-from sp.logs.ros_decode import FrameAssembler
-from sp.logs.ros_encode import encode_frame
-from sp.logs.ros_types import (
+from logs.mcap_file import MAGIC, McapFileWriter, crc32
+from logs.ros_decode import FrameAssembler
+from logs.ros_encode import encode_frame
+from logs.ros_types import (
     KIND_KEY,
     Role,
     frame_topic,
@@ -57,8 +57,8 @@ from sp.logs.ros_types import (
     role_of,
     ros2msg_schema,
 )
-from sp.logs.source import LogSource, TopicInfo, topic_info
-from sp.logs.types import Frame, LogError, ReadStats
+from logs.source import LogSource, TopicInfo, topic_info
+from logs.types import Frame, LogError, ReadStats
 
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end time, uncompressed size, CRC, len(compression)
@@ -149,7 +149,7 @@ class McapWriterConfig:
     compression: Compression = Compression.NONE
     chunk_size_bytes: int = 4 * 1024 * 1024  # uncompressed bytes per chunk
     durable: bool = True  # fsync the file before the rename and the folder after it
-    library: str = "rcs-worldmodel sp.logs"
+    library: str = "rcs-worldmodel logs"
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -168,7 +168,7 @@ class McapLogWriter:
     temporary file, so ``path`` is either a complete log or absent.
 
     >>> with McapLogWriter("run.mcap") as w:       # doctest: +SKIP
-    ...     w.write(scan)                          # any sp.logs.types frame
+    ...     w.write(scan)                          # any logs.types frame
     ...     w.attach("scenario.yaml", text, "application/yaml")
     ...     w.add_metadata("scenario", {"seed": "7"})
     """
@@ -217,7 +217,7 @@ class McapLogWriter:
         return cid
 
     def write(self, frame: Frame) -> None:
-        """Write one frame (any :mod:`sp.logs.types` frame) at log time ``frame.t_ns``."""
+        """Write one frame (any :mod:`logs.types` frame) at log time ``frame.t_ns``."""
         self._check_open()
         t_ns = int(frame.t_ns)
         if t_ns < 0:
@@ -488,7 +488,7 @@ class _ChunkMessages:
 class CdrFrameDecoder:
     """ROS 2 CDR messages in, frames out: ``(topic, msgtype, cdr bytes, log time)`` become the
     frames :class:`McapLogSource` would read of them (the same deserialisers and the same
-    :class:`~sp.logs.ros_decode.FrameAssembler`), for a reader of files and for a live feed.
+    :class:`~logs.ros_decode.FrameAssembler`), for a reader of files and for a live feed.
 
     Feed messages in log-time order: the messages of one instant (one log time) become frames
     when the next instant starts (:meth:`feed` returns them) or at :meth:`flush`. A message type

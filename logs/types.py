@@ -2,7 +2,7 @@
 
 One dataclass per kind of message. Arrays are numpy with the dtypes and shapes stated below;
 times are int64 nanoseconds since the epoch of the log (``t_ns``); lengths are metres; poses
-are 4x4 float64 matrices ``T_parent_child`` (see :mod:`maps.frames`).
+are 4x4 float64 matrices ``T_parent_child`` (see :mod:`core.geometry`).
 
 A log source yields these in time order (by ``t_ns``); ``topic`` says where each came from.
 """

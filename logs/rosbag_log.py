@@ -1,7 +1,7 @@
 """ROS 1 ``.bag`` files and ROS 2 bag folders, read through ``rosbags`` (AnyReader).
 
 Messages come in log-time order across topics and become frames through the same
-:class:`~sp.logs.ros_decode.FrameAssembler` as MCAP logs (ROS 1 messages are decoded by
+:class:`~logs.ros_decode.FrameAssembler` as MCAP logs (ROS 1 messages are decoded by
 rosbags into the same field layout). The bag formats have no attachments or metadata
 records, so those are empty.
 """
@@ -12,10 +12,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from sp.logs.ros_decode import FrameAssembler
-from sp.logs.ros_types import frame_topic, frame_topics_of, role_of
-from sp.logs.source import LogSource, TopicInfo, topic_info
-from sp.logs.types import Frame, LogError
+from logs.ros_decode import FrameAssembler
+from logs.ros_types import frame_topic, frame_topics_of, role_of
+from logs.source import LogSource, TopicInfo, topic_info
+from logs.types import Frame, LogError
 
 
 class RosbagLogSource(LogSource):

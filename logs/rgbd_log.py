@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from maps.frames import CAMERA, NS_PER_S, WORLD
-from sp.logs.source import LogSource, TopicInfo
-from sp.logs.types import CameraFrame, Frame, GroundTruthPose, LogError
+from core.geometry import CAMERA, NS_PER_S, WORLD
+from logs.source import LogSource, TopicInfo
+from logs.types import CameraFrame, Frame, GroundTruthPose, LogError
 
 FRAME_RATE_HZ = 30
 CAMERA_TOPIC = "/camera"

@@ -1,6 +1,6 @@
 """ROS message types for sensor frames: the type store, the message type names, and which
-frame each message feeds (its :class:`Role`), shared by :mod:`sp.logs.ros_encode` and
-:mod:`sp.logs.ros_decode`.
+frame each message feeds (its :class:`Role`), shared by :mod:`logs.ros_encode` and
+:mod:`logs.ros_decode`.
 
 Ground-truth poses and odometry are both nav_msgs/msg/Odometry: a channel is ground truth when
 its MCAP channel metadata says ``frame_kind: ground_truth_pose`` or its topic starts with
@@ -14,7 +14,7 @@ from collections.abc import Iterable
 from functools import cache
 from typing import Any
 
-from sp.logs.types import (
+from logs.types import (
     CameraFrame,
     GroundTruthPose,
     ImuFrame,

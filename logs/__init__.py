@@ -1,11 +1,11 @@
-"""Sensor logs: the frame data model (:mod:`sp.logs.types`), readers and writers.
+"""Sensor logs: the frame data model (:mod:`logs.types`), readers and writers.
 
-``open_log(path)`` reads any supported log as time-ordered frames (:mod:`sp.logs.source`);
-``McapLogWriter`` writes frames as an MCAP file of ROS 2 messages (:mod:`sp.logs.mcap_log`).
+``open_log(path)`` reads any supported log as time-ordered frames (:mod:`logs.source`);
+``McapLogWriter`` writes frames as an MCAP file of ROS 2 messages (:mod:`logs.mcap_log`).
 """
 
-from sp.logs.mcap_log import Compression, McapLogSource, McapLogWriter, McapWriterConfig
-from sp.logs.source import (
+from logs.mcap_log import Compression, McapLogSource, McapLogWriter, McapWriterConfig
+from logs.source import (
     SUPPORTED_FORMATS,
     LogInfo,
     LogSource,
@@ -13,7 +13,7 @@ from sp.logs.source import (
     format_log_info,
     open_log,
 )
-from sp.logs.types import (
+from logs.types import (
     CameraFrame,
     Frame,
     GroundTruthPose,

@@ -2,15 +2,15 @@
 
 ``open_log(path)`` looks at what ``path`` is and returns the matching :class:`LogSource`:
 
-* an ``.mcap`` file (ours or any ROS 2 MCAP with ``cdr`` messages): :mod:`sp.logs.mcap_log`;
-* a ROS 1 ``.bag`` file or a ROS 2 bag folder (``metadata.yaml``): :mod:`sp.logs.rosbag_log`;
-* a KITTI Velodyne folder of ``NNNNNN.bin``: :mod:`sp.logs.kitti_log`;
-* an RGB-D folder in the 7-Scenes layout: :mod:`sp.logs.rgbd_log`;
-* an Argoverse 2 sensor log folder: :mod:`sp.logs.av2_log`.
+* an ``.mcap`` file (ours or any ROS 2 MCAP with ``cdr`` messages): :mod:`logs.mcap_log`;
+* a ROS 1 ``.bag`` file or a ROS 2 bag folder (``metadata.yaml``): :mod:`logs.rosbag_log`;
+* a KITTI Velodyne folder of ``NNNNNN.bin``: :mod:`logs.kitti_log`;
+* an RGB-D folder in the 7-Scenes layout: :mod:`logs.rgbd_log`;
+* an Argoverse 2 sensor log folder: :mod:`logs.av2_log`.
 
-Every source yields the frames of :mod:`sp.logs.types` in time order, reports what it had to
-skip in ``stats`` (:class:`~sp.logs.types.ReadStats`) and raises
-:class:`~sp.logs.types.LogError` (naming the file and the problem) for input it cannot read.
+Every source yields the frames of :mod:`logs.types` in time order, reports what it had to
+skip in ``stats`` (:class:`~logs.types.ReadStats`) and raises
+:class:`~logs.types.LogError` (naming the file and the problem) for input it cannot read.
 In the 4D/RCS reference model (reference 001), "the level 1 SP typically receives data from
 the physical sensors" (section 4.5): a log source stands in for those sensors, and each frame
 it yields is one sample of a sensor's signal, which section 4.4.10 counts as an event at the
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from maps.frames import NS_PER_S
-from sp.logs.types import Frame, LogError, ReadStats, TransformFrame
+from core.geometry import NS_PER_S
+from logs.types import Frame, LogError, ReadStats, TransformFrame
 
 SUPPORTED_FORMATS = (
     "MCAP file with ROS 2 messages (*.mcap)",
@@ -262,11 +262,11 @@ def open_log(path: str | Path, *, skip_corrupt: bool = False) -> LogSource:
 
 
 def _source_type(p: Path) -> type[LogSource] | None:
-    from sp.logs.av2_log import Av2LogSource
-    from sp.logs.kitti_log import KittiLogSource
-    from sp.logs.mcap_log import McapLogSource
-    from sp.logs.rgbd_log import RgbdLogSource
-    from sp.logs.rosbag_log import RosbagLogSource
+    from logs.av2_log import Av2LogSource
+    from logs.kitti_log import KittiLogSource
+    from logs.mcap_log import McapLogSource
+    from logs.rgbd_log import RgbdLogSource
+    from logs.rosbag_log import RosbagLogSource
 
     for source_type in (
         McapLogSource,

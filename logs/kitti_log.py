@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from maps.frames import LADAR, NS_PER_S
-from sp.logs.source import LogSource, TopicInfo
-from sp.logs.types import Frame, LadarScan, LogError
+from core.geometry import LADAR, NS_PER_S
+from logs.source import LogSource, TopicInfo
+from logs.types import Frame, LadarScan, LogError
 
 SCAN_PERIOD_NS = 100_000_000  # 10 Hz
 TOPIC = "/ladar/points"

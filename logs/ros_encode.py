@@ -1,4 +1,4 @@
-"""Sensor frames -> ROS 2 messages (CDR bytes), for :class:`sp.logs.mcap_log.McapLogWriter`.
+"""Sensor frames -> ROS 2 messages (CDR bytes), for :class:`logs.mcap_log.McapLogWriter`.
 
 =================  =====================================  =====================================
 frame              topic(s)                               ROS 2 message type
@@ -40,8 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from maps.frames import NS_PER_S, matrix_to_quat, rot_z
-from sp.logs.ros_types import (
+from core.geometry import NS_PER_S, matrix_to_quat, rot_z
+from logs.ros_types import (
     CAMERA_INFO,
     DETECTION3D_ARRAY,
     FLOAT64_MULTI_ARRAY,
@@ -52,7 +52,7 @@ from sp.logs.ros_types import (
     TF_MESSAGE,
     typestore,
 )
-from sp.logs.types import (
+from logs.types import (
     CameraFrame,
     Frame,
     GroundTruthPose,
