@@ -319,7 +319,9 @@ class FrameAssembler:
             return []
         if role is Role.BOX_VELOCITIES:
             data = np.asarray(msg.data, dtype=np.float64)
-            self._velocities[frame_topic(topic, role)] = data.reshape(-1, 3).copy()
+            dims = msg.layout.dim
+            n = int(dims[1].size) if len(dims) >= 2 and int(dims[1].size) in (3, 4) else 3
+            self._velocities[frame_topic(topic, role)] = data.reshape(-1, n).copy()
             return []
         if role is Role.BOXES:
             return [self._boxes(msg, topic)]
@@ -371,9 +373,7 @@ class FrameAssembler:
             [[o.x, o.y, o.z, o.w] for o in [d.bbox.center.orientation for d in dets]]
         ).reshape(m, 4)
         x, y, z, w = quats.T
-        velocities = self._velocities.pop(topic, None)
-        if velocities is None or velocities.shape[0] != m:
-            velocities = np.full((m, 3), np.nan)
+        velocities, n_returns = _velocities_returns(self._velocities.pop(topic, None), m)
         return ObjectBoxes(
             t_ns=stamp_ns(msg.header),
             frame_id=msg.header.frame_id,
@@ -384,6 +384,7 @@ class FrameAssembler:
             yaws=np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
             velocities=velocities,
             topic=topic,
+            n_returns=n_returns,
         )
 
     def _boxes_reference(self, msg: Any, topic: str) -> ObjectBoxes:
@@ -394,9 +395,7 @@ class FrameAssembler:
             [[d.bbox.center.orientation.__getattribute__(c) for c in "xyzw"] for d in dets]
         ).reshape(m, 4)
         x, y, z, w = quats.T
-        velocities = self._velocities.pop(topic, None)
-        if velocities is None or velocities.shape[0] != m:
-            velocities = np.full((m, 3), np.nan)
+        velocities, n_returns = _velocities_returns(self._velocities.pop(topic, None), m)
         return ObjectBoxes(
             t_ns=stamp_ns(msg.header),
             frame_id=msg.header.frame_id,
@@ -407,6 +406,7 @@ class FrameAssembler:
             yaws=np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
             velocities=velocities,
             topic=topic,
+            n_returns=n_returns,
         )
 
 
@@ -446,3 +446,14 @@ def _scan_of(msg: Any, topic: str, cloud: np.ndarray, xyz: np.ndarray, fields) -
         ring=ring,
         topic=topic,
     )
+
+
+def _velocities_returns(rows: np.ndarray | None, m: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The boxes' velocities (m, 3) m/s and per-box LADAR returns (m,) int64 (or None) from the
+    parallel array's rows (NaN velocities when it is missing or does not fit the boxes)."""
+    if rows is None or rows.shape[0] != m:
+        return np.full((m, 3), np.nan), None
+    returns = None
+    if rows.shape[1] == 4 and np.all(np.isfinite(rows[:, 3])) and np.all(rows[:, 3] >= 0):
+        returns = rows[:, 3].astype(np.int64)  # a damaged count is unknown, not a number
+    return np.ascontiguousarray(rows[:, :3]), returns

@@ -22,9 +22,10 @@ ObjectBoxes        ``topic``                              vision_msgs/msg/Detect
 Detection3D has no velocity field, so box velocities travel on the parallel topic
 ``<topic>/velocities`` as one std_msgs/msg/Float64MultiArray per Detection3DArray, with the
 same log time, rows in the same order as the detections, layout ``[("boxes", M, 3M),
-("vxyz", 3, 3)]`` (row-major M x 3, m/s in the boxes' frame). One Detection3D per box:
-``bbox.center`` = centre and yaw (rotation about z), ``bbox.size`` = full extents,
-``results[0].hypothesis.class_id`` = class name, ``id`` = str(track id).
+("vxyz", 3, 3)]`` (row-major M x 3, m/s in the boxes' frame); when the boxes carry
+``n_returns``, a fourth column holds it: ``[("boxes", M, 4M), ("vxyz_returns", 4, 4)]``.
+One Detection3D per box: ``bbox.center`` = centre and yaw (rotation about z), ``bbox.size`` =
+full extents, ``results[0].hypothesis.class_id`` = class name, ``id`` = str(track id).
 
 Every header stamp is the frame's ``t_ns``. Read back, arrays and times come back exactly;
 poses pass through quaternions (equal to ~1e-15) and yaws come back wrapped to (-pi, pi].
@@ -368,12 +369,18 @@ def _encode_boxes(b: ObjectBoxes) -> list[Encoded]:
         )
     boxes = _t(DETECTION3D_ARRAY)(header=header, detections=detections)
     dim = _t("std_msgs/msg/MultiArrayDimension")
+    rows = np.asarray(b.velocities, dtype=np.float64).reshape(m, 3)
+    label = "vxyz"
+    if b.n_returns is not None:
+        returns = np.asarray(b.n_returns, dtype=np.float64).reshape(m, 1)
+        rows, label = np.hstack([rows, returns]), "vxyz_returns"
+    n = rows.shape[1]
     velocities = _t(FLOAT64_MULTI_ARRAY)(
         layout=_t("std_msgs/msg/MultiArrayLayout")(
-            dim=[dim(label="boxes", size=m, stride=3 * m), dim(label="vxyz", size=3, stride=3)],
+            dim=[dim(label="boxes", size=m, stride=n * m), dim(label=label, size=n, stride=n)],
             data_offset=0,
         ),
-        data=_f64(b.velocities, 3 * m),
+        data=_f64(rows, n * m),
     )
     return [
         Encoded(

@@ -128,6 +128,9 @@ class ObjectBoxes:
     sizes:       (M, 3) float64 full extents along the box's own x, y, z, metres.
     yaws:        (M,) float64 heading about z, radians.
     velocities:  (M, 3) float64 m/s in ``frame_id``.
+    n_returns:   (M,) int64 returns of the LADAR sweep starting at ``t_ns`` that hit each
+                 object (ground truth per return, as a labelled point cloud gives it), or
+                 None when the log does not say.
     """
 
     t_ns: int
@@ -139,6 +142,7 @@ class ObjectBoxes:
     yaws: np.ndarray
     velocities: np.ndarray
     topic: str = "/ground_truth/objects"
+    n_returns: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])

@@ -39,17 +39,23 @@ def _box_set(t_ns: int, boxes: list[tuple]) -> ObjectBoxes:
 
 
 def _truth(
-    poses: list[np.ndarray], boxes: list[tuple], points_per_box: dict[int, int] | None = None
+    poses: list[np.ndarray],
+    boxes: list[tuple],
+    points_per_box: dict[int, int] | None = None,
+    returns_on: dict[int, int] | None = None,
 ) -> Truth:
     """A truth of len(poses) sweeps at k * DT with the same static boxes at every time, and a
     sweep per time holding ``points_per_box[id]`` returns (default 10) at each box's centre
-    (LADAR frame = body frame)."""
+    (LADAR frame = body frame). ``returns_on``: the log's own count of each sweep's returns
+    on each object (``ObjectBoxes.n_returns``), when it has one."""
     track = unbounded_track()
     sweeps, sets = [], []
     for k, T in enumerate(poses):
         t = k * DT
         track.add(t, T)
         sets.append(_box_set(t, boxes))
+        if returns_on is not None:
+            sets[-1].n_returns = np.array([returns_on.get(b[0], 0) for b in boxes])
         pts = [
             np.repeat([[b[2][0], b[2][1], 1.0]], (points_per_box or {}).get(b[0], 10), axis=0)
             for b in boxes
@@ -276,3 +282,21 @@ def test_claimed_classes_go_up_the_library_never_down() -> None:
     assert "tree" not in predicted_classes(["object", "vegetation"], None, is_a)
     assert predicted_classes(None, "tree", is_a) == {"tree", "vegetation"}
     assert predicted_classes(["REGULAR_VEHICLE"], None, {}) == {"vehicle"}
+
+
+def test_seen_is_the_returns_on_the_object_when_the_log_counts_them():
+    # box 6 has 10 returns in its box, all on something else (the ground under a car seen
+    # through a gap): the log's count of returns on it says 0, so it is not scored; box 7 has
+    # none in its box but the log counts 10 on it, so it is scored (and missed)
+    boxes = [
+        (6, "vehicle", (10.0, 0.0), (4.0, 2.0), 0.0),
+        (7, "vehicle", (20.0, 5.0), (4.0, 2.0), 0.0),
+    ]
+    in_box = {6: 10, 7: 0}
+    s = _score(_truth(STILL, boxes, in_box, returns_on={7: 10}), _kd(STILL, {}))
+    assert s["num_objects"] == 10 and s["num_misses"] == 10
+    assert _truth(STILL, boxes, in_box, returns_on={7: 10}).seen[0].count(
+        np.array([6, 7])
+    ).tolist() == [0, 10]
+    # without the log's count: the returns in the grown box
+    assert _truth(STILL, boxes, in_box).seen[0].count(np.array([6, 7])).tolist() == [10, 0]

@@ -97,6 +97,7 @@ def make_frames(seed: int = 0) -> list:
             sizes=rng.uniform(0.3, 5, (3, 3)),
             yaws=np.array([0.25, -2.5, 3.0]),
             velocities=rng.normal(size=(3, 3)),
+            n_returns=np.array([12, 0, 2**20]),  # truth per return, simulated logs carry it
         ),
         ObjectBoxes(
             T0 + 70,
@@ -245,7 +246,11 @@ def test_mcap_library_with_ros2_decoder_reads_our_mcap(written) -> None:
     )
     name, vel = decoded["/ground_truth/objects/velocities"]
     assert name == "std_msgs/msg/Float64MultiArray"
-    np.testing.assert_array_equal(np.reshape(vel.data, (-1, 3)), boxes.velocities)
+    # the layout says what a row holds: velocities, then the returns on each box
+    assert [(d.label, d.size) for d in vel.layout.dim] == [("boxes", 3), ("vxyz_returns", 4)]
+    rows = np.reshape(vel.data, (-1, 4))
+    np.testing.assert_array_equal(rows[:, :3], boxes.velocities)
+    np.testing.assert_array_equal(rows[:, 3], boxes.n_returns)
     name, info = decoded["/camera/camera_info"]
     assert name == "sensor_msgs/msg/CameraInfo" and info.distortion_model == "plumb_bob"
     np.testing.assert_array_equal(np.reshape(info.k, (3, 3)), cam.K)

@@ -51,7 +51,7 @@ class EvalConfig:
     match_m: float = 1.0  # largest footprint distance of a match
     state_window_ns: int = 250_000_000  # a hypothesis needs a state in (t - window, t]
     truth_dt_ns: int = 100_000_000  # truth boxes at most this far from t
-    min_points: int = 5  # fewer LADAR returns in the grown box: "don't care"
+    min_points: int = 5  # fewer LADAR returns on the object (or in its grown box): "don't care"
     box_grow_m: float = 0.1  # each box grown by this on every side to count returns
     static_speed_mps: float = 0.05  # a true speed below this is static
     deskew_bins: int = 8  # slices of a sweep moved each with its own true pose
@@ -132,20 +132,27 @@ class Truth:
 
 
 def see(truth: Truth, sweep: Sweep, config: EvalConfig) -> Seen:
-    """What ``sweep`` saw of the truth boxes nearest its middle (moved to it): the returns,
-    each moved to the true world with the true pose at its own time, inside each box within
-    reach of the true body, grown by ``box_grow_m``."""
+    """What ``sweep`` saw of the truth boxes nearest its middle (moved to it), for each box
+    within reach of the true body: the sweep's returns on the object itself where the log says
+    (``ObjectBoxes.n_returns`` of the box set stamped at the sweep's start: ground truth per
+    return); otherwise its returns, each moved to the true world with the true pose at its own
+    time, inside the box grown by ``box_grow_m``."""
     t = sweep.mid_ns
     got = truth_at(truth, t, config) if truth.boxes else None
     if got is None or not truth.poses.covers(t):
         return Seen(t, None, np.zeros(0, dtype=np.int64))
     boxes, centers = got
+    labelled = _returns_of_sweep(truth, sweep.t_ns)
     T_body_world = se3_inverse(truth.poses.at(t))
     c_body = transform_points(T_body_world, centers)
     yaw_body = boxes.yaws + math.atan2(T_body_world[1, 0], T_body_world[0, 0])
     reach = config.range_m + config.dont_care_band_m
     rng = footprint_distance(np.zeros((1, 2)), c_body[:, :2], boxes.sizes[:, :2], yaw_body)[:, 0]
     near = np.flatnonzero(rng < reach)
+    if labelled is not None:
+        lookup = dict(zip(labelled.ids.tolist(), labelled.n_returns.tolist(), strict=True))
+        counts = np.array([lookup.get(int(i), 0) for i in boxes.ids[near]], dtype=np.int64)
+        return Seen(t, boxes.ids[near].astype(np.int64), counts)
     try:
         p_world = deskew_to_world(
             sweep.points_xyz, sweep.t_offset_ns, sweep.t_ns, truth.poses, truth.T_body_ladar,
@@ -157,6 +164,16 @@ def see(truth: Truth, sweep: Sweep, config: EvalConfig) -> Seen:
         p_world, centers[near], boxes.sizes[near], boxes.yaws[near], config.box_grow_m
     )
     return Seen(t, boxes.ids[near].astype(np.int64), counts)
+
+
+def _returns_of_sweep(truth: Truth, sweep_t_ns: int) -> Any | None:
+    """The box set stamped at the sweep's start when it counts the sweep's returns per object
+    (the simulator's truth), else None."""
+    bt = truth.box_t_ns
+    k = int(np.searchsorted(bt, sweep_t_ns))
+    if k < len(bt) and int(bt[k]) == sweep_t_ns and truth.boxes[k].n_returns is not None:
+        return truth.boxes[k]
+    return None
 
 
 def unbounded_track() -> PoseTrack:

@@ -172,7 +172,7 @@ def truth_boxes_to_world(boxes: ObjectBoxes, T_world_frame: np.ndarray) -> Objec
         boxes.t_ns, "world", boxes.ids,
         [CLASS_ALIASES.get(c, c) for c in boxes.classes],
         boxes.centers @ R.T + t, boxes.sizes, boxes.yaws + yaw,
-        np.nan_to_num(boxes.velocities) @ R.T, boxes.topic,
+        np.nan_to_num(boxes.velocities) @ R.T, boxes.topic, boxes.n_returns,
     )  # fmt: skip
 
 
