@@ -1,7 +1,8 @@
 """Benchmarks of SP levels 2-5 (``python -m bench sp_levels``).
 
-1. One 64 x 1024 simulated sweep through :meth:`SensoryProcessor.process` (levels 2-5 with its
-   KD writes) together with the latest camera image (the confirmed objects' appearance,
+1. One 64 x 1024 simulated sweep through SP levels 1-5 and the world model's entity update
+   (:class:`wm.entities.KDSensoryProcessor`: SP, then its observations written into the KD)
+   together with the latest camera image (the confirmed objects' appearance,
    :mod:`sp.appearance`), median over sweeps of the default drive after a warm-up (target
    40 ms).
 2. Association plus filter updates for 50 tracks: our batched filters and gated optimal
@@ -26,8 +27,8 @@ from fixtures.scenario import load_scenario
 from fixtures.sensors import LADAR_BENCH, SensorSuiteConfig
 from fixtures.simulate import Simulator
 from logs.types import CameraFrame, GroundTruthPose, LadarScan, TransformFrame
-from sp.pipeline import SensoryProcessor
 from sp.tracking import F_Q, Measurements, Tracker, TrackerConfig
+from wm.entities import KDSensoryProcessor
 
 N_TRACKS = 50
 
@@ -38,7 +39,7 @@ def bench_sweep(seconds: float = 6.0, warmup: int = 10) -> float:
     )
     sim = Simulator(scenario)
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd)
+    sp = KDSensoryProcessor(kd)
     T_body_ladar = T_world_body = T_body_camera = None
     camera: CameraFrame | None = None
     times = []

@@ -29,7 +29,7 @@ What a real sensor shows of an object is not its prototype, and three rules say 
 
 Extents alone do not tell a piece of a wall from a car's side, nor a tree crown from a car, nor
 a standing person from a post, so objects also carry the shape of their points as a LADAR
-sees them (``sp.pipeline.SHAPE_KEYS``, averaged over the sweeps that saw a surface of points):
+sees them (``sp.level4_objects.SHAPE_KEYS``, averaged over the sweeps that saw a surface of points):
 ``verticality`` (|z| of the normal of the points' best plane: 0 for a wall, a building front,
 a post or an upright person; a car's hood and roof face up), ``thickness_m`` (their spread
 across that plane: a wall piece is a plane, a car a bent one, a crown a volume of leaves) and
@@ -70,7 +70,7 @@ EPS: dict[str, float] = {
     "contrast": 0.05,
     "reflectance": 0.05,
     "camera_intensity": 0.05,
-    # shape of an object's points (sp.pipeline.SHAPE_KEYS): floors near a LADAR's range noise
+    # shape of an object's points (sp.level4_objects.SHAPE_KEYS): floors near a LADAR's range noise
     # (a few cm), so a plane's 0.005 m and 0.02 m thickness are both "planar"
     "thickness_m": 0.02,
     "breadth_m": 0.05,

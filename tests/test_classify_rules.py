@@ -10,7 +10,7 @@ import kd_store
 from kd_store import Level, Status
 from sp.classify import Classifier
 from sp.computation import SegmentAttributes
-from sp.pipeline import SensoryProcessor
+from wm.entities import KDSensoryProcessor
 
 
 def _object_classifier() -> Classifier:
@@ -39,7 +39,7 @@ def _shape(
     c: Classifier, lwh: tuple[float, float, float], speed: float, **shape: float
 ) -> str | None:
     """Class of an object of extents ``lwh`` (m), speed (m/s) and shape attributes of its
-    points (sp.pipeline.SHAPE_KEYS: thickness_m, verticality, breadth_m ...)."""
+    points (sp.level4_objects.SHAPE_KEYS: thickness_m, verticality, breadth_m ...)."""
     row = {"length_m": lwh[0], "width_m": lwh[1], "height_m": lwh[2], "speed_mps": speed}
     return c.classify(row | shape).name
 
@@ -107,7 +107,7 @@ def test_motion_is_evidence_against_static_classes_only() -> None:
 
 def test_static_persons_make_no_convoy_and_groups_earn_confirmation() -> None:
     from sp.groups import GroupConfig, group_labels
-    from sp.pipeline import MOBILE_CLASSES
+    from sp.level5_groups import MOBILE_CLASSES
 
     # the link rule the pipeline feeds: velocities of members not sure to move are zero
     xy = np.array([[0.0, 0.0], [3.0, 0.0], [6.0, 0.0]])
@@ -120,15 +120,16 @@ def test_static_persons_make_no_convoy_and_groups_earn_confirmation() -> None:
 
 def test_a_group_is_hypothesized_until_its_confidence_confirms_it() -> None:
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd)
+    sp = KDSensoryProcessor(kd)
     tc = sp.config.tracker
     gid = kd.add_entity("g", Level.GROUP, confidence=tc.confidence0).id
     members = frozenset(kd.add_entity(f"o{i}", Level.OBJECT).id for i in range(2))
     statuses = []
     for k in range(4):
         events: list[int] = []
-        sp._group_confidence(gid, 1000 + k, members, events)
-        sp.groups = {gid: members}
+        sp.level5.filter(gid, 1000 + k, members, events)
+        sp.write_pending()  # the world model's entity update
+        sp.level5.groups = {gid: members}
         statuses.append(kd.get(gid).status)
     assert statuses[0] == Status.HYPOTHESIZED  # a group seen once is not confirmed
     assert Status.CONFIRMED in statuses
@@ -152,14 +153,14 @@ def _segments(**over: float) -> SegmentAttributes:
 
 
 def test_shape_is_averaged_over_sweeps_that_saw_a_surface_only() -> None:
-    sp = SensoryProcessor(kd_store.open(":memory:"))
-    sp._observe_shape(7, _segments(), 0)
-    first = sp._shape_of(7)
+    sp = KDSensoryProcessor(kd_store.open(":memory:"))
+    sp.level4.observe_shape(7, _segments(), 0)
+    first = sp.level4.shape_of(7)
     assert first["thickness_m"] == 0.01 and first["verticality"] == 0.02
     # one scan row of the same wall: a line, whose "normal" points anywhere
-    sp._observe_shape(7, _segments(breadth_m=0.01, verticality=0.97, length_m=9.0), 0)
-    after = sp._shape_of(7)
+    sp.level4.observe_shape(7, _segments(breadth_m=0.01, verticality=0.97, length_m=9.0), 0)
+    after = sp.level4.shape_of(7)
     assert after["verticality"] == 0.02  # the line said nothing of the surface
     assert after["longest_m"] == 9.0  # but more of the wall came into view
     assert 0.01 < after["breadth_m"] < 0.6
-    assert sp._shape_of(8) == {}  # never observed: the classifier leaves shape out
+    assert sp.level4.shape_of(8) == {}  # never observed: the classifier leaves shape out

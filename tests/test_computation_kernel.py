@@ -207,9 +207,10 @@ def pipeline_calls():
     """The arguments of every segment_attributes call of the pipeline on a few simulated
     sweeps (before and after the merge of collinear pieces)."""
     import kd_store
-    import sp.pipeline
+    import sp.level4_objects
     from fixtures.simulate import simulate
     from logs.types import GroundTruthPose, LadarScan, TransformFrame
+    from wm.entities import KDSensoryProcessor
 
     calls = []
 
@@ -218,9 +219,9 @@ def pipeline_calls():
         return segment_attributes(*args, **kwargs)
 
     mp = pytest.MonkeyPatch()
-    mp.setattr(sp.pipeline, "segment_attributes", recording)
+    mp.setattr(sp.level4_objects, "segment_attributes", recording)
     try:
-        proc = sp.pipeline.SensoryProcessor(kd_store.open(":memory:"))
+        proc = KDSensoryProcessor(kd_store.open(":memory:"))
         T_body_ladar = T_world_body = None
         for f in simulate("default", seconds=0.35):
             if isinstance(f, TransformFrame) and f.child_frame_id == "ladar":

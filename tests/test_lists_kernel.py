@@ -227,8 +227,8 @@ def test_range_edges_fall_back_to_the_reference_where_numpy_would_widen() -> Non
 
 
 def lists_inputs(s: Sweep, seed: int) -> tuple:
-    """The arguments of list_slots_and_sums as SensoryProcessor._lists builds them: range and
-    brightness edges of the sweep, free-surface patches, and a table of the existing lists
+    """The arguments of list_slots_and_sums as sp.level2_lists.ListLevel.group builds them:
+    range and brightness edges of the sweep, free-surface patches, and a table of the existing lists
     with some (owner, kind) keys still missing and one too large for it."""
     g = np.random.default_rng(seed)
     r_edge = range_edges(s.range_m, s.valid)

@@ -11,7 +11,8 @@ import kd_store
 from kd_store import ClassLibrary, Level
 from kd_store.classes import ClassPrototype
 from sp.classify import Classifier
-from sp.pipeline import SensoryProcessor, SPConfig
+from sp.pipeline import SPConfig
+from wm.entities import KDSensoryProcessor
 
 APPEARANCE = ("reflectance", "camera_intensity")
 
@@ -61,18 +62,18 @@ def test_appearance_tips_a_size_ambiguous_object() -> None:
 
 def test_pipeline_passes_only_observed_appearance() -> None:
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd, SPConfig(intensity_per_reflectance=200.0))
-    assert sp._appearance_of(5) == {}
-    sp._observe_appearance(sp.track_reflectance, 5, 100.0)
-    sp._observe_appearance(sp.track_reflectance, 5, 140.0)  # running mean, gain 0.3
-    sp._observe_appearance(sp.track_reflectance, 5, math.nan)  # ignored
-    assert sp._appearance_of(5) == {"reflectance": pytest.approx(112.0 / 200.0)}
-    sp._observe_appearance(sp.track_camera, 5, 0.25)
-    assert sp._appearance_of(5)["camera_intensity"] == 0.25
-    off = SensoryProcessor(kd_store.open(":memory:"), SPConfig(appearance_classes=False))
-    off._observe_appearance(off.track_camera, 5, 0.25)
-    assert off._appearance_of(5) == {}
-    unknown = SensoryProcessor(kd_store.open(":memory:"))  # LADAR units unknown: camera only
-    unknown._observe_appearance(unknown.track_reflectance, 5, 100.0)
-    unknown._observe_appearance(unknown.track_camera, 5, 0.25)
-    assert unknown._appearance_of(5) == {"camera_intensity": 0.25}
+    sp = KDSensoryProcessor(kd, SPConfig(intensity_per_reflectance=200.0))
+    assert sp.level4.appearance_of(5) == {}
+    sp.level4.observe_appearance(sp.level4.track_reflectance, 5, 100.0)
+    sp.level4.observe_appearance(sp.level4.track_reflectance, 5, 140.0)  # running mean, gain 0.3
+    sp.level4.observe_appearance(sp.level4.track_reflectance, 5, math.nan)  # ignored
+    assert sp.level4.appearance_of(5) == {"reflectance": pytest.approx(112.0 / 200.0)}
+    sp.level4.observe_appearance(sp.level4.track_camera, 5, 0.25)
+    assert sp.level4.appearance_of(5)["camera_intensity"] == 0.25
+    off = KDSensoryProcessor(kd_store.open(":memory:"), SPConfig(appearance_classes=False))
+    off.level4.observe_appearance(off.level4.track_camera, 5, 0.25)
+    assert off.level4.appearance_of(5) == {}
+    unknown = KDSensoryProcessor(kd_store.open(":memory:"))  # LADAR units unknown: camera only
+    unknown.level4.observe_appearance(unknown.level4.track_reflectance, 5, 100.0)
+    unknown.level4.observe_appearance(unknown.level4.track_camera, 5, 0.25)
+    assert unknown.level4.appearance_of(5) == {"camera_intensity": 0.25}

@@ -13,7 +13,8 @@ from test_sp_levels_eval import MotTally, points_in_boxes, score_cycle
 import kd_store
 from bench.results import record
 from logs.types import CameraFrame, GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
-from sp.pipeline import SensoryProcessor, SPConfig
+from sp.pipeline import SPConfig
+from wm.entities import KDSensoryProcessor
 
 CMD = "make eval"
 
@@ -27,7 +28,7 @@ def run_with_camera(
 
     kd = kd_store.open(":memory:")
     cfg = SPConfig(appearance_classes=appearance, intensity_per_reflectance=reflectance)
-    sp = SensoryProcessor(kd, cfg)
+    sp = KDSensoryProcessor(kd, cfg)
     tally = MotTally()
     T_body_ladar = T_body_camera = T_world_body = None
     boxes: ObjectBoxes | None = None
@@ -80,7 +81,7 @@ def test_eval_free_surfaces_cover_the_true_walls() -> None:
     from fixtures.simulate import simulate
 
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd)
+    sp = KDSensoryProcessor(kd)
     T_body_ladar = T_world_body = boxes = None
     hit = on = surf = 0
     for f in simulate("default", seconds=1.0):

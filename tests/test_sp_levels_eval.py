@@ -26,7 +26,8 @@ from scipy.optimize import linear_sum_assignment
 import kd_store
 from logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 from sp.egosphere import EgosphereConfig
-from sp.pipeline import SensoryProcessor, SPConfig
+from sp.pipeline import SPConfig
+from wm.entities import KDSensoryProcessor
 
 MIN_POINTS = 20
 BOX_MARGIN_M = 0.3
@@ -80,7 +81,7 @@ class MotTally:
         }
 
 
-def score_cycle(tally: MotTally, kd, sp: SensoryProcessor, result, boxes: ObjectBoxes) -> None:
+def score_cycle(tally: MotTally, kd, sp: KDSensoryProcessor, result, boxes: ObjectBoxes) -> None:
     """Match this cycle's confirmed tracks with the visible true boxes and count."""
     pts = result.points_world
     in_box = points_in_boxes(pts, boxes, BOX_MARGIN_M)
@@ -127,7 +128,7 @@ def score_cycle(tally: MotTally, kd, sp: SensoryProcessor, result, boxes: Object
                 float(np.sum((st.velocity_xyz[:2] - boxes.velocities[k][:2]) ** 2))
             )
         if cls in OBJECT_CLASSES:
-            got = sp.track_class.get(tid, (None, 0.0))[0]
+            got = sp.level4.track_class.get(tid, (None, 0.0))[0]
             tally.cls_n += 1
             tally.cls_ok += int(got == cls)
             tally.confusion[(cls, str(got))] = tally.confusion.get((cls, str(got)), 0) + 1
@@ -140,7 +141,7 @@ def run_simulated(
     from fixtures.simulate import simulate
 
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd, SPConfig())
+    sp = KDSensoryProcessor(kd, SPConfig())
     tally = MotTally()
     T_body_ladar = T_world_body = None
     boxes: ObjectBoxes | None = None
@@ -352,7 +353,7 @@ def run_av2(folder: Path) -> dict[str, float | str]:
     labels = _feather(folder / "flow_labels.feather")
     cfg = av2_egosphere()
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd, SPConfig(egosphere=cfg))
+    sp = KDSensoryProcessor(kd, SPConfig(egosphere=cfg))
     out: dict[str, float | str] = {}
     for k, t_ns in enumerate(AV2_SWEEPS_NS):
         c = _feather(folder / "sensors" / "lidar" / f"{t_ns}.feather")

@@ -15,7 +15,8 @@ from logs.types import CameraFrame, LadarScan
 from sp.appearance import object_appearance
 from sp.computation import ground_below, segment_attributes
 from sp.egosphere import EgosphereConfig
-from sp.pipeline import SensoryProcessor, SPConfig, evident_speed, terrain_patch
+from sp.level3_surfaces import terrain_patch
+from sp.pipeline import SPConfig
 from sp.segments import merge_collinear
 from sp.tracking import (
     Measurements,
@@ -23,8 +24,10 @@ from sp.tracking import (
     TrackerConfig,
     TrackStatus,
     associate,
+    evident_speed,
     measurement_R,
 )
+from wm.entities import KDSensoryProcessor
 
 SWEEP_NS = 100_000_000
 
@@ -55,7 +58,7 @@ def test_deskew_puts_a_static_wall_back_in_place() -> None:
     p_world = _wall_world()
     v = 10.0
     cfg = SPConfig(egosphere=EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1))
-    sp = SensoryProcessor(kd_store.open(":memory:"), cfg)
+    sp = KDSensoryProcessor(kd_store.open(":memory:"), cfg)
     errors = []
     for k in range(2):
         t = k * SWEEP_NS
@@ -236,7 +239,7 @@ def test_evident_speed_is_zero_within_the_uncertainty() -> None:
 def test_a_one_sweep_blob_gets_no_frame_and_no_event() -> None:
     kd = kd_store.open(":memory:")
     cfg = SPConfig(egosphere=EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1))
-    sp = SensoryProcessor(kd, cfg)
+    sp = KDSensoryProcessor(kd, cfg)
     wall = _wall_world(15.0)
     r0 = sp.process(_moving_sweep(wall, 0, 0.0), _pose(0, 0.0))
     assert not r0.objects and not kd.events(class_name="appeared")
@@ -285,7 +288,7 @@ def test_appearance_is_the_mean_grey_where_the_returns_land() -> None:
 def test_pipeline_writes_camera_appearance_of_confirmed_objects() -> None:
     kd = kd_store.open(":memory:")
     cfg = SPConfig(egosphere=EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1))
-    sp = SensoryProcessor(kd, cfg)
+    sp = KDSensoryProcessor(kd, cfg)
     wall = _wall_world(15.0)
     wall = wall[wall[:, 1] > 0.5]  # only the left half: all of it lands on grey 200
     cam, T_cam = _camera()

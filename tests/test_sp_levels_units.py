@@ -14,9 +14,9 @@ from kd_store import Level, Status
 from logs.types import LadarScan
 from sp.classify import Classifier
 from sp.computation import ground_below, segment_attributes
+from sp.context import IMAGE_NAMES
 from sp.ground import GroundConfig, ground_mask
 from sp.groups import group_labels, match_groups
-from sp.pipeline import IMAGE_NAMES, SensoryProcessor
 from sp.segments import label_objects, range_edges
 from sp.tracking import (
     F_Q,
@@ -28,6 +28,7 @@ from sp.tracking import (
     update,
 )
 from sp.windowing import window_mask
+from wm.entities import KDSensoryProcessor
 
 H, W = 32, 360
 EL = np.deg2rad(np.linspace(2.0, -25.0, H))  # row 0 highest
@@ -283,7 +284,7 @@ def test_pipeline_images_point_to_frames_and_back() -> None:
 
     kd = kd_store.open(":memory:")
     cfg = SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W, max_returns=1))
-    sp = SensoryProcessor(kd, cfg)
+    sp = KDSensoryProcessor(kd, cfg)
     T = np.eye(4)
     T[2, 3] = SENSOR_H
     result = None
@@ -337,7 +338,7 @@ def test_a_failing_sweep_is_skipped_and_tracks_kept() -> None:
     from sp.egosphere import EgosphereConfig
     from sp.pipeline import SPConfig
 
-    sp = SensoryProcessor(
+    sp = KDSensoryProcessor(
         kd, SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W, max_returns=1))
     )
     T = np.eye(4)
@@ -362,23 +363,24 @@ def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_agai
     """A list starts hypothesized; seen three sweeps running it is confirmed, while one seen
     once and never again is denied after its confidence decays below the deny threshold."""
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd)
+    sp = KDSensoryProcessor(kd)
     tc = sp.config.tracker
     lids = [
         kd.add_entity(f"list {i}", Level.LIST, status=Status.HYPOTHESIZED, confidence=0.3).id
         for i in range(2)
     ]
-    sp._list_ids = np.array(lids, dtype=np.int64)
-    sp._list_conf = np.full(2, tc.confidence0)
-    sp._list_hits = np.zeros(2, dtype=np.int64)
-    sp._list_open = np.ones(2, dtype=bool)
-    sp._list_key = np.array([4 * 7, 4 * 7 + 1], dtype=np.int64)  # owner 7, two kinds
-    sp._list_dead = np.zeros(2, dtype=bool)
-    sp._list_lut[[28, 29]] = [0, 1]
-    sp._lists_of[7] = list(lids)
+    sp.level2.ids = np.array(lids, dtype=np.int64)
+    sp.level2.conf = np.full(2, tc.confidence0)
+    sp.level2.hits = np.zeros(2, dtype=np.int64)
+    sp.level2.open = np.ones(2, dtype=bool)
+    sp.level2.key = np.array([4 * 7, 4 * 7 + 1], dtype=np.int64)  # owner 7, two kinds
+    sp.level2.dead = np.zeros(2, dtype=bool)
+    sp.level2.lut[[28, 29]] = [0, 1]
+    sp.level2.lists_of[7] = list(lids)
     statuses = []
     for sweep in range(8):
-        sp._list_confidence(np.array([0, 1] if sweep == 0 else [0]))
+        sp.level2.filter(np.array([0, 1] if sweep == 0 else [0]))
+        sp.write_pending()  # the world model's entity update
         statuses.append((kd.get(lids[0]).status, kd.get(lids[1]).status))
     assert [s[0] for s in statuses[:2]] == [Status.HYPOTHESIZED] * 2
     assert statuses[2][0] == Status.CONFIRMED and kd.get(lids[0]).confidence >= tc.confirm
@@ -386,4 +388,5 @@ def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_agai
     assert 2 <= first_denied <= 6 and kd.get(lids[1]).confidence < tc.deny
     assert statuses[-1] == (Status.CONFIRMED, Status.DENIED)
     # the denied list is no longer its owner's, and its (owner, kind) would start a new one
-    assert sp._lists_of[7] == [lids[0]] and sp._list_lut[29] == -1 and sp._list_lut[28] == 0
+    assert sp.level2.lists_of[7] == [lids[0]] and sp.level2.lut[29] == -1
+    assert sp.level2.lut[28] == 0

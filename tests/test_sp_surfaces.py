@@ -13,9 +13,10 @@ import pytest
 import kd_store
 from kd_store import Level, Status
 from logs.types import LadarScan
+from sp.context import IMAGE_NAMES
 from sp.egosphere import EgosphereConfig
 from sp.lists import ListConfig, patch_grid
-from sp.pipeline import IMAGE_NAMES, SensoryProcessor, SPConfig
+from sp.pipeline import SPConfig
 from sp.surfaces import (
     N_PLANE,
     N_STATE,
@@ -37,6 +38,7 @@ from sp.surfaces import (
     update,
 )
 from sp.tracking import TrackStatus
+from wm.entities import KDSensoryProcessor
 
 H, W = 32, 360
 EL = np.deg2rad(np.linspace(2.0, -25.0, H))  # row 0 highest
@@ -74,12 +76,12 @@ def _scan(xyz: np.ndarray, valid: np.ndarray, t_ns: int) -> LadarScan:
     return LadarScan(t_ns, "ladar", pts, np.full(n, 0.5, np.float32), np.zeros(n, np.int64), ring)
 
 
-def _sp(kd: kd_store.KnowledgeDatabase) -> SensoryProcessor:
+def _sp(kd: kd_store.KnowledgeDatabase) -> KDSensoryProcessor:
     cfg = SPConfig(
         egosphere=EgosphereConfig(n_rows=H, n_cols=W, max_returns=1),
         surfaces=SurfaceConfig(confirm_hits=2),
     )
-    return SensoryProcessor(kd, cfg)
+    return KDSensoryProcessor(kd, cfg)
 
 
 def _pose(dx: float = 0.0) -> np.ndarray:
@@ -353,7 +355,7 @@ def test_pipeline_free_surface_on_the_wall_persists_and_touches_the_ground() -> 
         assert np.mean(img3[wall & ~r.ground_mask] == on[0]) > 0.85
         first = int(on[0]) if first is None else first
         assert on[0] == first  # the same surface from sweep to sweep
-    g = kd.get(sp.ground_id)  # the ground plane: flat, under the sensor at world z = 0
+    g = kd.get(sp.level3.ground_id)  # the ground plane: flat, under the sensor at world z = 0
     assert g.attributes["slope_rad"].observed < 0.01
     assert g.attributes["roughness_m"].observed < 0.01
     assert g.state.position_xyz[2] == pytest.approx(0.0, abs=0.02)
@@ -366,7 +368,7 @@ def test_pipeline_free_surface_on_the_wall_persists_and_touches_the_ground() -> 
     # its ground contact: a level-2 list of the surface, on the ground, on the bottom row
     contact = [i for i in kd.parts(first) if kd.get(i).name.startswith("contact")]
     assert len(contact) == 1
-    assert sp.ground_id in kd.pointers(contact[0], "on_top_of")
+    assert sp.level3.ground_id in kd.pointers(contact[0], "on_top_of")
     rows, cols = np.nonzero(r.entity_images[2] == contact[0])
     assert rows.size >= 20 and np.all(r.ground_mask[rows + 1, cols])
     # its surface patches: a level-2 list of kind surface_patch, classified so
@@ -400,7 +402,7 @@ def test_class_images_agree_with_the_kd_and_value_images_with_the_library() -> N
             assert len(got) == 1  # one class per entity
             c = got.pop()
             if level == 4:
-                want = sp.track_class.get(int(i), (None, 0))[0]
+                want = sp.level4.track_class.get(int(i), (None, 0))[0]
                 assert (names[c] if c >= 0 else None) == want
             else:
                 assert c >= 0 and names[c] == f.generic_classes[-1]
@@ -563,7 +565,7 @@ def test_simulated_sweep_surfaces_cover_the_true_walls() -> None:
     from logs.types import GroundTruthPose, ObjectBoxes, TransformFrame
 
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd)
+    sp = KDSensoryProcessor(kd)
     T_body_ladar = T_world_body = boxes = None
     for f in simulate("default", seconds=0.2):
         if isinstance(f, TransformFrame) and f.child_frame_id == "ladar":
@@ -598,8 +600,8 @@ def test_real_av2_sweeps_surface_innovations_fit_their_gate(real_data) -> None:
     T_ego_ladar = _av2_pose(calib, int(np.flatnonzero(calib["sensor_name"] == "up_lidar")[0]))
     poses = _feather(folder / "city_SE3_egovehicle.feather")
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd, SPConfig(egosphere=av2_egosphere()))
-    tr = sp.surface_tracker
+    sp = KDSensoryProcessor(kd, SPConfig(egosphere=av2_egosphere()))
+    tr = sp.level3.surface_tracker
     seen: list[set[int]] = []
     for t_ns in AV2_SWEEPS_NS:
         c = _feather(folder / "sensors" / "lidar" / f"{t_ns}.feather")

@@ -13,9 +13,10 @@ from test_sp_levels_units import SENSOR_H, H, W, _scan_of, flat_scene
 import kd_store
 from kd_store import Level
 from sp.egosphere import EgosphereConfig
-from sp.pipeline import SensoryProcessor, SPConfig
+from sp.pipeline import SPConfig
 from wm import predict
 from wm.config import NodeConfig, PoseSource, PredictionConfig
+from wm.entities import KDSensoryProcessor
 
 BOX = dict(box_xy=(12.0, 0.5), half=1.0, top=1.5)
 
@@ -95,7 +96,7 @@ def test_attention_lets_a_small_group_become_a_hypothesis(attended: bool) -> Non
     xyz, valid, on_box = flat_scene(**box)
     assert 2 <= on_box.sum() < 4  # below SegmentConfig.min_pixels, at least min_pixels_attended
     kd = kd_store.open(":memory:")
-    sp = SensoryProcessor(kd, SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W)))
+    sp = KDSensoryProcessor(kd, SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W)))
     att = np.array([[25.0, 0.3, 0.5]]) if attended else None
     result = None
     for k in range(5):  # a hypothesis is born after M of N sweeps

@@ -12,8 +12,10 @@ keeps the KD current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every
    ahead of the rest;
 2. self state into the KD (entity ``self``, world frame);
 3. maps: every level scrolls to the new pose and fuses the points (maps.stack);
-4. SP levels 2..5 (sp.pipeline) write entity and event frames into the KD and
-   their labels into the map layers; attention comes from last cycle's prediction surprises;
+4. SP levels 1..5 (sp.pipeline) observe the sweep: entities, their states, classes,
+   relations and events (sp.observations), and their labels into the map layers; attention
+   comes from last cycle's prediction surprises; then the entity update (wm.entities) writes
+   SP's observations into the KD as entity frames, states, relations and event frames;
 5. each map level's slow work at its own period: terrain (slope, traversability), the
    value-judgment cost layer and the level's entities-of-attention list (4.3, 4.4.11), which
    weighs relevance to the controller's current plan when told it (:meth:`set_plan`);
@@ -81,9 +83,10 @@ from logs.types import (
 from maps.stack import MapStack
 from maps.terrain import update_terrain
 from sp.odometry import OdometryError
-from sp.pipeline import SensoryProcessor
+from sp.pipeline import SensoryProcessor, SPResult
 from wm import predict, vj
 from wm.config import NodeConfig, PoseSource
+from wm.entities import EntityUpdater
 from wm.odometry_worker import OdometryReply, OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
 from wm.screen import check_frame, finite_points
@@ -235,6 +238,7 @@ class WorldModelNode:
         self.stack = stack if stack is not None else MapStack()
         self.stats = NodeStats()
         self.sp = SensoryProcessor(kd) if self.config.use_sp else None
+        self.entities = EntityUpdater(kd)
         if self.sp is None:
             self.stats.notes.append("SP levels 2..5 off (NodeConfig.use_sp)")
         self.T_body_ladar: np.ndarray | None = None
@@ -671,6 +675,8 @@ class WorldModelNode:
 
         sp_result = self._sensory_processing(scan, T_world_ladar, t_mid, camera)
         clock.lap("sp")
+        self._update_entities(sp_result)
+        clock.lap("entities")
 
         self._levels(scan.t_ns)
         clock.lap("levels")
@@ -770,7 +776,7 @@ class WorldModelNode:
 
     def _sensory_processing(
         self, scan: LadarScan, T_world_ladar: np.ndarray, t_pose_ns: int, camera: CameraFrame | None
-    ) -> Any | None:
+    ) -> SPResult | None:
         """Step 4: SP levels 2..5 and their labels into the maps. ``T_world_ladar`` is the
         sensor pose at ``t_pose_ns`` (the sweep's middle); SP deskews each column from it."""
         if self.sp is None:
@@ -797,6 +803,22 @@ class WorldModelNode:
         for name, s in getattr(result, "timings_s", {}).items():
             self.stats.stage_s[f"sp.{name}"] += float(s)
         return result
+
+    def _update_entities(self, sp_result: SPResult | None) -> None:
+        """Step 4, the world model's part: SP's observations into the KD (entity and event
+        frames, states, relations), in the order SP made them (:mod:`wm.entities`). A write
+        the KD refuses is counted and logged, and the rest of the sweep's observations are
+        skipped (``stats.skipped["entity update refused"]``), as SP skipped the rest of a
+        sweep whose write the KD refused when SP wrote the KD itself."""
+        if sp_result is None or self.sp is None:
+            return
+        try:
+            self.entities.apply(sp_result.observations)
+        except kd_store.KDError as e:
+            self._count_skip(
+                f"SP observations at t_ns={sp_result.t_ns}", f"entity update refused: {e}"
+            )
+        self.sp.observations_written(sp_result)
 
     def _levels(self, t_ns: int) -> None:
         """Step 5: each level's terrain and cost layer, at the level's own period."""

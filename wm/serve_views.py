@@ -27,7 +27,7 @@ gone, that the node attends to, each with the reasons why:
   level of L (``kd.attention``, written by the node's step 5 from proximity, danger, novelty
   and relevance to the plan; the rank is given);
 * ``"predicted window"``: level 4 only; SP tracks it, so its predicted position opens a window
-  on the next sweep (sp.pipeline ``_windows``; the window's half-size grows with the
+  on the next sweep (sp.level4_objects ``ObjectLevel.window``; the window's half-size grows with the
   position's standard deviation, given in metres);
 * ``"surprise window"``: a point the range-image prediction got wrong last cycle (the node's
   ``attention_world_xyz``) lies within the window base (1 m) plus the entity's size;

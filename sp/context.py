@@ -1,0 +1,204 @@
+"""What the SP levels of one processor share: configuration, class table, sweep count, and the
+observations of the sweep.
+
+Reference 001, 4.5.6 (levels 2 to 5 of sensory processing), 4.4.4 (entity images and the
+class images made from them), 4.2 (the world model writes SP's observations into the KD).
+:class:`SPConfig` holds every parameter of levels 2-5; an :class:`SPContext` is built once per
+:class:`sp.pipeline.SensoryProcessor` and handed to each level module (:mod:`sp.level2_lists`
+... :mod:`sp.level5_groups`), which record their observations in it
+(:mod:`sp.observations`) rather than write the KD.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import kd_store
+from sp.classify import ClassifyConfig
+from sp.egosphere import EgosphereConfig
+from sp.events import EventClass
+from sp.ground import GroundConfig
+from sp.groups import GroupConfig
+from sp.images import ClassTable
+from sp.lists import ListConfig
+from sp.observations import EventObserved, NewEntity, Observation
+from sp.segments import SegmentConfig
+from sp.surfaces import SurfaceConfig
+from sp.tracking import TrackerConfig, TrackStatus
+from sp.windowing import WindowConfig
+
+# the entity image of each SP level (its pixels hold frame ids, reference 001, 4.4.4)
+IMAGE_NAMES = {2: "sp2_lists", 3: "sp3_surfaces", 4: "sp4_objects", 5: "sp5_groups"}
+# a track's status (sp.tracking) as the KD's
+KD_STATUS = {
+    TrackStatus.HYPOTHESIZED: kd_store.Status.HYPOTHESIZED,
+    TrackStatus.CONFIRMED: kd_store.Status.CONFIRMED,
+    TrackStatus.DENIED: kd_store.Status.DENIED,
+    TrackStatus.GONE: kd_store.Status.GONE,
+}
+
+
+@dataclass(frozen=True)
+class SPConfig:
+    """Every parameter of SP levels 2-5, with its default, in one place."""
+
+    egosphere: EgosphereConfig = field(
+        default_factory=lambda: EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1)
+    )
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    segments: SegmentConfig = field(default_factory=SegmentConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    classify: ClassifyConfig = field(default_factory=ClassifyConfig)
+    groups: GroupConfig = field(default_factory=GroupConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)
+    birth_hits: int = 2  # a hypothesis gets a KD frame (and "appeared") after this many hits
+    min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
+    max_object_range_m: float = 120.0  # farther segments are left ungrouped
+    min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)
+    # a segment holding two tracked people's predicted places (each within split_near_m of
+    # its returns, at least split_min_apart_m apart) is cut between them
+    split_near_m: float = 0.4
+    split_min_apart_m: float = 0.5
+    reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
+    found_specific: bool = True  # a confirmed object matching nothing founds a specific class
+    lists: bool = True  # level-2 list entities (edges, vertices, patches)
+    list_config: ListConfig = field(default_factory=ListConfig)
+    free_surfaces: bool = True  # level-3 surfaces beyond the ground and the objects' faces
+    surfaces: SurfaceConfig = field(default_factory=SurfaceConfig)
+    kd_refresh_sweeps: int = 8  # list and surface frames rewritten every this many sweeps
+    appearance_classes: bool = True  # objects classified with their observed appearance too
+    # LADAR intensity units of a unit reflectance: 1.0 for sensors that report reflectance
+    # 0..1 (the simulator, KITTI); None (unknown units) leaves the LADAR intensity out of
+    # classification, since a wrong scale would mislead it; the camera's grey is 0..1 always
+    intensity_per_reflectance: float | None = None
+    appearance_gain: float = 0.3  # running-mean gain of an object's observed appearance
+    terrain_tilt_deg: float = 25.0  # a broad thin plane tilted less than this is ground ...
+    terrain_breadth_m: float = 0.25  # ... when its points spread this far along its middle axis
+    terrain_thick_m: float = 0.12  # ... and this little across its plane (std, m)
+    terrain_max_height_m: float = 1.2  # ... and it rises less than this over the ground
+    terrain_clearance_m: float = 0.3  # ... from no higher than this above it (a car's hood is)
+    face_tilt_deg: float = 20.0  # a plane within this of vertical is a face (level 3) ...
+    face_breadth_m: float = 0.3  # ... when its points spread this far along its middle axis
+    face_thick_m: float = 0.15  # ... and this little across it (std, m)
+    deskew_max_gap_s: float = 0.5  # no constant-velocity deskew over a longer gap between poses
+
+
+class SPContext:
+    """The state the levels share: the configuration, the class table the class images are
+    made from (entity id -> index into ``class_names``), the sweep count that spreads the list
+    and surface frame rewrites over sweeps (:meth:`due`), and the sweep's observations in the
+    order they were made (:meth:`take_observations`).
+
+    ``kd`` is read, never written: its class library, its id space (a new entity's or event's
+    id, so images, tracks and frames share it), which frames it still holds (short-term memory
+    forgets hypotheses), and the status of the groups of earlier sweeps."""
+
+    def __init__(self, kd: kd_store.KnowledgeDatabase, config: SPConfig) -> None:
+        self.kd = kd
+        self.config = config
+        self.class_table = ClassTable()  # entity id -> class index, for the class images
+        self.class_names: list[str] = []
+        self.class_index: dict[str, int] = {}
+        self.refresh_classes()
+        self.sweep = 0  # sweeps processed (counted after level 2)
+        self.observations: list[Observation] = []
+        self._created: dict[int, NewEntity] = {}  # this sweep's new entities by id
+        self.classes_founded = False  # a specific class was founded: refresh before classifying
+
+    # ------------------------------------------------------------------ observations
+
+    def new_entity(
+        self,
+        name: str,
+        level: kd_store.Level,
+        images: tuple[str, ...],
+        status: kd_store.Status = kd_store.Status.HYPOTHESIZED,
+        confidence: float = 0.0,
+        generic_classes: tuple[str, ...] = (),
+    ) -> int:
+        """Observe a new entity; returns its id (taken from the KD's id space now)."""
+        op = NewEntity(
+            self.kd.new_id(), name, level, images, status, confidence, tuple(generic_classes)
+        )
+        self._created[op.entity_id] = op
+        self.observations.append(op)
+        return op.entity_id
+
+    def event(
+        self,
+        event_class: EventClass,
+        t_ns: int,
+        entity_ids: Sequence[int],
+        level: int,
+        confidence: float = 1.0,
+    ) -> int:
+        """Observe an instantaneous event involving ``entity_ids``; returns its id."""
+        op = EventObserved(
+            self.kd.new_id(),
+            event_class,
+            int(t_ns),
+            tuple(int(i) for i in entity_ids),
+            int(level),
+            float(confidence),
+        )
+        self.observations.append(op)
+        return op.event_id
+
+    def record(self, op: Observation) -> None:
+        """Observe a change (a frame's fields, a state, a relation ...)."""
+        self.observations.append(op)
+
+    def created(self, frame_id: int) -> NewEntity | None:
+        """The new-entity observation of ``frame_id`` made this sweep, if any."""
+        return self._created.get(frame_id)
+
+    def known(self, frame_id: int) -> bool:
+        """Whether frame ``frame_id`` exists: in the KD, or observed new this sweep."""
+        return frame_id in self.kd or frame_id in self._created
+
+    def take_observations(self) -> list[Observation]:
+        """The observations since the last call, in order; the next sweep starts afresh."""
+        out, self.observations, self._created = self.observations, [], {}
+        return out
+
+    def refresh_classes(self) -> None:
+        """Re-read the class names from the KD's library (a specific class was founded).
+        ``class_names`` is replaced, not changed, so earlier results keep theirs."""
+        self.class_names = [p.name for p in self.kd.classes]
+        self.class_index = {n: i for i, n in enumerate(self.class_names)}
+
+    def set_class(self, entity_id: int, name: str | None) -> None:
+        """Point ``entity_id``'s pixels in the class images at class ``name``."""
+        self.class_table.set([entity_id], [self.class_index.get(name, -1) if name else -1])
+
+    def set_classes(self, ids: np.ndarray, names: Iterable[str | None]) -> None:
+        """Point entities ``ids`` (n,) at classes ``names`` (n; None: no class)."""
+        self.class_table.set(ids, [self.class_index.get(n or "", -1) for n in names])
+
+    def due(self, ids: np.ndarray) -> np.ndarray:
+        """(n,) bool: frames rewritten this sweep. List and surface frames are rewritten in
+        turn, each every ``kd_refresh_sweeps`` sweeps (the levels' tables and images hold
+        the latest), so the KD writes per sweep stay a fixed share of the entities."""
+        every = self.config.kd_refresh_sweeps
+        return (ids % every) == (self.sweep % every)
+
+
+def unit(x: float) -> float:
+    """``x`` clipped to [0, 1] (a confidence)."""
+    return float(min(max(x, 0.0), 1.0))
+
+
+def row_step(row_el: np.ndarray) -> float:
+    """Median elevation step (rad, > 0) between neighbouring rows of the egosphere, from the
+    rows' elevations ``row_el`` (H,) rad (NaN where a row has no return); 1 degree when there
+    are too few rows to tell."""
+    ok = np.flatnonzero(np.isfinite(row_el))
+    if ok.size < 2:
+        return math.radians(1.0)
+    d = -np.diff(row_el[ok]) / np.diff(ok)
+    d = d[d > 0]
+    return float(np.median(d)) if d.size else math.radians(1.0)

@@ -1,0 +1,580 @@
+"""SP level 4: objects, tracked from sweep to sweep.
+
+Reference 001, 4.5.6 (level 4: objects grouped from surfaces and segments), 4.5.1 (the five
+SP functions), 4.5.3 (hypothesize and test: M-of-N birth, confirm, deny), 4.5.4 (recursive
+estimation: Kalman filters). The five functions are the methods of :class:`ObjectLevel`:
+
+- :meth:`~ObjectLevel.window`: the tracks' predicted positions, WM's surprise points, last
+  sweep's new and provisional hypotheses (:func:`window_mask`);
+- :meth:`~ObjectLevel.group`: contiguity and range steps (:func:`label_objects`);
+- :meth:`~ObjectLevel.compute`: segment attributes (:func:`segment_attributes`), grazing and
+  collinear pieces merged, people cut apart, low and terrain-like segments back to ground;
+- :meth:`~ObjectLevel.filter`: association, Kalman updates, confirm / deny (:class:`Tracker`);
+- :meth:`~ObjectLevel.classify`: against the level-4 prototypes (:class:`Classifier`).
+
+The objects' frames, states and events are observations (:mod:`sp.observations`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+import kd_store
+from core.geometry import matrix_to_quat, rot_z
+from kd_store import Attribute, Level, StateBatch, Status
+from logs.types import CameraFrame
+from sp.appearance import object_appearance
+from sp.classify import Classifier
+from sp.computation import SegmentAttributes, ground_below, segment_attributes
+from sp.context import IMAGE_NAMES, KD_STATUS, SPContext, row_step, unit
+from sp.egosphere import EgosphereImage
+from sp.events import EventClass
+from sp.level3_surfaces import terrain_patch
+from sp.observations import AppearanceObserved, ClassFounded, FrameChange, StatesObserved
+from sp.segments import (
+    SegmentConfig,
+    label_objects,
+    merge_collinear,
+    merge_grazing,
+    split_by_predictions,
+)
+from sp.tracking import Measurements, Tracker, TrackStatus, evident_speed
+from sp.windowing import window_mask
+
+# shape attributes of an object's points, observed per sweep (sp.computation.SegmentAttributes,
+# same names) and averaged per object; the last, ``longest_m``, is the longest extent the object
+# was seen with (it grows as more of a wall comes into view)
+SHAPE_KEYS = ("thickness_m", "curvature", "verticality", "breadth_m", "clearance_m", "longest_m")
+_SURFACE_KEYS = 3  # the first three describe a surface of points, not a line (_observe_shape)
+SHAPE_MIN_BREADTH_M = 0.05  # a segment's points spread this far along its middle axis ...
+SHAPE_MIN_PIXELS = 12  # ... in this many returns at least, or its thickness is unknown
+
+
+@dataclass
+class Segments:
+    """Level 4's grouping and computation of one sweep.
+
+    labels:      (H, W) int64 segment index per pixel, -1 none.
+    attributes:  per segment (K of them) attributes, world frame.
+    ground:      (H, W) bool ground pixels, with the low and terrain-like segments added.
+    """
+
+    labels: np.ndarray
+    attributes: SegmentAttributes
+    ground: np.ndarray
+
+
+@dataclass
+class ObjectsObserved:
+    """Level 4's filtering of one sweep.
+
+    ids:       (K,) int64 object frame id per segment, -1 none (not framed yet, or unmatched).
+    events:    ids of the events observed (appeared, confirmed, denied, vanished).
+    finished:  (F,) int64 ids of the tracks that ended this sweep (their parts go with them;
+               negative ids never had a frame).
+    """
+
+    ids: np.ndarray
+    events: list[int]
+    finished: np.ndarray
+
+
+class ObjectLevel:
+    """Level-4 objects: the tracker and, per object id, its class (name, score), running
+    appearance (LADAR intensity, camera grey) and shape (:data:`SHAPE_KEYS`)."""
+
+    def __init__(self, ctx: SPContext) -> None:
+        self.ctx = ctx
+        self.tracker = Tracker(ctx.config.tracker)
+        self.classifier = Classifier(ctx.kd.classes, Level.OBJECT, ctx.config.classify)
+        self.track_class: dict[int, tuple[str | None, float]] = {}
+        self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
+        self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
+        self.track_shape: dict[int, np.ndarray] = {}  # object id -> running shape (SHAPE_KEYS)
+        self.attention = np.zeros((0, 0), dtype=bool)  # last sweep's unexplained pixels
+        self._sensor_xy: np.ndarray | None = None  # the sensor's world xy this sweep
+        self._next_provisional = -2  # ids of hypotheses without a frame yet: -2, -3, ...
+        self._provisional_segments = np.zeros(0, np.int64)
+        self._born_ids = np.zeros(0, np.int64)
+        self._denied_ids = np.zeros(0, np.int64)
+
+    # ------------------------------------------------------------------ windowing
+
+    def window(
+        self,
+        shape: tuple[int, int],
+        T_world_ladar: np.ndarray,
+        row_el: np.ndarray,
+        t_ns: int,
+        attention_world_xyz: np.ndarray | None,
+    ) -> np.ndarray:
+        """(H, W) bool attention windows of this sweep: around the tracks' predicted
+        positions (growing with their uncertainty), around ``attention_world_xyz`` (M, 3)
+        world points (WM's surprises), and last sweep's unexplained pixels."""
+        tr = self.tracker.tracks
+        centres, sig = [], []
+        if len(tr):
+            x, P = self.tracker.predicted(t_ns)
+            centres.append(x[:, :3])
+            sig.append(np.sqrt(np.maximum(P[:, 0, 0] + P[:, 1, 1], 0.0)))
+        if attention_world_xyz is not None and len(attention_world_xyz):
+            a = np.asarray(attention_world_xyz, dtype=np.float64).reshape(-1, 3)
+            centres.append(a)
+            sig.append(np.zeros(a.shape[0]))
+        mask = np.zeros(shape, dtype=bool)
+        if centres:
+            c_w = np.concatenate(centres)
+            R, t = T_world_ladar[:3, :3], T_world_ladar[:3, 3]
+            c_s = (c_w - t) @ R  # world -> sensor
+            mask = window_mask(shape, c_s, np.concatenate(sig), row_el, self.ctx.config.window)
+        if self.attention.shape == shape:
+            mask |= self.attention
+        return mask
+
+    def predicted_people_xy(self, t_ns: int) -> np.ndarray:
+        """World xy (C, 2) m of the confirmed tracks classified person, predicted to ``t_ns``."""
+        tr = self.tracker.tracks
+        if not len(tr):
+            return np.zeros((0, 2))
+        people = np.array(
+            [self.track_class.get(int(i), (None, 0.0))[0] == "person" for i in tr.id], dtype=bool
+        ) & (tr.status == TrackStatus.CONFIRMED)
+        if not people.any():
+            return np.zeros((0, 2))
+        x, _ = self.tracker.predicted(t_ns)
+        return x[people, :2]
+
+    # ------------------------------------------------------------------ grouping
+
+    def group(
+        self,
+        xyz_s: np.ndarray,
+        range_m: np.ndarray,
+        candidates: np.ndarray,
+        row_el: np.ndarray,
+        attention: np.ndarray,
+    ) -> np.ndarray:
+        """(H, W) int64 segment per pixel (-1 none) of the ``candidates`` (H, W) bool pixels
+        (sensor-frame points ``xyz_s`` (H, W, 3) m, ``range_m`` (H, W)): contiguity and range
+        steps; small segments are kept only inside the ``attention`` windows."""
+        cfg = self.ctx.config
+        seg_cfg = cfg.segments
+        W = candidates.shape[1]
+        labels = label_objects(
+            xyz_s, range_m, candidates, row_step(row_el), 2 * math.pi / W, _with_min(seg_cfg, 1)
+        )
+        return _drop_small(labels, attention, seg_cfg.min_pixels, cfg.min_pixels_attended)
+
+    # ------------------------------------------------------------------ computation
+
+    def compute(
+        self,
+        t_ns: int,
+        img: EgosphereImage,
+        labels: np.ndarray,
+        xyz_w: np.ndarray,
+        xyz_g: np.ndarray,
+        ground: np.ndarray,
+        T_world_ladar: np.ndarray,
+    ) -> Segments:
+        """Attributes of the segments ``labels`` (H, W) (world points ``xyz_w``, gravity-aligned
+        ``xyz_g``, (H, W, 3) m); pieces of one face or wall are merged, people walking side by
+        side cut where their tracks predict them, and segments too low or terrain-like go to
+        the ``ground`` (H, W) bool."""
+        cfg = self.ctx.config
+        seg_cfg = cfg.segments
+        valid = img.valid_first
+        W = valid.shape[1]
+        gz = ground_below(ground, xyz_w[..., 2], np.hypot(xyz_g[..., 0], xyz_g[..., 1]))
+        inten = np.nan_to_num(img.intensity[..., 0])
+        range0_m = np.where(valid, img.range_first, 0.0)
+        t_off = img.t_offset_ns[..., 0]
+        attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
+        # a face seen at a grazing angle breaks into strips along the line of sight: one face
+        grazed = merge_grazing(
+            attrs.center_xyz[:, :2], attrs.width_m, attrs.ground_z_m + attrs.height_m,
+            T_world_ladar[:2, 3], 2 * math.pi / W, seg_cfg,
+        )  # fmt: skip
+        if grazed.size and grazed.max() + 1 < len(attrs):
+            labels = np.where(labels >= 0, grazed[np.maximum(labels, 0)], -1)
+            attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
+        # continuity: pieces of one wall or fence cut by occluders are one object
+        merged = merge_collinear(
+            attrs.center_xyz[:, :2], attrs.yaw_rad, attrs.length_m, attrs.width_m,
+            attrs.range_m, seg_cfg,
+        )  # fmt: skip
+        if merged.size and merged.max() + 1 < len(attrs):
+            labels = np.where(labels >= 0, merged[np.maximum(labels, 0)], -1)
+            attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
+        # people walking side by side, joined by proximity, are cut where their tracks predict
+        split = split_by_predictions(
+            labels, xyz_w, self.predicted_people_xy(t_ns), attrs.center_xyz[:, :2],
+            0.5 * np.hypot(attrs.length_m, attrs.width_m), cfg.split_near_m,
+            cfg.split_min_apart_m, seg_cfg.min_pixels,
+        )  # fmt: skip
+        if split is not labels:
+            labels = split
+            attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
+        # too low to stand out of the terrain (bumps, ruts), or a gently sloping plane (a
+        # hillside seen past a gap): ground, not objects
+        low = (attrs.height_m < cfg.min_object_height_m) | terrain_patch(attrs, cfg)
+        if low.any():
+            flat_low = np.isin(labels, np.flatnonzero(low))
+            ground = ground | flat_low
+            remap = np.full(len(attrs), -1, dtype=np.int64)
+            remap[~low] = np.arange(int((~low).sum()))
+            labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+            attrs = attrs.take(~low)
+        return Segments(labels, attrs, ground)
+
+    # ------------------------------------------------------------------ filtering
+
+    def filter(self, seg: Segments, t_ns: int, T_world_ladar: np.ndarray) -> ObjectsObserved:
+        """Track the segments: associate with the predictions, update, confirm or deny; a
+        hypothesis seen ``birth_hits`` times gets its frame (M-of-N birth). The tracks that
+        ended are returned in ``finished`` for their parts (faces, lists) to go too."""
+        ctx = self.ctx
+        cfg = ctx.config
+        a = seg.attributes
+        self._sensor_xy = T_world_ladar[:2, 3].copy()  # partial views lie on its side
+        what = np.stack([a.length_m, a.width_m, a.height_m, a.yaw_rad], axis=1)
+        meas = Measurements(a.center_xyz, t_ns + a.t_offset_ns, what, a.range_m)
+
+        def provisional_ids(n: int) -> np.ndarray:
+            # a new hypothesis has no KD frame until it has been seen ``birth_hits`` times
+            start = self._next_provisional
+            self._next_provisional -= n
+            return np.arange(start, start - n, -1, dtype=np.int64)
+
+        track_of, prev = self.tracker.step(meas, t_ns, provisional_ids, self._sensor_xy)
+        tr = self.tracker.tracks
+        # M-of-N birth: hypotheses seen often enough get their frame (and "appeared") now; the
+        # frame's id comes from the KD's id space, so images, tracks and frames share it
+        promote = np.flatnonzero(
+            (tr.id < 0)
+            & ((tr.hits >= cfg.birth_hits) | (tr.status == TrackStatus.CONFIRMED))
+            & (tr.status != TrackStatus.DENIED)
+        )
+        born: list[int] = []
+        for k in promote:
+            oid = ctx.new_entity(
+                f"object@{t_ns}",
+                Level.OBJECT,
+                images=(IMAGE_NAMES[4],),
+                confidence=unit(tr.confidence[k]),
+            )
+            tr.id[k] = oid
+            prev[k] = -1
+            born.append(oid)
+        self._born_ids = np.array(born, dtype=np.int64)
+        events: list[int] = []
+        for i in born:
+            events.append(ctx.event(EventClass.APPEARED, t_ns, [i], 4, cfg.tracker.confidence0))
+        # only tracks with a frame are written: provisional ones stay inside the tracker
+        framed = tr.id >= 0
+        track_of = np.where(
+            track_of >= 0, np.where(framed[np.maximum(track_of, 0)], track_of, -2), -1
+        )
+        # states of the tracks updated this cycle
+        upd = np.unique(track_of[track_of >= 0])
+        # tracks the stationarity test finds at rest are reported at zero speed
+        x_rep, P_rep = tr.reported(cfg.tracker)
+        if upd.size:
+            yaw = tr.w[upd, 3]
+            moving = np.hypot(x_rep[upd, 3], x_rep[upd, 4]) > 1.0
+            yaw = np.where(moving, np.arctan2(x_rep[upd, 4], x_rep[upd, 3]), yaw)
+            q = np.stack([matrix_to_quat(rot_z(float(y))) for y in yaw])
+            var_rpy = np.zeros((upd.size, 3))
+            var_rpy[:, 2] = tr.Pw[upd, 3]
+            ctx.record(
+                StatesObserved(
+                    StateBatch(
+                        tr.id[upd].copy(),
+                        tr.t_ns[upd].copy(),
+                        "world",
+                        x_rep[upd, :3],
+                        q,
+                        x_rep[upd, 3:],
+                        P_rep[upd],
+                        var_rpy,
+                    )
+                )
+            )
+        # frames: status, confidence, attributes
+        seg_of_track = np.full(len(tr), -1, dtype=np.int64)
+        seg_of_track[track_of[track_of >= 0]] = np.flatnonzero(track_of >= 0)
+        for k in np.flatnonzero(framed):
+            tid = int(tr.id[k])
+            status = KD_STATUS[TrackStatus(int(tr.status[k]))]
+            was = int(prev[k])
+            s = seg_of_track[k]
+            attributes = None
+            if s >= 0:
+                attributes = _attributes(a, s, tr.w[k], tr.Pw[k], x_rep[k])
+                self.observe_appearance(self.track_reflectance, tid, float(a.intensity[s]))
+                self.observe_shape(tid, a, int(s))
+            confidence = unit(tr.confidence[k])
+            ctx.record(FrameChange(tid, status, confidence, attributes))
+            if was == int(status_code(status)) or (was < 0 and status == Status.HYPOTHESIZED):
+                continue
+            cls = {
+                Status.CONFIRMED: EventClass.CONFIRMED,
+                Status.DENIED: EventClass.DENIED,
+                Status.GONE: EventClass.VANISHED,
+            }.get(status)
+            if cls is not None:
+                events.append(ctx.event(cls, t_ns, [tid], 4, float(tr.confidence[k])))
+        finished = self.tracker.drop_finished()
+        self._denied_ids = finished.id[(finished.status == TrackStatus.DENIED) & (finished.id >= 0)]
+        for tid in finished.id:
+            self.track_class.pop(int(tid), None)
+            self.track_reflectance.pop(int(tid), None)
+            self.track_camera.pop(int(tid), None)
+            self.track_shape.pop(int(tid), None)
+        self._provisional_segments = np.flatnonzero(track_of == -2)
+        # object id per segment
+        ids_all = np.concatenate([tr.id])
+        obj = np.full(len(meas), -1, dtype=np.int64)
+        ok = track_of >= 0
+        obj[ok] = ids_all[track_of[ok]]
+        return ObjectsObserved(obj, events, finished.id.astype(np.int64))
+
+    # ------------------------------------------------------------------ classification
+
+    def classify(self, t_ns: int) -> list[int]:
+        """Class of every framed track (all at once: a class founded here takes part from
+        the next sweep on); a confirmed class changes only for a score better by
+        ``reclassify_margin``, and a confirmed object matching nothing founds a specific
+        class. Returns the ids of the "reclassified" events."""
+        ctx = self.ctx
+        cfg = ctx.config
+        self.refresh_classes()
+        tr = self.tracker.tracks
+        events: list[int] = []
+        ks = np.flatnonzero(tr.id >= 0)
+        speeds = evident_speed(tr.x[ks], tr.P[ks], cfg.tracker.evident_sigmas)
+        rows = []
+        for k, speed in zip(ks, speeds.tolist(), strict=True):
+            l, w, h = (float(v) for v in tr.w[k, :3])
+            rows.append(
+                {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
+                | self.appearance_of(int(tr.id[k]))
+                | self.shape_of(int(tr.id[k]))
+            )
+        for k, m in zip(ks, self.classifier.classify_many(rows), strict=True):
+            tid = int(tr.id[k])
+            old, _ = self.track_class.get(tid, (None, -2.0))
+            confirmed = tr.status[k] == TrackStatus.CONFIRMED
+            if m.name is None:
+                continue
+            if old is not None and m.name != old:
+                if m.score < m.scores.get(old, -2.0) + cfg.reclassify_margin:
+                    continue
+            if m.name == old:
+                self.track_class[tid] = (old, m.score)
+                continue
+            self.track_class[tid] = (m.name, m.score)
+            ctx.set_class(tid, m.name)
+            proto = ctx.kd.classes.get(m.name)
+            specific = m.name if proto.kind == kd_store.ClassKind.SPECIFIC else None
+            ctx.record(
+                FrameChange(
+                    tid, generic_classes=m.generic, specific_class=specific, sets_specific=True
+                )
+            )
+            if old is not None and confirmed:
+                events.append(ctx.event(EventClass.RECLASSIFIED, t_ns, [tid], 4, unit(m.score)))
+            if (
+                confirmed
+                and cfg.found_specific
+                and m.score < cfg.classify.match
+                and specific is None
+            ):
+                ctx.record(ClassFounded(tid))
+                ctx.classes_founded = True
+        return events
+
+    def refresh_classes(self) -> bool:
+        """Take in the specific classes the world model founded from earlier observations
+        (:class:`~sp.observations.ClassFounded`, now in the KD's library): the classifier and
+        the class names. True when there were any."""
+        if not self.ctx.classes_founded:
+            return False
+        self.classifier.refresh()
+        self.ctx.refresh_classes()
+        self.ctx.classes_founded = False
+        return True
+
+    # ------------------------------------------------------------------ the entity image
+
+    def entity_image(self, labels: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """(H, W) int64 level-4 entity image: the object id of each pixel's segment
+        (``labels`` (H, W), ``ids`` (K,) per segment), -1 none; a hypothesis denied this
+        sweep releases its pixels."""
+        image4 = np.full(labels.shape, -1, dtype=np.int64)
+        has = labels >= 0
+        image4[has] = ids[labels[has]]
+        denied = self._denied_ids
+        if denied.size:
+            image4[np.isin(image4, denied)] = -1
+        return image4
+
+    def confirmed_ids(self) -> np.ndarray:
+        """Ids of the confirmed tracks (int64)."""
+        tr = self.tracker.tracks
+        return tr.id[tr.status == TrackStatus.CONFIRMED]
+
+    def confirmed_pixels(self, image4: np.ndarray) -> np.ndarray:
+        """(H, W) bool pixels of confirmed objects (one gather through a table by id)."""
+        tr = self.tracker.tracks
+        ids = tr.id[(tr.status == TrackStatus.CONFIRMED) & (tr.id >= 0)]
+        if ids.size == 0:
+            return np.zeros(image4.shape, dtype=bool)
+        lut = np.zeros(max(int(ids.max()), int(image4.max(initial=0))) + 1, dtype=bool)
+        lut[ids] = True
+        return lut[np.maximum(image4, 0)] & (image4 >= 0)
+
+    def unexplained(self, labels: np.ndarray, image4: np.ndarray) -> None:
+        """New and provisional hypotheses of this sweep draw attention in the next one."""
+        provisional = np.isin(labels, self._provisional_segments)
+        self.attention = ((labels >= 0) & np.isin(image4, self._born_ids)) | provisional
+
+    # ------------------------------------------------------------------ appearance
+
+    def appearance(
+        self,
+        points_world: np.ndarray,
+        point_ids: np.ndarray,
+        camera: CameraFrame,
+        T_world_camera: np.ndarray,
+    ) -> None:
+        """Camera intensity and coverage of the confirmed objects of this cycle, observed from
+        the world points (N, 3) and their object ids (N,) (-1 none)."""
+        tr = self.tracker.tracks
+        confirmed = tr.id[(tr.status == TrackStatus.CONFIRMED) & (tr.id >= 0)]
+        sel = np.isin(point_ids, confirmed)
+        if not sel.any():
+            return
+        a = object_appearance(points_world[sel], point_ids[sel], camera, T_world_camera)
+        for oid, inten, cov in zip(a.ids, a.intensity, a.coverage, strict=True):
+            self.ctx.record(AppearanceObserved(int(oid), float(inten), float(cov)))
+            self.observe_appearance(self.track_camera, int(oid), float(inten))
+
+    def observe_appearance(self, table: dict[int, float], tid: int, value: float) -> None:
+        """Running mean (exponential, ``appearance_gain``) of an object's observed appearance
+        (LADAR intensity or camera grey), for classification."""
+        if not math.isfinite(value):
+            return
+        old = table.get(tid)
+        gain = self.ctx.config.appearance_gain
+        table[tid] = value if old is None else old + gain * (value - old)
+
+    def observe_shape(self, tid: int, a: SegmentAttributes, s: int) -> None:
+        """Running mean (``appearance_gain``) of the shape of object ``tid``'s points in this
+        sweep's segment ``s`` (:data:`SHAPE_KEYS`), and the longest extent it was seen with.
+        The scatter's thickness and curvature say nothing of a segment whose points lie on a
+        line (one scan row, or a few returns: its smallest two eigenvalues are both noise), so
+        those are averaged over the sweeps that saw a surface (``SHAPE_MIN_BREADTH_M`` spread
+        along the middle axis and ``SHAPE_MIN_PIXELS`` returns) only."""
+        v = np.array([float(getattr(a, k)[s]) for k in SHAPE_KEYS[:-1]] + [float(a.length_m[s])])
+        if not np.all(np.isfinite(v)):
+            return
+        surface = a.breadth_m[s] >= SHAPE_MIN_BREADTH_M and a.n_pixels[s] >= SHAPE_MIN_PIXELS
+        old = self.track_shape.get(tid)
+        if old is None:
+            old = np.full(len(SHAPE_KEYS), np.nan)
+        gain = self.ctx.config.appearance_gain
+        new = np.where(np.isnan(old), v, old + gain * (v - old))
+        if not surface:
+            new[:_SURFACE_KEYS] = old[:_SURFACE_KEYS]
+        new[-1] = np.fmax(old[-1], v[-1])
+        self.track_shape[tid] = new
+
+    def shape_of(self, tid: int) -> dict[str, float]:
+        """The shape attributes object ``tid`` has been observed with (none if never)."""
+        v = self.track_shape.get(tid)
+        if v is None:
+            return {}
+        return {k: float(x) for k, x in zip(SHAPE_KEYS, v, strict=True) if np.isfinite(x)}
+
+    def appearance_of(self, tid: int) -> dict[str, float]:
+        """The appearance attributes object ``tid`` has been observed with: ``reflectance``
+        (mean LADAR intensity over ``intensity_per_reflectance``, when that is known) and
+        ``camera_intensity`` (mean grey 0..1 of its returns in the camera image). An
+        attribute never observed is left out, so the classifier ignores it rather than
+        reading it as zero."""
+        cfg = self.ctx.config
+        if not cfg.appearance_classes:
+            return {}
+        out = {}
+        if tid in self.track_reflectance and cfg.intensity_per_reflectance:
+            out["reflectance"] = self.track_reflectance[tid] / cfg.intensity_per_reflectance
+        if tid in self.track_camera:
+            out["camera_intensity"] = self.track_camera[tid]
+        return out
+
+
+def status_code(s: Status) -> int:
+    """The tracker's status code of KD status ``s``."""
+    return {
+        Status.HYPOTHESIZED: TrackStatus.HYPOTHESIZED,
+        Status.CONFIRMED: TrackStatus.CONFIRMED,
+        Status.DENIED: TrackStatus.DENIED,
+        Status.GONE: TrackStatus.GONE,
+    }[s]
+
+
+def _with_min(cfg: SegmentConfig, min_pixels: int) -> SegmentConfig:
+    return dataclasses.replace(cfg, min_pixels=min_pixels)
+
+
+def _drop_small(
+    labels: np.ndarray, attention: np.ndarray, n_min: int, n_min_att: int
+) -> np.ndarray:
+    """Keep segments of at least ``n_min`` pixels, or ``n_min_att`` when inside a window;
+    renumber 0..K-1."""
+    flat = labels.reshape(-1)
+    has = flat >= 0
+    if not has.any():
+        return labels
+    K = int(flat.max()) + 1
+    n = np.bincount(flat[has], minlength=K)
+    att = np.bincount(flat[has], weights=attention.reshape(-1)[has], minlength=K) > 0
+    keep = (n >= n_min) | (att & (n >= n_min_att))
+    new = np.full(K, -1, dtype=np.int64)
+    new[keep] = np.arange(int(keep.sum()))
+    out = np.full_like(flat, -1)
+    out[has] = new[flat[has]]
+    return out.reshape(labels.shape)
+
+
+def _attributes(
+    a: SegmentAttributes, s: int, w: np.ndarray, Pw: np.ndarray, x: np.ndarray
+) -> dict[str, Attribute]:
+    """Observed (this segment) and estimated (the what-filter) attributes of one object."""
+    obs = {
+        "length_m": float(a.length_m[s]),
+        "width_m": float(a.width_m[s]),
+        "height_m": float(a.height_m[s]),
+    }
+    est = {"length_m": (w[0], Pw[0]), "width_m": (w[1], Pw[1]), "height_m": (w[2], Pw[2])}
+    out = {
+        k: Attribute(
+            observed=v,
+            observed_var=0.25,
+            estimated=float(est[k][0]),
+            estimated_var=float(est[k][1]),
+        )
+        for k, v in obs.items()
+    }
+    out["speed_mps"] = Attribute(estimated=float(np.hypot(x[3], x[4])))
+    out["area_m2"] = Attribute(observed=float(a.area_m2[s]))
+    out["volume_m3"] = Attribute(observed=float(a.volume_m3[s]))
+    out["intensity"] = Attribute(observed=float(a.intensity[s]))
+    out["curvature"] = Attribute(observed=float(a.curvature[s]))
+    out["n_pixels"] = Attribute(observed=float(a.n_pixels[s]))
+    return out
