@@ -1,11 +1,11 @@
 """Entity and event frames: what the KD knows about one thing or one happening.
 
-Follows the reference model, section 4.4.2 (entity frame, Figure 18) and 4.4.8 (event frame,
-Figure 27) of ``001_8aa68a06538d844c.txt``. Frames are frozen: change them through the
-:class:`~kd_store.store.KnowledgeDatabase`, which validates every change and keeps its
-indexes in step. Pointers between frames (parent, parts, situational, temporal, causal,
-involves) live in the KD's relation graph, not in the frames, so the two directions of a
-pointer can never disagree (see :mod:`kd_store.relations`).
+Follows reference 001 (the 4D/RCS reference model), section 4.4.2 (entity frame, Figure 18)
+and section 4.4.8 (event frame, Figure 27); see docs/architecture.md, section 5. Frames are
+frozen: change them through the :class:`~kd_store.store.KnowledgeDatabase`, which validates
+every change and keeps its indexes in step. Pointers between frames (parent, parts,
+situational, temporal, causal, involves) live in the KD's relation graph, not in the frames,
+so the two directions of a pointer can never disagree (see :mod:`kd_store.relations`).
 
 Units: metres, radians, seconds as int64 nanoseconds (``t_ns``); quaternions (x, y, z, w).
 """

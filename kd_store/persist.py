@@ -510,7 +510,7 @@ def write(con: duckdb.DuckDBPyConnection, w: Write) -> None:
             if exp.num_rows:
                 _append(con, "entity_expectation_rows", rows(exp))
         if w.states:  # one INSERT of one contiguous table: DuckDB appends a single large
-            # chunk about 1.5x faster than the same rows in one chunk per ingested batch
+            # chunk faster than the same rows in one chunk per ingested batch
             _append(con, "entity_state_rows", rows(rows_to_arrow(w.states)))
         if w.events:
             _replace(con, "event_frames", "id", rows(events_to_arrow(w.events)))

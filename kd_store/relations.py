@@ -1,8 +1,8 @@
 """Pointers between frames as typed relations with a time of validity.
 
-Reference 4.4.2 (inheritance and situational pointers, Figures 18 and 19) and 4.4.8-4.4.9
-(event parent/sub-events, before/after/simultaneous-with, causes, entities involved) of
-``001_8aa68a06538d844c.txt``. A relation ``src --kind--> dst`` is valid over
+Reference 001, section 4.4.2 (inheritance and situational pointers, Figures 18 and 19) and
+sections 4.4.8-4.4.9 (event parent/sub-events, before/after/simultaneous-with, causes,
+entities involved). A relation ``src --kind--> dst`` is valid over
 ``[t_from_ns, t_to_ns)``; ``t_to_ns`` None means still valid. Paired kinds are stored both
 ways and always change together (belongs_to/has_part, on_top_of/beneath,
 in_front_of/behind, before/after); symmetric kinds (beside, near, simultaneous_with) likewise.

@@ -184,8 +184,8 @@ def rows_to_arrow(chunks: list[StateColumns]) -> pa.Table:
 
 
 def _repeated_string(s: str, n: int) -> pa.Array:
-    """Arrow string array of ``n`` copies of ``s``, built from its two buffers (a dictionary
-    cast to string costs about 100x more)."""
+    """Arrow string array of ``n`` copies of ``s``, built from its two buffers (far cheaper
+    than casting a dictionary array to string)."""
     data = s.encode()
     offsets = np.arange(n + 1, dtype=np.int32) * len(data)
     return pa.StringArray.from_buffers(n, pa.py_buffer(offsets), pa.py_buffer(data * n))

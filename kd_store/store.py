@@ -1,6 +1,6 @@
 """The knowledge database: frames, pointers, classes and the three memory tiers in one place.
 
-Reference 001, section 4.4 (``../shared/reference/001_8aa68a06538d844c.txt``):
+Reference 001 (the 4D/RCS reference model), section 4.4, and docs/architecture.md, section 5:
 entity frames 4.4.2, classes 4.4.3, events 4.4.8-4.4.9, memory tiers 4.4.11. In RAM the KD is
 immediate experience (this cycle) and short-term memory (recent histories, attention);
 long-term memory is a DuckDB file that receives, at each :meth:`KnowledgeDatabase.flush`, the

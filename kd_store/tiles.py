@@ -1,7 +1,7 @@
 """Long-term memory of map tiles: blocks of map layers kept in the KD file.
 
-Reference 001, 4.4.11 (line 782: "long-term memory will contain maps"; line 784: local maps
-from sensory input update the stored ones). A tile is a set of named layers, each an array of
+Reference 001, section 4.4.11 ("long-term memory will contain maps"; local maps from
+sensory input update the stored ones). A tile is a set of named layers, each an array of
 any numeric dtype and shape, keyed by ``(level name, tx, ty)``: the map level and the tile's
 integer index in that level's fixed world grid (what the indices mean is the map's business;
 see ``maps/tiles.py``). The KD keeps the arrays, not their meaning.

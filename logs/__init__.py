@@ -1,4 +1,4 @@
-"""Sensor logs: the frame data model (:mod:`logs.types`), readers and writers.
+"""Sensor logs: the log message data model (:mod:`logs.types`), readers and writers.
 
 ``open_log(path)`` reads any supported log as time-ordered frames (:mod:`logs.source`);
 ``McapLogWriter`` writes frames as an MCAP file of ROS 2 messages (:mod:`logs.mcap_log`).
@@ -15,11 +15,12 @@ from logs.source import (
 )
 from logs.types import (
     CameraFrame,
-    Frame,
+    Frame,  # deprecated alias of LogMessage, for users' code
     GroundTruthPose,
     ImuFrame,
     LadarScan,
     LogError,
+    LogMessage,
     ObjectBoxes,
     OdometryFrame,
     ReadStats,
@@ -36,6 +37,7 @@ __all__ = [
     "LadarScan",
     "LogError",
     "LogInfo",
+    "LogMessage",
     "LogSource",
     "McapLogSource",
     "McapLogWriter",

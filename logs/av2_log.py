@@ -28,7 +28,7 @@ import numpy as np
 
 from core.geometry import BODY, WORLD, interpolate_pose, quat_to_matrix
 from logs.source import LogSource, TopicInfo
-from logs.types import Frame, GroundTruthPose, LadarScan, LogError, ObjectBoxes
+from logs.types import GroundTruthPose, LadarScan, LogError, LogMessage, ObjectBoxes
 
 LADAR_TOPIC = "/ladar/points"
 POSE_TOPIC = "/ground_truth/pose"
@@ -184,7 +184,7 @@ class Av2LogSource(LogSource):
 
     def _streams(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
-    ) -> list[Iterator[tuple[int, int, Frame]]]:
+    ) -> list[Iterator[tuple[int, int, LogMessage]]]:
         def wanted(kind: type, topic: str) -> bool:
             return (kinds is None or kind in kinds) and (topics is None or topic in topics)
 
@@ -203,7 +203,7 @@ class Av2LogSource(LogSource):
 
     def _frames(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[LogMessage]:
         for _, _, frame in heapq.merge(*self._streams(kinds, topics), key=lambda x: x[:2]):
             yield frame
 

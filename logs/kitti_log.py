@@ -21,7 +21,7 @@ import numpy as np
 
 from core.geometry import LADAR, NS_PER_S
 from logs.source import LogSource, TopicInfo
-from logs.types import Frame, LadarScan, LogError
+from logs.types import LadarScan, LogError, LogMessage
 
 SCAN_PERIOD_NS = 100_000_000  # 10 Hz
 TOPIC = "/ladar/points"
@@ -105,7 +105,7 @@ class KittiLogSource(LogSource):
 
     def _frames(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[LogMessage]:
         if (kinds is not None and LadarScan not in kinds) or (
             topics is not None and TOPIC not in topics
         ):

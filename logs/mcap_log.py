@@ -58,7 +58,7 @@ from logs.ros_types import (
     ros2msg_schema,
 )
 from logs.source import LogSource, TopicInfo, topic_info
-from logs.types import Frame, LogError, ReadStats
+from logs.types import LogError, LogMessage, ReadStats
 
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end time, uncompressed size, CRC, len(compression)
@@ -216,7 +216,7 @@ class McapLogWriter:
             self._channel_ids[key] = cid
         return cid
 
-    def write(self, frame: Frame) -> None:
+    def write(self, frame: LogMessage) -> None:
         """Write one frame (any :mod:`logs.types` frame) at log time ``frame.t_ns``."""
         self._check_open()
         t_ns = int(frame.t_ns)
@@ -535,21 +535,21 @@ class CdrFrameDecoder:
             self.register(msgtype, ros2msg_schema(msgtype).decode())
         return self.store.deserialize(data, msgtype)
 
-    def push(self, topic: str, role: Role, message: Any, log_t_ns: int) -> list[Frame]:
+    def push(self, topic: str, role: Role, message: Any, log_t_ns: int) -> list[LogMessage]:
         """Add a decoded message; returns the frames completed by the instant before it."""
         return self.assembler.push(topic, role, message, log_t_ns)
 
     def feed(
         self, topic: str, msgtype: str, data: bytes | memoryview, log_t_ns: int,
         kind: str | None = None,
-    ) -> list[Frame]:  # fmt: skip
+    ) -> list[LogMessage]:  # fmt: skip
         """:meth:`decode` and :meth:`push` one message (none for a type frames do not carry)."""
         role = self.role(topic, msgtype, kind)
         if role is None:
             return []
         return self.push(topic, role, self.decode(msgtype, data), log_t_ns)
 
-    def flush(self) -> list[Frame]:
+    def flush(self) -> list[LogMessage]:
         """The frames of the pending instant (at the end of the input)."""
         return self.assembler.flush()
 
@@ -825,7 +825,7 @@ class McapLogSource(LogSource):
 
     def _frames(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[LogMessage]:
         decoder = CdrFrameDecoder(self.stats, kinds, topics, self.fail, self._types)
         roles: dict[int, Any] = {}
         for message in self._messages():

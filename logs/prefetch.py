@@ -37,7 +37,7 @@ from typing import Any
 from core.errors import EngineError
 from core.process import die_with_parent
 from logs.source import LogSource
-from logs.types import Frame
+from logs.types import LogMessage
 
 _HEADER = struct.Struct("<Q")  # byte length of the pickled message that follows
 _CHILD = "from logs.prefetch import _child_main; _child_main()"
@@ -75,7 +75,7 @@ def _read_exact(fd: int, n: int) -> bytes | None:
 
 def _serve(source: LogSource, fd: int, batch_frames: int, kwargs: dict) -> None:
     """The child: decode, send batches, then ("end", stats, cpu_s) or ("error", exception)."""
-    batch: list[Frame] = []
+    batch: list[LogMessage] = []
     try:
         for frame in source.frames(**kwargs):
             batch.append(frame)
@@ -163,7 +163,7 @@ class FramePrefetcher:
             if body is None or self._stop.is_set():
                 return
 
-    def __iter__(self) -> Iterator[Frame]:
+    def __iter__(self) -> Iterator[LogMessage]:
         n_yielded = 0
         while not self._done:
             body = self._bodies.get()

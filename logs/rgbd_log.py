@@ -22,7 +22,7 @@ import numpy as np
 
 from core.geometry import CAMERA, NS_PER_S, WORLD
 from logs.source import LogSource, TopicInfo
-from logs.types import CameraFrame, Frame, GroundTruthPose, LogError
+from logs.types import CameraFrame, GroundTruthPose, LogError, LogMessage
 
 FRAME_RATE_HZ = 30
 CAMERA_TOPIC = "/camera"
@@ -122,7 +122,7 @@ class RgbdLogSource(LogSource):
 
     def _frames(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[LogMessage]:
         def wanted(kind: type, topic: str) -> bool:
             return (kinds is None or kind in kinds) and (topics is None or topic in topics)
 

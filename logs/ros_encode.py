@@ -55,11 +55,11 @@ from logs.ros_types import (
 )
 from logs.types import (
     CameraFrame,
-    Frame,
     GroundTruthPose,
     ImuFrame,
     LadarScan,
     LogError,
+    LogMessage,
     ObjectBoxes,
     OdometryFrame,
     TransformFrame,
@@ -112,7 +112,7 @@ def _cdr_around_bulk(
     return (head, bulk, bytes(small[len(small) - after :])) if after else (head, bulk)
 
 
-def encode_frame(frame: Frame) -> list[Encoded]:
+def encode_frame(frame: LogMessage) -> list[Encoded]:
     """The ROS 2 messages that carry ``frame`` (see the module table). Raises LogError."""
     encoder = _ENCODERS.get(type(frame))
     if encoder is None:

@@ -15,7 +15,7 @@ from typing import Any
 from logs.ros_decode import FrameAssembler
 from logs.ros_types import frame_topic, frame_topics_of, role_of
 from logs.source import LogSource, TopicInfo, topic_info
-from logs.types import Frame, LogError
+from logs.types import LogError, LogMessage
 
 
 class RosbagLogSource(LogSource):
@@ -45,7 +45,7 @@ class RosbagLogSource(LogSource):
 
     def _frames(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[LogMessage]:
         assembler = FrameAssembler(self.stats, kinds, on_error=self.fail)
         with self._reader() as reader:
             wanted = {}

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from core.geometry import NS_PER_S
-from logs.types import Frame, LogError, ReadStats, TransformFrame
+from logs.types import LogError, LogMessage, ReadStats, TransformFrame
 
 SUPPORTED_FORMATS = (
     "MCAP file with ROS 2 messages (*.mcap)",
@@ -146,7 +146,7 @@ class LogSource(ABC):
     @abstractmethod
     def _frames(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
-    ) -> Iterator[Frame]:
+    ) -> Iterator[LogMessage]:
         """Frames in time order, of the given kinds and frame topics (None: all)."""
 
     @abstractmethod
@@ -175,7 +175,7 @@ class LogSource(ABC):
         self,
         kinds: Iterable[type] | type | None = None,
         topics: Iterable[str] | str | None = None,
-    ) -> Iterator[Frame]:
+    ) -> Iterator[LogMessage]:
         """Time-ordered frames, optionally only of some kinds (frame classes) and topics.
 
         Times that go backwards on a topic (per child frame for transforms) are counted in

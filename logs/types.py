@@ -1,8 +1,9 @@
-"""Sensor frames: what every log source yields and every log writer takes.
+"""Log messages: what every log source yields and every log writer takes.
 
-One dataclass per kind of message. Arrays are numpy with the dtypes and shapes stated below;
-times are int64 nanoseconds since the epoch of the log (``t_ns``); lengths are metres; poses
-are 4x4 float64 matrices ``T_parent_child`` (see :mod:`core.geometry`).
+One dataclass per kind of message (their union is :data:`LogMessage`). Arrays are numpy with
+the dtypes and shapes stated below; times are int64 nanoseconds since the epoch of the log
+(``t_ns``); lengths are metres; poses are 4x4 float64 matrices ``T_parent_child`` (see
+:mod:`core.geometry`).
 
 A log source yields these in time order (by ``t_ns``); ``topic`` says where each came from.
 """
@@ -159,7 +160,8 @@ class GroundTruthPose:
     topic: str = "/ground_truth/pose"
 
 
-Frame = (
+#: Any message a log source yields or a log writer takes (the union of the dataclasses above).
+LogMessage = (
     LadarScan
     | CameraFrame
     | OdometryFrame
@@ -168,6 +170,10 @@ Frame = (
     | ObjectBoxes
     | GroundTruthPose
 )
+
+#: Deprecated alias of :data:`LogMessage`, kept so that users' code importing it still runs;
+#: "frame" in the engine means a coordinate frame or a KD frame, so the engine does not use it.
+Frame = LogMessage
 
 
 @dataclass(slots=True)

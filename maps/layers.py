@@ -47,7 +47,7 @@ DEFAULT_LAYERS: tuple[LayerSpec, ...] = (
     LayerSpec("obstacle_count", "int32", 0, "points", "points above the ground estimate"),
     LayerSpec("z_weight", "float64", 0.0, "1/m^2", "sum of ground point weights 1/variance"),
     LayerSpec("z_mean", "float64", NAN, "m", "weighted mean height of ground points"),
-    LayerSpec("z_m2", "float64", 0.0, "m^2/m^2", "weighted sum of squared deviations"),
+    LayerSpec("z_sq_dev_sum", "float64", 0.0, "m^2/m^2", "weighted sum of squared deviations"),
     LayerSpec("roughness", "float32", NAN, "m", "weighted std of ground heights in the cell"),
     LayerSpec("slope", "float32", NAN, "rad", "ground slope from neighbouring elevations"),
     LayerSpec("step_height", "float32", NAN, "m", "largest height step to an 8-neighbour"),
@@ -59,6 +59,24 @@ DEFAULT_LAYERS: tuple[LayerSpec, ...] = (
     LayerSpec("confidence", "float32", 0.0, "0..1", "confidence in the elevation estimate"),
     LayerSpec("last_seen_ns", "int64", -1, "ns", "time the cell was last observed, -1 = never"),
 )
+
+
+#: Layers stored under an earlier name, old -> current, so that tiles in KD files written
+#: before a rename still load. ``z_m2`` (Welford's M2) read as "z in square metres".
+RENAMED_LAYERS: dict[str, str] = {"z_m2": "z_sq_dev_sum"}
+
+
+def with_current_names(tile: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``tile`` (layer name -> array) with each layer stored under an earlier name
+    (:data:`RENAMED_LAYERS`) under its current one: the same dict if it holds none, else a new
+    one holding the same arrays. A tile holding both names keeps the current one's array."""
+    if not any(old in tile for old in RENAMED_LAYERS):
+        return tile
+    out = dict(tile)
+    for old, new in RENAMED_LAYERS.items():
+        if old in out:
+            out.setdefault(new, out.pop(old))
+    return out
 
 
 def layer_table(specs: tuple[LayerSpec, ...]) -> dict[str, LayerSpec]:

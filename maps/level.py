@@ -1,6 +1,6 @@
 """One map level: a square window of cells at one resolution around the vehicle, many layers.
 
-Geometry (reference 001, 4.4.7; 000 Table 2: about 128 cells from the centre each way):
+Geometry (reference 001, 4.4.7; reference 000, Table 2: about 128 cells from the centre each way):
 
 * The world is cut into a fixed grid of square cells of ``resolution_m``; cell ``(ix, iy)``
   (int64 global indices) covers ``x in [ix*res, (ix+1)*res)``, ``y in [iy*res, (iy+1)*res)``
@@ -25,8 +25,14 @@ from typing import Any
 import numpy as np
 
 from core.errors import EngineError
-from maps.layers import DEFAULT_LAYERS, LayerError, LayerSpec, layer_table
-from maps.tiles import TileStore
+from maps.layers import (
+    DEFAULT_LAYERS,
+    LayerError,
+    LayerSpec,
+    layer_table,
+    with_current_names,
+)
+from maps.tiles import Tile, TileKey, TileStore
 
 
 class LevelError(EngineError, ValueError):
@@ -282,9 +288,9 @@ class MapLevel:
         if self.store is not None:
             self._load((new[0], size), (new[1], size))
 
-    def _clear_slots(self, rng: Range, axis: int) -> None:
-        """Fill the storage rows (axis 0) or columns (axis 1) of global indices ``rng``."""
-        lo, n = rng
+    def _clear_slots(self, cells: Range, axis: int) -> None:
+        """Fill the storage rows (axis 0) or columns (axis 1) of global indices ``cells``."""
+        lo, n = cells
         if n <= 0:
             return
         size = self.size
@@ -328,7 +334,7 @@ class MapLevel:
             cells = self._storage_box(ix_lo, ix_hi, iy_lo, iy_hi)
             blocks = {n: a[cells] for n, a in self._data.items()}  # views, copied below
             key = (self.name, tx, ty)
-            tile = self.store.get(key)
+            tile = self._stored(key)
             if tile is None:
                 if all(_is_fill(b, self.specs[n].fill) for n, b in blocks.items()):
                     continue
@@ -346,7 +352,7 @@ class MapLevel:
         """Fill the cells of global box ``rx x ry`` from tiles the store holds."""
         t = self.config.tile_cells
         for tx, ty, ix_lo, ix_hi, iy_lo, iy_hi in self._tiles_over(rx, ry):
-            tile = self.store.get((self.name, tx, ty))
+            tile = self._stored((self.name, tx, ty))
             if tile is None:
                 continue
             cells = self._storage_box(ix_lo, ix_hi, iy_lo, iy_hi)
@@ -354,6 +360,12 @@ class MapLevel:
             for n, a in self._data.items():
                 if n in tile:
                     a[cells] = tile[n][r0 : r0 + iy_hi - iy_lo, c0 : c0 + ix_hi - ix_lo]
+
+    def _stored(self, key: TileKey) -> Tile | None:
+        """The store's tile ``key`` with its layers under their current names (a KD file
+        written before a layer was renamed holds the old name), or None if it has none."""
+        tile = self.store.get(key)
+        return None if tile is None else with_current_names(tile)
 
     def _storage_box(self, ix_lo: int, ix_hi: int, iy_lo: int, iy_hi: int) -> Any:
         """Index of the storage cells of global box ``[ix_lo, ix_hi) x [iy_lo, iy_hi)``

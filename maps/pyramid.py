@@ -17,8 +17,8 @@ the full-size image. Masks (attention windows, validity) are (H, W) bool or floa
 [0, 1]; a pixel with weight 0 takes no part in the correlation.
 
 numpy, with OpenCV for block means, window sums and the optional rotation search; the climb
-of an unmasked search is compiled (:mod:`maps.pyramid_kernels`, about 2.5x faster on 256x256
-images), with the numpy climb kept as its reference and for masked searches.
+of an unmasked search is compiled (:mod:`maps.pyramid_kernels`, the search's hot loop), with
+the numpy climb kept as its reference and for masked searches.
 """
 
 from __future__ import annotations
@@ -304,8 +304,8 @@ class _Window:
 
     def _template(self, t: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """``t`` minus its mean (float32). A large window whose ``ref`` is one float32 block
-        gets its cross sums as 1-D dot products over ``ref``'s memory (BLAS, about twice as
-        fast as a 2-D window sum): the template is then written into a buffer padded with
+        gets its cross sums as 1-D dot products over ``ref``'s memory (BLAS, faster than a 2-D
+        window sum): the template is then written into a buffer padded with
         zeros to ``ref``'s row length, so one contiguous run of ``ref`` starting at a window's
         top-left pixel lines up with it row for row and the pixels between window rows meet
         the zero padding; ``flat_t`` is that buffer as one row (None for the 2-D path)."""

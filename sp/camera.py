@@ -162,12 +162,12 @@ def ladar_range_in_camera(
     idx = np.flatnonzero(ok)
     rows = np.rint(uv[idx, 1]).astype(np.int64)
     cols = np.rint(uv[idx, 0]).astype(np.int64)
-    rng = np.linalg.norm(p_cam[idx], axis=1)
+    point_range_m = np.linalg.norm(p_cam[idx], axis=1)
     flat = rows * camera.width + cols
     n = camera.width * camera.height
     nearest = np.full(n, np.inf)
-    np.minimum.at(nearest, flat, rng)
-    wins = rng == nearest[flat]  # the nearest point of each pixel (ties: one of them)
+    np.minimum.at(nearest, flat, point_range_m)
+    wins = point_range_m == nearest[flat]  # the nearest point of each pixel (ties: one of them)
     index = np.full(n, -1, dtype=np.int64)
     index[flat[wins]] = idx[wins]
     hit = index >= 0

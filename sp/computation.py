@@ -321,9 +321,9 @@ def _segment_runs(lab, n_segments):  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True)
-def _segment_sums(runs, first, p, inten, rng, t_off, ground_z):  # pragma: no cover
+def _segment_sums(runs, first, p, inten, range_m, t_off, ground_z):  # pragma: no cover
     """The per-segment sums of :func:`segment_attributes` over the runs of
-    :func:`_segment_runs`, the pixels flattened: p (N, 3) float points; inten, rng,
+    :func:`_segment_runs`, the pixels flattened: p (N, 3) float points; inten, range_m,
     ground_z (N,) float; t_off (N,) int.
 
     Returns per segment (K,): ``n`` int64 pixel count, ``c`` (K, 3) float64 centroid,
@@ -379,7 +379,7 @@ def _segment_sums(runs, first, p, inten, rng, t_off, ground_z):  # pragma: no co
                 if v - v != 0.0:  # NaN or infinite (rare): np.nan_to_num
                     v = 0.0 if v != v else (big if v > 0.0 else -big)
                 si += v
-                q = np.float64(rng[i])
+                q = np.float64(range_m[i])
                 rm = q if q < rm else rm
                 nan_r |= q != q
                 st += np.float64(t_off[i])
@@ -543,7 +543,7 @@ def segment_attributes_reference(
     )
     inten = np.nan_to_num(intensity.reshape(-1)[order].astype(np.float64))
     t_off = t_offset_ns.reshape(-1)[order].astype(np.float64)
-    rng = range_m.reshape(-1)[order].astype(np.float64)
+    range_ordered_m = range_m.reshape(-1)[order].astype(np.float64)
     return SegmentAttributes(
         n_pixels=n,
         centroid_xyz=c,
@@ -561,7 +561,7 @@ def segment_attributes_reference(
         verticality=verticality,
         thickness_m=np.sqrt(np.maximum(evals[:, 0], 0.0)),
         breadth_m=np.sqrt(np.maximum(evals[:, 1], 0.0)),
-        range_m=reduce(np.minimum, rng, np.inf),
+        range_m=reduce(np.minimum, range_ordered_m, np.inf),
         t_offset_ns=np.round(mean(t_off)).astype(np.int64),
     )
 

@@ -188,8 +188,8 @@ def spherical(points_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     points, each (N,) float32 (metres, radians)."""
     x, y, z = points_xyz[:, 0], points_xyz[:, 1], points_xyz[:, 2]
     horiz2 = x * x + y * y
-    rng = np.sqrt(horiz2 + z * z)
-    return rng, np.arctan2(y, x), np.arctan2(z, np.sqrt(horiz2))
+    range_m = np.sqrt(horiz2 + z * z)
+    return range_m, np.arctan2(y, x), np.arctan2(z, np.sqrt(horiz2))
 
 
 def _pixel_of(
@@ -199,7 +199,7 @@ def _pixel_of(
     y: np.ndarray,
     z: np.ndarray,
     horiz2: np.ndarray,
-    rng: np.ndarray,
+    range_m: np.ndarray,
 ) -> np.ndarray:
     """Flat pixel index (N,) int64 of every point; -1 for points that are dropped."""
     col = ((np.pi - np.arctan2(y, x)) * np.float32(config.n_cols / (2 * np.pi))).astype(np.int32)
@@ -214,7 +214,7 @@ def _pixel_of(
         row_f = (el_hi - np.arctan2(z, np.sqrt(horiz2))) * scale
         ok = (row_f >= 0) & (row_f < config.n_rows)
         row = row_f.astype(np.int32)
-    ok &= rng >= config.min_range_m
+    ok &= range_m >= config.min_range_m
     pix = row * np.int32(config.n_cols) + col
     pix[~ok] = -1
     return pix
@@ -254,16 +254,18 @@ def to_egosphere(
     n = pts.shape[0]
     use_ring = cfg.use_ring and scan.ring is not None
     work = _WORK
-    rng = work.array("rng", n, np.float32)
+    point_range_m = work.array("point_range_m", n, np.float32)
     yx = work.array("yx", 2 * n, np.float32).reshape(2, n)
     zh = work.array("zh", 0 if use_ring else 2 * n, np.float32).reshape(2, -1)
-    # flat (N * 3,): a 1-D C array is what numba vectorizes (2-D indexing stays scalar, 5x slower)
-    _spherical_kernel(np.ascontiguousarray(pts).reshape(-1), rng, yx[0], yx[1], zh[0], zh[1])
+    # flat (N * 3,): a 1-D C array is what numba vectorizes (2-D indexing stays scalar)
+    _spherical_kernel(
+        np.ascontiguousarray(pts).reshape(-1), point_range_m, yx[0], yx[1], zh[0], zh[1]
+    )
     # The angles come from numpy's arctan2, the reference's own: on AVX-512 machines it is a
     # SIMD routine that differs from libm's atan2f (what the kernel would call) by an ulp for
     # many points, enough to move a point across a bin edge, and it is much faster than
     # atan2f in a loop. It is element-wise, so contiguous inputs give the values of the
-    # reference's strided views, in a third of the time.
+    # reference's strided views, and read faster.
     az = np.arctan2(yx[0], yx[1], out=work.array("az", n, np.float32))
     if use_ring:
         el = np.empty(0, dtype=np.float32)
@@ -286,7 +288,7 @@ def to_egosphere(
     pix = work.array("pix", n, np.int64)
     keys = work.array("keys", K * cfg.n_rows * (cfg.n_cols + _PAD), np.uint64)
     n_ok = _nearest_kernel(
-        az, el, ring, rng, use_ring, cfg.ring_zero_at_bottom, cfg.n_rows, cfg.n_cols,
+        az, el, ring, point_range_m, use_ring, cfg.ring_zero_at_bottom, cfg.n_rows, cfg.n_cols,
         np.float32(np.pi), col_scale, el_hi, el_scale, np.float32(cfg.min_range_m), pix, keys,
         index.reshape(-1).view(np.uint32), range_m.reshape(-1).view(np.uint32), filled,
     )  # fmt: skip
@@ -310,8 +312,7 @@ class _Work(threading.local):
     """Work arrays of :func:`to_egosphere`, one set per thread (the kernels release the GIL),
     kept at the size of the largest sweep seen and reused. Fresh ones each call are megabytes
     that malloc may give back to the system when they are freed (a trimmed heap), and then
-    every call page-faults them in again: measured here on a 64 x 1024 sweep, 800 faults and
-    1.5 ms a call, where the projection itself takes 0.2 ms."""
+    every call page-faults them in again, which costs more than the projection itself."""
 
     def __init__(self) -> None:
         self.arrays: dict[str, np.ndarray] = {}
@@ -328,22 +329,22 @@ _WORK = _Work()
 
 
 @numba.njit(cache=True, nogil=True)
-def _spherical_kernel(xyz, rng, y, x, z, horiz):  # pragma: no cover
-    """xyz (N * 3,) float32 metres, the points' coordinates in a row. Fills rng (N,) float32
+def _spherical_kernel(xyz, range_m, y, x, z, horiz):  # pragma: no cover
+    """xyz (N * 3,) float32 metres, the points' coordinates in a row. Fills range_m (N,) float32
     the range ``sqrt(x^2 + y^2 + z^2)``, y and x (N,) float32 each point's y and x (contiguous
     for ``arctan2``) and, unless they are empty, z and horiz (N,) float32 its z and
     ``sqrt(x^2 + y^2)``.
 
     Float32 operations in the reference's order (numba contracts no multiply-add into an FMA
     without fastmath), so every value is the reference's to the bit."""
-    n = rng.shape[0]
+    n = range_m.shape[0]
     if z.shape[0] == n and n:
         for i in range(n):
             xi = xyz[3 * i]
             yi = xyz[3 * i + 1]
             zi = xyz[3 * i + 2]
             horiz2 = xi * xi + yi * yi
-            rng[i] = np.sqrt(horiz2 + zi * zi)
+            range_m[i] = np.sqrt(horiz2 + zi * zi)
             y[i] = yi
             x[i] = xi
             z[i] = zi
@@ -353,36 +354,36 @@ def _spherical_kernel(xyz, rng, y, x, z, horiz):  # pragma: no cover
             xi = xyz[3 * i]
             yi = xyz[3 * i + 1]
             zi = xyz[3 * i + 2]
-            rng[i] = np.sqrt(xi * xi + yi * yi + zi * zi)
+            range_m[i] = np.sqrt(xi * xi + yi * yi + zi * zi)
             y[i] = yi
             x[i] = xi
 
 
 # Row padding of the key scratch, in pixels: a sweep comes column by column, so consecutive
 # points fall a row apart, and with a power-of-two row (1024 pixels) every one of them would
-# hit the same cache set and alias the previous stores (4K aliasing): 10x slower.
+# hit the same cache set and alias the previous stores (4K aliasing), which stalls the loop.
 _PAD = 8
 
 
 @numba.njit(cache=True, nogil=True)
 def _nearest_kernel(  # pragma: no cover
-    az, el, ring, rng, use_ring, ring_zero_at_bottom, n_rows, n_cols,
+    az, el, ring, point_range_m, use_ring, ring_zero_at_bottom, n_rows, n_cols,
     pi, col_scale, el_hi, el_scale, min_range, pix, keys, index, range_bits, filled,
 ):  # fmt: skip
     """The pixel of every point as :func:`_pixel_of` finds it, and each pixel's nearest returns.
 
-    az, el (N,) float32 radians (el unused, may be empty, with ``use_ring``); ring (N,) uint16
-    or int32 beam (empty without ``use_ring``); rng (N,) float32 metres; the float32 constants
-    as :func:`to_egosphere` makes them; pix (N,) int64 and keys (K * n_rows * (n_cols + _PAD),)
-    uint64 work arrays (overwritten). Fills index (K * n_rows * n_cols,) uint32 (the int32
-    point index, all ones for none) and range_bits (same shape) uint32 (the float32 range, all
-    ones for none), layer by layer, with each pixel's returns nearest first, and filled (K,)
-    int64 with the number of pixels with a k-th return. Returns the number of points kept
-    (not dropped).
+    az, el (N,) float32 radians (el unused, may be empty, with ``use_ring``); ring (N,) uint16 or
+    int32 beam (empty without ``use_ring``); point_range_m (N,) float32 metres; the float32
+    constants as :func:`to_egosphere` makes them; pix (N,) int64 and keys
+    (K * n_rows * (n_cols + _PAD),) uint64 work arrays (overwritten). Fills index
+    (K * n_rows * n_cols,) uint32 (the int32 point index, all ones for none) and range_bits (same
+    shape) uint32 (the float32 range, all ones for none), layer by layer, with each pixel's returns
+    nearest first, and filled (K,) int64 with the number of pixels with a k-th return. Returns the
+    number of points kept (not dropped).
 
     A pixel's returns are the K least of the reference's keys, (range bits, point index) in a
     uint64, so ties in range break to the lower index as there."""
-    n = rng.shape[0]
+    n = point_range_m.shape[0]
     K = filled.shape[0]
     w = n_cols + _PAD  # a row of the scratch
     L = n_rows * w  # a layer of the scratch
@@ -396,7 +397,7 @@ def _nearest_kernel(  # pragma: no cover
             col = np.int64(np.int32((pi - az[i]) * col_scale))  # truncation, as astype
             col = min(max(col, 0), n_cols - 1)
             # NaN points fail the range test (every other point has numbers for angles)
-            ok = (rng[i] >= min_range) & (row >= 0) & (row < n_rows)
+            ok = (point_range_m[i] >= min_range) & (row >= 0) & (row < n_rows)
             pix[i] = row * w + col if ok else -1
             n_ok += ok
     else:
@@ -405,13 +406,13 @@ def _nearest_kernel(  # pragma: no cover
             row = np.int64(np.int32(row_f))  # used only where row_f is in [0, n_rows)
             col = np.int64(np.int32((pi - az[i]) * col_scale))
             col = min(max(col, 0), n_cols - 1)
-            ok = (rng[i] >= min_range) & (row_f >= 0) & (row_f < n_rows)
+            ok = (point_range_m[i] >= min_range) & (row_f >= 0) & (row_f < n_rows)
             pix[i] = row * w + col if ok else -1
             n_ok += ok
     # 2. the K least keys of each pixel, in layers of the scratch
     none = np.uint64(0xFFFFFFFFFFFFFFFF)  # an empty slot: reads as index -1 and a NaN range
     keys[:] = none
-    bits = rng.view(np.uint32)
+    bits = point_range_m.view(np.uint32)
     for i in range(n):
         p = pix[i]
         if p < 0:
@@ -457,8 +458,8 @@ def to_egosphere_reference(
     pts = np.asarray(scan.points_xyz, dtype=np.float32)
     x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
     horiz2 = x * x + y * y
-    rng = np.sqrt(horiz2 + z * z)
-    pix = _pixel_of(scan, cfg, x, y, z, horiz2, rng)
+    point_range_m = np.sqrt(horiz2 + z * z)
+    pix = _pixel_of(scan, cfg, x, y, z, horiz2, point_range_m)
     n_pix, K = cfg.n_rows * cfg.n_cols, cfg.max_returns
     ok = pix >= 0
     n_ok = int(np.count_nonzero(ok))
@@ -475,9 +476,11 @@ def to_egosphere_reference(
             rest = np.flatnonzero(~taken)
             if rest.size == 0:
                 break
-            i, r = _nearest(pix[rest], rng[rest], rest.astype(np.uint32), n_pix, low, high)
+            i, r = _nearest(
+                pix[rest], point_range_m[rest], rest.astype(np.uint32), n_pix, low, high
+            )
         else:
-            i, r = _nearest(pix, rng, points, n_pix, low, high)
+            i, r = _nearest(pix, point_range_m, points, n_pix, low, high)
         index[k], range_m[k] = i[:n_pix], r[:n_pix]
         if k < K - 1:
             placed = index[k]
@@ -490,7 +493,7 @@ def to_egosphere_reference(
 
 
 def _nearest(
-    pix: np.ndarray, rng: np.ndarray, point: np.ndarray, n_pix: int, low: int, high: int
+    pix: np.ndarray, range_m: np.ndarray, point: np.ndarray, n_pix: int, low: int, high: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel (and a spare last one), the index (int32, -1 for none) and range (float32, NaN
     for none) of the nearest of the given points.
@@ -502,7 +505,7 @@ def _nearest(
     keys = np.empty(point.size, dtype=np.uint64)
     halves = keys.view(np.uint32).reshape(-1, 2)
     halves[:, low] = point
-    halves[:, high] = rng.view(np.uint32)
+    halves[:, high] = range_m.view(np.uint32)
     best = np.full(n_pix + 1, np.iinfo(np.uint64).max, dtype=np.uint64)
     np.minimum.at(best, pix, keys)
     out = best.view(np.uint32).reshape(-1, 2)

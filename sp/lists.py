@@ -458,9 +458,9 @@ def _list_slots_kernel(
     Row by row in passes that each do one thing over the row: the crossing numbers and
     kinds, the keys, the table look-ups, the list pixels' neighbour steps (passes the
     compiler turns into vector code), then the sums over the row's list pixels only, in
-    pixel order as :func:`_accumulate` adds them (so the sums are the same floats). One
-    pixel at a time with branches (the former kernel) cost 0.6 ms a 64 x 1024 sweep whose
-    edges, a quarter of the pixels, lie too scattered for the branches to be predicted."""
+    pixel order as :func:`_accumulate` adds them (so the sums are the same floats), rather
+    than one pixel at a time with branches: a sweep's edges, about a quarter of its pixels,
+    lie too scattered for such branches to be predicted."""
     H, W = owner.shape
     n_sums = sums.shape[0]
     # the union of the edges inside a border of off pixels: every pixel's ring is read

@@ -101,32 +101,29 @@ class OdometryConfig:
     max_points_per_voxel: points KISS-ICP's local map keeps per voxel (its default is 20).
                     Each source point's nearest neighbour is sought among the 27 voxels
                     around it, so this bounds the registration's cost: on the default
-                    scenario (450 m) 5 instead of 20 cut the registration CPU by about a third
-                    and the final drift went 0.49 -> 0.42 % fused with wheel odometry,
-                    2.3 -> 1.9 % by registration alone.
+                    scenario (450 m) 5 instead of 20 makes the registration cheaper without
+                    adding drift, fused with wheel odometry or by registration alone.
     max_threads:    KISS-ICP's threads (0: as many as cores).
     convergence:    KISS-ICP's registration stops when an iteration's pose update (its se(3)
                     vector: metres and radians) is smaller than this. Its default, 1e-4,
-                    polishes a 1 m voxel map to a tenth of a millimetre; 3e-3 stops at 3 mm:
-                    on the default scenario registration CPU 41.7 -> 24.6 ms per sweep, final
-                    drift 0.423 -> 0.427 % fused (1.88 -> 1.89 % by registration alone),
-                    7-Scenes ATE 0.046 -> 0.050 m.
+                    polishes a 1 m voxel map to a tenth of a millimetre; 3e-3 stops at 3 mm,
+                    which saves iterations while leaving the drift (default scenario) and ATE
+                    (7-Scenes) all but unchanged.
     max_iterations: its bound on Gauss-Newton iterations per sweep.
     thin_before_deskew: KISS-ICP deskews every point, then keeps one per half voxel
                     (:mod:`sp.voxels`); thinning first deskews only the points kept (each with
                     its own time, so exactly), the sample differing only in which point of a
-                    half voxel stands for it. On the default scenario with a 64 x 1024 LADAR
-                    this took the preprocessing from 6.0 to 1.6 ms per sweep.
+                    half voxel stands for it, so the preprocessing of a dense sweep deskews
+                    only a fraction of its points.
     source_voxel_ratio: the registered points are the sweep thinned to one per this many map
                     voxels (KISS-ICP's value is 1.5).
     max_source_points: a denser sweep is thinned once more, at the spacing that sampling a
                     surface predicts gives this many (spacing grown by sqrt(n / max)), so the
                     registration's cost stays bounded whatever the sensor (None: no bound).
                     A 32 x 1024 sweep of the default scenario gives 1500-2000 points at 1.5
-                    voxels, a 64 x 1024 one 2400-3400; registration alone (no wheel
-                    odometry) drifted 1.9 -> 2.5 % over the default scenario's 450 m when the
-                    32-beam sweeps were thinned at 2 voxels, so the bound leaves them as
-                    they are.
+                    voxels, a 64 x 1024 one 2400-3400; thinning the 32-beam sweeps further
+                    (at 2 voxels) made registration alone (no wheel odometry) drift more over
+                    the default scenario's 450 m, so the bound leaves them as they are.
     """
 
     max_range_m: float = 100.0
@@ -387,8 +384,8 @@ class LadarOdometry:
                 f"sweep at t_ns={scan.t_ns}: points_xyz shape {pts.shape}, not (N, 3)"
             )
         finite = np.all(np.isfinite(pts), axis=1)
-        rng = np.linalg.norm(pts, axis=1)
-        usable = finite & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
+        range_m = np.linalg.norm(pts, axis=1)
+        usable = finite & (range_m >= cfg.min_range_m) & (range_m <= cfg.max_range_m)
         times = _normalised_times(scan.t_offset_ns, usable) if cfg.deskew else np.zeros(0)
         pts = pts[usable]
         # A sweep deskewed with a known motion refers to its end (KISS-ICP's deskew reference);
@@ -613,7 +610,7 @@ def registration_information(
     if n_src == 0 or len(cloud_sensor) < config.info_neighbours:
         return np.zeros((6, 6))
     k = config.info_neighbours
-    # built for one query: unbalanced and uncompacted, it builds in about half the time
+    # built for one query: unbalanced and uncompacted, it builds faster
     tree = cKDTree(cloud_sensor, balanced_tree=False, compact_nodes=False)
     dist, idx = tree.query(source_sensor, k=k, distance_upper_bound=config.info_radius_m)
     ok = np.isfinite(dist).all(axis=1)

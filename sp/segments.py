@@ -155,9 +155,9 @@ def label_objects(
     ):
         return label_objects_reference(xyz, range_m, mask, row_step_rad, col_step_rad, cfg)
     pts = np.ascontiguousarray(xyz)
-    rng = np.ascontiguousarray(range_m)
+    contig_range_m = np.ascontiguousarray(range_m)
     m = np.ascontiguousarray(mask)
-    R = rng.dtype
+    R = contig_range_m.dtype
     # the step scalars exactly as the reference forms them (Python or numpy floats), each cast
     # to the dtype numpy computes its expression in, so the kernel's float32 / float64 scalar
     # arithmetic is the reference's array arithmetic (a float32 range times a Python float is
@@ -169,7 +169,7 @@ def label_objects(
     S1 = np.result_type(cfg.step_frac, R)
     idx, comp, counts = _components_kernel(
         pts,
-        rng,
+        contig_range_m,
         m,
         P01.type(s01),
         P02.type(s02),
@@ -186,7 +186,9 @@ def label_objects(
     )
     group, n_groups = np.arange(counts.size, dtype=np.int64), counts.size
     if cfg.near_pixels > 0 and cfg.near_m > 0 and counts.size > 1:
-        group, n_groups = _near_groups(comp, counts, idx, pts.reshape(-1, 3), rng.reshape(-1), cfg)
+        group, n_groups = _near_groups(
+            comp, counts, idx, pts.reshape(-1, 3), contig_range_m.reshape(-1), cfg
+        )
     return _keep_kernel(idx, comp, group, n_groups, cfg.min_pixels, H * W).reshape(H, W)
 
 
@@ -264,16 +266,16 @@ def _r64(x):  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True)
-def _step_cut(rng, ia, ja, ib, jb, di, dj, sf64, sm64):  # pragma: no cover
+def _step_cut(range_m, ia, ja, ib, jb, di, dj, sf64, sm64):  # pragma: no cover
     """:func:`_range_step` of the one link (ia, ja) -> (ib, jb) = (ia + di, (ja + dj) mod W):
     the same float64 differences, NaN where a side has no return or lies off the image."""
-    H, W = rng.shape
-    r_a = _r64(rng[ia, ja])
-    r_b = _r64(rng[ib, jb])
+    H, W = range_m.shape
+    r_a = _r64(range_m[ia, ja])
+    r_b = _r64(range_m[ib, jb])
     ip = ia - di
     iq = ib + di
-    r_p = _r64(rng[ip, _wrap(ja - dj, W)]) if ip >= 0 else np.nan
-    r_q = _r64(rng[iq, _wrap(jb + dj, W)]) if iq < H else np.nan
+    r_p = _r64(range_m[ip, _wrap(ja - dj, W)]) if ip >= 0 else np.nan
+    r_q = _r64(range_m[iq, _wrap(jb + dj, W)]) if iq < H else np.nan
     s = r_b - r_a
     before = r_a - r_p
     after = r_q - r_b
@@ -285,10 +287,10 @@ def _step_cut(rng, ia, ja, ib, jb, di, dj, sf64, sm64):  # pragma: no cover
     return cut
 
 
-# inlined into the kernel: a call per link, with two arrays to pass, cost a third of its time
+# inlined into the kernel: a call per link, with two arrays to pass, would cost more than the test
 @numba.njit(cache=True, nogil=True, inline="always")
 def _joined(
-    xyz, rng, ia, ja, ib, jb, di, dj, step, join_m, step_on, sf, sm, sf64, sm64
+    xyz, range_m, ia, ja, ib, jb, di, dj, step, join_m, step_on, sf, sm, sf64, sm64
 ):  # pragma: no cover
     """The reference's link test for one pixel pair: closer than ``max(join_m, r * step)``
     (r the nearer range) and not across a range step. The distance is formed in xyz's dtype
@@ -298,24 +300,24 @@ def _joined(
     dy = xyz[ia, ja, 1] - xyz[ib, jb, 1]
     dz = xyz[ia, ja, 2] - xyz[ib, jb, 2]
     d = np.sqrt(dx * dx + dy * dy + dz * dz)
-    ra = rng[ia, ja]
-    rb = rng[ib, jb]
+    ra = range_m[ia, ja]
+    rb = range_m[ib, jb]
     r = _minimum(ra, rb)
     if not d <= _maximum(join_m, r * step):
         return False
     # only a link whose ranges differ by more than the step threshold can cross a step
     if not step_on or not abs(ra - rb) > sm + sf * r:
         return True
-    return not _step_cut(rng, ia, ja, ib, jb, di, dj, sf64, sm64)
+    return not _step_cut(range_m, ia, ja, ib, jb, di, dj, sf64, sm64)
 
 
 @numba.njit(cache=True, nogil=True)
 def _components_kernel(
-    xyz, rng, mask, s01, s02, downs, jm01, jm02, jmd, step_on, sf, sm, sf64, sm64, row_gap
+    xyz, range_m, mask, s01, s02, downs, jm01, jm02, jmd, step_on, sf, sm, sf64, sm64, row_gap
 ):  # pragma: no cover
     """The links of :func:`label_objects_reference` and their connected components.
 
-    xyz (H, W, 3), rng (H, W) float32 or float64; mask (H, W) bool; s01, s02: the row-link
+    xyz (H, W, 3), range_m (H, W) float32 or float64; mask (H, W) bool; s01, s02: the row-link
     steps (next, next-but-one pixel); downs (row_gap + 1,): the column-link steps k = 1..
     rows down; jm*: join_m for each; step_on, sf, sm: the range-step prefilter (``step_m > 0``,
     step_frac, step_m in the range's dtype); sf64, sm64: the same in float64 for
@@ -346,12 +348,12 @@ def _components_kernel(
             # azimuth wraps (a subtraction, not an integer division per pixel)
             j1 = _wrap(j + 1, W)
             if mask[i, j1] and _joined(
-                xyz, rng, i, j, i, j1, 0, 1, s01, jm01, step_on, sf, sm, sf64, sm64
+                xyz, range_m, i, j, i, j1, 0, 1, s01, jm01, step_on, sf, sm, sf64, sm64
             ):
                 root = _union(parent, root, pos[i * W + j1])
             j2 = _wrap(j + 2, W)
             if mask[i, j2] and _joined(
-                xyz, rng, i, j, i, j2, 0, 2, s02, jm02, step_on, sf, sm, sf64, sm64
+                xyz, range_m, i, j, i, j2, 0, 2, s02, jm02, step_on, sf, sm, sf64, sm64
             ):
                 root = _union(parent, root, pos[i * W + j2])
             # down the column: the next row, then the rows after it while those between
@@ -361,11 +363,11 @@ def _components_kernel(
                 if ib >= H:
                     break
                 if k >= 2:
-                    r_mid = rng[ib - 1, j]
+                    r_mid = range_m[ib - 1, j]
                     if r_mid > 0 and r_mid < np.inf:
                         break
                 if mask[ib, j] and _joined(
-                    xyz, rng, i, j, ib, j, k, 0, downs[k - 1], jmd, step_on, sf, sm, sf64, sm64
+                    xyz, range_m, i, j, ib, j, k, 0, downs[k - 1], jmd, step_on, sf, sm, sf64, sm64
                 ):
                     root = _union(parent, root, pos[ib * W + j])
     comp = np.empty(n, dtype=np.int64)
@@ -440,7 +442,7 @@ def label_objects_reference(
     if xyz.shape[:2] != (H, W) or range_m.shape != (H, W):
         raise SegmentError(f"xyz {xyz.shape} / range {range_m.shape} do not match mask {(H, W)}")
     flat = xyz.reshape(-1, 3)
-    rng = range_m.reshape(-1)
+    range_flat_m = range_m.reshape(-1)
     empty = ~(np.isfinite(range_m) & (range_m > 0)) if cfg.row_gap > 0 else None
     steps = [
         (0, 1, col_step_rad * cfg.join_per_rad),
@@ -454,15 +456,17 @@ def label_objects_reference(
             continue
         a, b = _links(mask, di, dj, empty)
         d = np.linalg.norm(flat[a] - flat[b], axis=1)
-        r = np.minimum(rng[a], rng[b])
+        r = np.minimum(range_flat_m[a], range_flat_m[b])
         near = d <= np.maximum(cfg.join_m, r * step)
         if cfg.step_m > 0:
             # no join across a step in range (an occluder's edge); only a link whose range
             # differs by more than the step threshold can be one
             with np.errstate(invalid="ignore"):
-                big = near & (np.abs(rng[a] - rng[b]) > cfg.step_m + cfg.step_frac * r)
+                big = near & (
+                    np.abs(range_flat_m[a] - range_flat_m[b]) > cfg.step_m + cfg.step_frac * r
+                )
             f = np.flatnonzero(big)
-            near[f] = ~_range_step(rng, a[f], b[f], di, dj, (H, W), cfg)
+            near[f] = ~_range_step(range_flat_m, a[f], b[f], di, dj, (H, W), cfg)
         src.append(a[near])
         dst.append(b[near])
     idx = np.flatnonzero(mask.reshape(-1))
@@ -477,7 +481,7 @@ def label_objects_reference(
     g = coo_matrix((np.ones(s.size, dtype=np.int8), (s, t)), shape=(idx.size, idx.size))
     _, comp = connected_components(g, directed=False)
     if cfg.near_pixels > 0 and cfg.near_m > 0:
-        comp = _join_near_pieces(comp, flat[idx], rng[idx], cfg)
+        comp = _join_near_pieces(comp, flat[idx], range_flat_m[idx], cfg)
     counts = np.bincount(comp)
     keep = counts >= cfg.min_pixels
     new_id = np.full(counts.size, -1, dtype=np.int64)
@@ -539,7 +543,7 @@ def _neighbour(
 
 
 def _range_step(
-    rng: np.ndarray,
+    range_m: np.ndarray,
     a: np.ndarray,
     b: np.ndarray,
     di: int,
@@ -548,7 +552,7 @@ def _range_step(
     cfg: SegmentConfig,
 ) -> np.ndarray:
     """(n,) bool: the links a -> b (flat pixel indices, b = a moved by (di, dj)) cross a step
-    in range. rng: (H * W,) range, non-finite or <= 0 where there is no return.
+    in range. range_m: (H * W,) range, non-finite or <= 0 where there is no return.
 
     Continuity and discontinuity of range (reference 001, 4.5.1 grouping by continuity; 4.5.6
     level 4: "boundaries that separate surfaces with different range ... distinguish between
@@ -566,9 +570,9 @@ def _range_step(
     """
     p, p_in = _neighbour(a, -di, -dj, shape)
     q, q_in = _neighbour(b, di, dj, shape)
-    r_a, r_b = _ranges(rng, a), _ranges(rng, b)
-    r_p = np.where(p_in, _ranges(rng, p), np.nan)
-    r_q = np.where(q_in, _ranges(rng, q), np.nan)
+    r_a, r_b = _ranges(range_m, a), _ranges(range_m, b)
+    r_p = np.where(p_in, _ranges(range_m, p), np.nan)
+    r_q = np.where(q_in, _ranges(range_m, q), np.nan)
     s = r_b - r_a
     before, after = r_a - r_p, r_q - r_b
     thr = cfg.step_m + cfg.step_frac * np.minimum(r_a, r_b)
@@ -580,9 +584,9 @@ def _range_step(
     return cut
 
 
-def _ranges(rng: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """rng[p] as float64, NaN where there is no return."""
-    r = rng[p].astype(np.float64)
+def _ranges(range_m: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """range_m[p] as float64, NaN where there is no return."""
+    r = range_m[p].astype(np.float64)
     with np.errstate(invalid="ignore"):
         return np.where(np.isfinite(r) & (r > 0), r, np.nan)
 

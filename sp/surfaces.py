@@ -689,8 +689,8 @@ def _crease_pixels_kernel(
                 dy = xyz[r, c, 1] - p0[q, 1]
                 dz = xyz[r, c, 2] - p0[q, 2]
                 along = dx * u[q, 0] + dy * u[q, 1] + dz * u[q, 2]
-                rng2 = xyz[r, c, 0] ** 2 + xyz[r, c, 1] ** 2 + xyz[r, c, 2] ** 2
-                if dx * dx + dy * dy + dz * dz - along * along <= max(tol2, per2 * rng2):
+                range_sq_m2 = xyz[r, c, 0] ** 2 + xyz[r, c, 1] ** 2 + xyz[r, c, 2] ** 2
+                if dx * dx + dy * dy + dz * dz - along * along <= max(tol2, per2 * range_sq_m2):
                     out_px[n] = r * W + c
                     out_q[n] = q
                     n += 1

@@ -58,9 +58,9 @@ def window_mask(
     if c.shape[0] == 0 or not rows_ok.any():
         return np.zeros((H, W), dtype=bool)
     # per window (A values) in numpy, as the reference: its arctan2 is not libm's bit for bit
-    rng = np.maximum(np.linalg.norm(c, axis=1), 1.0)
+    range_m = np.maximum(np.linalg.norm(c, axis=1), 1.0)
     half_m = np.minimum(cfg.base_m + cfg.k_sigma * s, cfg.max_half_m)
-    half_ang = np.arctan2(half_m, rng)
+    half_ang = np.arctan2(half_m, range_m)
     az = np.arctan2(c[:, 1], c[:, 0])
     el = np.arctan2(c[:, 2], np.hypot(c[:, 0], c[:, 1]))
     col_step = 2 * np.pi / W
@@ -128,9 +128,9 @@ def window_mask_reference(
     rows_ok = np.isfinite(row_elevation_rad)
     if c.shape[0] == 0 or not rows_ok.any():
         return mask
-    rng = np.maximum(np.linalg.norm(c, axis=1), 1.0)
+    range_m = np.maximum(np.linalg.norm(c, axis=1), 1.0)
     half_m = np.minimum(cfg.base_m + cfg.k_sigma * s, cfg.max_half_m)
-    half_ang = np.arctan2(half_m, rng)
+    half_ang = np.arctan2(half_m, range_m)
     az = np.arctan2(c[:, 1], c[:, 0])
     el = np.arctan2(c[:, 2], np.hypot(c[:, 0], c[:, 1]))
     col_step = 2 * np.pi / W

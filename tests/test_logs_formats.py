@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import struct
+import typing
 
 import numpy as np
 import pytest
@@ -12,12 +13,14 @@ from mcap.records import Chunk, Message, MessageIndex
 from mcap.stream_reader import StreamReader, breakup_chunk
 from test_logs_mcap import assert_same_frame, make_frames
 
+import logs
 from core.geometry import rpy_to_matrix, se3
 from logs import (
     CameraFrame,
     Compression,
     LadarScan,
     LogError,
+    LogMessage,
     McapLogWriter,
     McapWriterConfig,
     OdometryFrame,
@@ -232,3 +235,9 @@ def test_foreign_images_without_camera_info_have_nan_intrinsics(tmp_path) -> Non
     assert [f.image[0, 0] for f in frames] == [0, 1, 2] and frames[0].topic == "/cam"
     assert all(np.isnan(f.K).all() and f.depth is None for f in frames)
     assert src.stats.messages == ["/cam/image: no CameraInfo before the image at t_ns=0; K NaN"]
+
+
+def test_frame_is_a_deprecated_alias_of_log_message() -> None:
+    """Users' code that imports ``Frame`` still gets the union of log messages."""
+    assert logs.Frame is LogMessage and logs.types.Frame is LogMessage
+    assert CameraFrame in typing.get_args(LogMessage)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from maps import submap
-from maps.layers import LayerSpec
+from maps.layers import LayerSpec, with_current_names
 from maps.level import LevelConfig, LevelError, MapLevel
 from maps.tiles import InMemoryTileStore
 
@@ -179,3 +179,13 @@ def test_bad_input_is_refused_with_what_is_valid() -> None:
     with pytest.raises(LevelError, match="specified twice"):
         twice = (LayerSpec("a", "f4", 0), LayerSpec("a", "f4", 0))
         MapLevel(LevelConfig("t", 1.0, 8, layers=twice))
+
+
+def test_layers_stored_under_an_earlier_name_come_back_under_the_current_one() -> None:
+    old, new = np.zeros((2, 2)), np.ones((2, 2))
+    tile = {"elevation": new}
+    assert with_current_names(tile) is tile  # nothing renamed: the same dict
+    got = with_current_names({"z_m2": old, "elevation": new})
+    assert set(got) == {"z_sq_dev_sum", "elevation"} and got["z_sq_dev_sum"] is old
+    both = with_current_names({"z_m2": old, "z_sq_dev_sum": new})
+    assert set(both) == {"z_sq_dev_sum"} and both["z_sq_dev_sum"] is new

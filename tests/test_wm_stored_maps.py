@@ -21,11 +21,12 @@ from core.geometry import se3_inverse, transform_points
 from fixtures.simulate import simulate_to_log
 from kd_store import Level, State, Status
 from logs import open_log
+from maps.level import LevelConfig, MapLevel
 from wm.cli import main
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
 from wm.render import render_maps
-from wm.tiles import TileError, stored_maps
+from wm.tiles import KDTileStore, TileError, stored_maps
 from wm.truth import TerrainTruth, elevation_error
 from wm.whatif import WaypointPlan, WhatIf
 
@@ -225,3 +226,22 @@ def test_run_node_over_a_kd_file_leaves_the_maps_the_kd_forms_read(ran, tmp_path
             got = lvl.window("elevation")
             assert np.array_equal(got, windows[lvl.name], equal_nan=True), lvl.name
             assert np.isfinite(got).sum() > 20, lvl.name  # 30 m section cells: about 50 seen
+
+
+def test_a_kd_written_before_the_layer_rename_still_loads(tmp_path: Path) -> None:
+    """A KD file whose tiles hold Welford's M2 as ``z_m2`` (its name before it became
+    ``z_sq_dev_sum``): a level over it reads the layer under the new name, and a tile it puts
+    back holds only the new name."""
+    path = tmp_path / "old.duckdb"
+    m2 = np.arange(64, dtype=np.float64).reshape(8, 8)
+    with kd_store.open(path) as kd:  # tile (0, 0): global cells ix, iy in [0, 8)
+        kd.put_tile("t", 0, 0, {"z_m2": m2, "count": np.ones((8, 8), np.int32)})
+    config = LevelConfig("t", 1.0, 32, tile_cells=8)  # window cells [-16, 16) each way
+    with kd_store.open(path) as kd:
+        level = MapLevel(config, KDTileStore(kd))
+        np.testing.assert_array_equal(level.window("z_sq_dev_sum")[16:24, 16:24], m2)
+        assert level.window("count")[16:24, 16:24].sum() == 64
+        assert level.keep_window() > 0
+        stored = kd.get_tile("t", 0, 0)
+    assert "z_m2" not in stored
+    np.testing.assert_array_equal(stored["z_sq_dev_sum"], m2)

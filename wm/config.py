@@ -191,8 +191,7 @@ class NodeConfig:
     segment_confirm_frames: int = 3
     # BLAS and OpenMP threads in the node's process during a run (None: the libraries' own
     # choice). One: the node's array operations are small, and the libraries' idle threads
-    # spin on the core the odometry process needs (10 s default on 2 cores: main-process CPU
-    # 116 -> 45 ms per sweep, wall 20.7 -> 12.6 s on a busy machine)
+    # spin on the core the odometry process needs, slowing both processes
     compute_threads: int | None = 1
 
     def __post_init__(self) -> None:

@@ -147,8 +147,9 @@ def see(truth: Truth, sweep: Sweep, config: EvalConfig) -> Seen:
     c_body = transform_points(T_body_world, centers)
     yaw_body = boxes.yaws + math.atan2(T_body_world[1, 0], T_body_world[0, 0])
     reach = config.range_m + config.dont_care_band_m
-    rng = footprint_distance(np.zeros((1, 2)), c_body[:, :2], boxes.sizes[:, :2], yaw_body)[:, 0]
-    near = np.flatnonzero(rng < reach)
+    body_origin = np.zeros((1, 2))
+    range_m = footprint_distance(body_origin, c_body[:, :2], boxes.sizes[:, :2], yaw_body)[:, 0]
+    near = np.flatnonzero(range_m < reach)
     if labelled is not None:
         lookup = dict(zip(labelled.ids.tolist(), labelled.n_returns.tolist(), strict=True))
         counts = np.array([lookup.get(int(i), 0) for i in boxes.ids[near]], dtype=np.int64)
@@ -458,8 +459,9 @@ def frame_at(
     reach = config.range_m + config.dont_care_band_m
     c_body = transform_points(T_body_world, centers)
     yaw_body = boxes.yaws + math.atan2(T_body_world[1, 0], T_body_world[0, 0])
-    rng = footprint_distance(np.zeros((1, 2)), c_body[:, :2], boxes.sizes[:, :2], yaw_body)[:, 0]
-    near = np.flatnonzero(rng < reach)
+    body_origin = np.zeros((1, 2))
+    range_m = footprint_distance(body_origin, c_body[:, :2], boxes.sizes[:, :2], yaw_body)[:, 0]
+    near = np.flatnonzero(range_m < reach)
     pts = np.full(len(near), -1, dtype=np.int64)
     if len(seen_mid_ns) and len(near):
         pts = truth.seen[int(np.argmin(np.abs(seen_mid_ns - t)))].count(boxes.ids[near])
@@ -467,7 +469,7 @@ def frame_at(
     return FrameData(
         t, boxes.ids[near], [boxes.classes[i] for i in near], c_body[near, :2],
         boxes.sizes[near, :2], yaw_body[near],
-        np.hypot(*np.nan_to_num(boxes.velocities[near, :2]).T).reshape(-1), rng[near], pts,
+        np.hypot(*np.nan_to_num(boxes.velocities[near, :2]).T).reshape(-1), range_m[near], pts,
         hid, hxy, hspeed,
     )  # fmt: skip
 

@@ -73,9 +73,9 @@ from core.geometry import (
 from kd_store import Level, State, Status
 from logs.types import (
     CameraFrame,
-    Frame,
     GroundTruthPose,
     LadarScan,
+    LogMessage,
     ObjectBoxes,
     OdometryFrame,
     TransformFrame,
@@ -166,7 +166,7 @@ class FrameTypeError(EngineError, TypeError):
     type and the frame types the node takes)."""
 
 
-FRAME_TYPES: tuple[type, ...] = typing.get_args(Frame)
+FRAME_TYPES: tuple[type, ...] = typing.get_args(LogMessage)
 
 
 @dataclass
@@ -262,7 +262,8 @@ class WorldModelNode:
         self.camera: CameraFrame | None = None
         self.truth_boxes: ObjectBoxes | None = None
         self.last_t_ns: int | None = None
-        self.held: list[Frame] = []  # frames beyond a time jump, not taken yet (module docstring)
+        # messages beyond a time jump, not taken yet (module docstring)
+        self.held: list[LogMessage] = []
         self._gaps: deque[int] = deque(maxlen=4 * _GAPS_NEEDED)  # ns between taken frames
         self._n_gaps = 0
         self._jump_bound_ns: int | None = None  # jump_bound_ns, once learnt
@@ -301,7 +302,7 @@ class WorldModelNode:
         finally:
             self.close()
 
-    def feed(self, frame: Frame) -> list[CycleResult]:
+    def feed(self, frame: LogMessage) -> list[CycleResult]:
         """Take one log frame; returns the cycles it let run (sweeps whose poses are in).
 
         A frame the node cannot use (:func:`wm.screen.check_frame`: a time that is no
@@ -328,7 +329,7 @@ class WorldModelNode:
         self._skip_held()
         return self._take(frame)
 
-    def _take(self, frame: Frame) -> list[CycleResult]:
+    def _take(self, frame: LogMessage) -> list[CycleResult]:
         """A frame in time: screened, then taken (:meth:`feed`)."""
         why = self._screen(frame)
         if why is not None:
@@ -391,13 +392,13 @@ class WorldModelNode:
             typical = float(np.median(self._gaps)) * c.time_jump_gaps
             self._jump_bound_ns = int(min(c.max_time_jump_ns, max(c.min_time_jump_ns, typical)))
 
-    def _beyond_jump(self, frame: Frame) -> bool:
+    def _beyond_jump(self, frame: LogMessage) -> bool:
         """The frame is stamped more than :meth:`jump_bound_ns` after the log's latest one,
         or more than that before it (a clock that jumped back)."""
         last = self.last_t_ns
         return last is not None and abs(int(frame.t_ns) - last) > self.jump_bound_ns()
 
-    def _hold(self, frame: Frame) -> list[CycleResult]:
+    def _hold(self, frame: LogMessage) -> list[CycleResult]:
         """Hold a frame beyond a time jump; once ``segment_confirm_frames`` held frames agree
         (each within the bound of the one before), start a new segment with them. A frame
         that does not agree with those held replaces them (they are skipped)."""
@@ -423,7 +424,7 @@ class WorldModelNode:
             f"(limit {self.jump_bound_ns() * 1e-9:g} s)"
         )
 
-    def _skipped(self, frame: Frame, why: str) -> None:
+    def _skipped(self, frame: LogMessage, why: str) -> None:
         self._count_skip(f"{type(frame).__name__} at t_ns={frame.t_ns}", why)
 
     def _count_skip(self, what: str, why: str) -> None:
@@ -479,7 +480,7 @@ class WorldModelNode:
         self.prediction = None
         self.attention_world_xyz = None
 
-    def _screen(self, frame: Frame) -> str | None:
+    def _screen(self, frame: LogMessage) -> str | None:
         """Why ``frame`` must be skipped for its time order ("reason: detail"), or None to
         take it; its content was checked on the way in (:func:`wm.screen.check_frame`)."""
         t = int(frame.t_ns)

@@ -28,7 +28,7 @@ from core.geometry import NS_PER_S
 from kd_store.persist import snapshot_target
 from logs import LogSource, open_log
 from logs.prefetch import FramePrefetcher
-from logs.types import CameraFrame, Frame, LadarScan, ObjectBoxes, OdometryFrame
+from logs.types import CameraFrame, LadarScan, LogMessage, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig, PoseSource
 from wm.node import WorldModelNode
 from wm.tiles import keep_windows, map_stack_over_kd
@@ -266,7 +266,7 @@ def compute_threads(n: int | None) -> Iterator[None]:
 @contextmanager
 def _reader(
     source: LogSource, decode_process: bool
-) -> Iterator[tuple[Iterator[Frame], FramePrefetcher | None]]:
+) -> Iterator[tuple[Iterator[LogMessage], FramePrefetcher | None]]:
     """The log's frames, decoded here or ahead in a child process (stopped on leaving)."""
     if not decode_process:
         yield source.frames(), None
@@ -275,7 +275,7 @@ def _reader(
         yield iter(prefetcher), prefetcher
 
 
-def _cpu_timed(frames: Iterator[Frame], total_s: list[float]) -> Iterator[Frame]:
+def _cpu_timed(frames: Iterator[LogMessage], total_s: list[float]) -> Iterator[LogMessage]:
     """The frames, adding the CPU time (this thread) spent producing them to ``total_s[0]``."""
     it = iter(frames)
     while True:

@@ -26,10 +26,10 @@ from core.errors import EngineError
 from core.geometry import GeometryError, check_pose
 from logs.types import (
     CameraFrame,
-    Frame,
     GroundTruthPose,
     ImuFrame,
     LadarScan,
+    LogMessage,
     ObjectBoxes,
     OdometryFrame,
     TransformFrame,
@@ -55,7 +55,7 @@ class _Bad(EngineError):
     """Internal: a check failed; ``args[0]`` is "reason: detail" (never leaves this module)."""
 
 
-def check_frame(frame: Frame) -> str | None:
+def check_frame(frame: LogMessage) -> str | None:
     """Why ``frame`` must be skipped ("reason: detail"), or None when it is fit to take
     (module docstring). Never raises for any content of a frame dataclass."""
     try:
@@ -224,7 +224,7 @@ def _boxes(b: ObjectBoxes) -> None:
     _names(why, b.frame_id)
 
 
-_CHECKS: dict[type, Callable[[Frame], None]] = {
+_CHECKS: dict[type, Callable[[LogMessage], None]] = {
     LadarScan: _ladar,
     CameraFrame: _camera,
     OdometryFrame: _odometry,

@@ -1,7 +1,7 @@
 """Map tiles in the knowledge database: the maps' tile store backed by the KD's long-term memory.
 
-Reference 001, 4.4.11 (line 782: long-term memory contains maps; 784: local maps update the
-stored ones). Cells leaving a level's window go to the KD and come back when the vehicle
+Reference 001, section 4.4.11 (long-term memory contains maps; local maps update the stored
+ones). Cells leaving a level's window go to the KD and come back when the vehicle
 returns, also in a later run over the same KD file (docs/architecture.md, map levels and tiles;
 the knowledge database, memory tiers).
 This is the adapter at the edge: maps knows only its two-method
