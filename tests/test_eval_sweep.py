@@ -31,3 +31,21 @@ def test_sweep_over_all_scenarios_and_evaluation_seeds():
         for r in runs:
             assert r["frames"] > 100, (scenario, r)  # a 20 s log has 200 sweeps
             assert math.isfinite(r["mota"]) and math.isfinite(r["drift_pct"]), (scenario, r)
+
+
+def test_a_cached_log_without_return_counts_is_simulated_again(tmp_path):
+    """A log cached before the truth boxes counted returns per object would be scored by the
+    older rule (returns in the grown box): the sweep simulates it again."""
+    import numpy as np
+
+    from logs import McapLogWriter
+    from logs.types import ObjectBoxes
+    from wm.eval_sweep import counts_returns, simulate_cached
+
+    stale = tmp_path / "default-seed3-0.3s.mcap"
+    with McapLogWriter(stale) as w:
+        w.write(ObjectBoxes(0, "world", np.array([1]), ["rock"], np.zeros((1, 3)),
+                            np.ones((1, 3)), np.zeros(1), np.zeros((1, 3))))  # fmt: skip
+    assert not counts_returns(stale)
+    log = simulate_cached("default", 3, 0.3, tmp_path, timeout_s=120)
+    assert log == stale and counts_returns(log)

@@ -122,9 +122,10 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str], timeout_s: float, log: 
 def simulate_cached(
     scenario: str, seed: int, seconds: float, cache: Path, timeout_s: float
 ) -> Path:
-    """The cached log of (scenario, seed, seconds), simulated by this tree when missing."""
+    """The cached log of (scenario, seed, seconds), simulated by this tree when missing or
+    when it predates the per-object return counts the scorer reads (:func:`counts_returns`)."""
     log = cache / f"{scenario}-seed{seed}-{seconds:g}s.mcap"
-    if log.exists():
+    if log.exists() and counts_returns(log):
         return log
     cache.mkdir(parents=True, exist_ok=True)
     tmp = log.with_suffix(".mcap.tmp.mcap")
@@ -135,6 +136,16 @@ def simulate_cached(
     _run(cmd, REPO, dict(os.environ), timeout_s, log.with_suffix(".simulate.txt"))
     tmp.rename(log)
     return log
+
+
+def counts_returns(log: Path) -> bool:
+    """Whether the log's first truth boxes carry ``n_returns`` (simulated since 2026-12)."""
+    from logs import open_log
+    from logs.types import ObjectBoxes
+
+    for boxes in open_log(log).frames(kinds=(ObjectBoxes,)):
+        return boxes.n_returns is not None
+    return False
 
 
 def run_one(
