@@ -3,7 +3,7 @@
 Packed form: the 21 upper-triangle entries, row-major (the ``cov_pv`` column on disk). The
 positive-semidefinite test is a Cholesky factorisation: one compiled loop over the matrices
 (:func:`psd_mask`), and the same arithmetic unrolled over many matrices at once in numpy
-(:func:`psd_mask_reference`).
+(``psd_mask_reference``, a test oracle in ``tests/kernel_reference``).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def psd_mask(cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = No
     exceeds ``-tol * scale``. The scale is ``max(1, largest diagonal entry)`` (bounds every
     entry of a PSD matrix); pass it as ``scale`` (N,) when the caller has it already. One
     compiled pass (:func:`_psd_kernel`), the same arithmetic in the same order as
-    :func:`psd_mask_reference`, so the same answers (NaN is never PSD).
+    ``psd_mask_reference``, so the same answers (NaN is never PSD).
     """
     A = np.ascontiguousarray(cov21, dtype=np.float64)
     if A.ndim != 2 or A.shape[1] != 21:
@@ -61,7 +61,7 @@ def psd_mask(cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = No
 @numba.njit(cache=True, nogil=True)
 def _psd_kernel(A: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """Per row of ``A`` (N, 21): whether the factorisation of the packed matrix plus
-    ``shift`` on the diagonal has every pivot > 0 (:func:`psd_mask_reference`, row by row)."""
+    ``shift`` on the diagonal has every pivot > 0 (``psd_mask_reference``, row by row)."""
     n = A.shape[0]
     ok = np.ones(n, dtype=np.bool_)
     L = np.zeros((6, 6))
@@ -79,48 +79,6 @@ def _psd_kernel(A: np.ndarray, shift: np.ndarray) -> np.ndarray:
                 for k in range(j):
                     t = t - L[i, k] * L[j, k]
                 L[i, j] = t / d
-    return ok
-
-
-def psd_mask_reference(
-    cov21: np.ndarray, tol: float = 1e-9, scale: np.ndarray | None = None
-) -> np.ndarray:
-    """Which packed 6x6 covariances are positive semidefinite: (N, 21) -> (N,) bool.
-
-    Cholesky of ``C + tol * scale * I`` succeeds exactly when the smallest
-    eigenvalue of C exceeds ``-tol * scale``; the factorisation is unrolled over
-    columns so a batch of a million matrices costs a few dozen vector operations.
-    The scale is ``max(1, largest diagonal entry)`` (bounds every entry of a PSD matrix);
-    pass it as ``scale`` (N,) when the caller has it already.
-    """
-    cov21 = np.asarray(cov21, dtype=np.float64)
-    if len(cov21) > _BLOCK:
-        return np.concatenate(
-            [
-                psd_mask_reference(
-                    cov21[i : i + _BLOCK], tol, None if scale is None else scale[i : i + _BLOCK]
-                )
-                for i in range(0, len(cov21), _BLOCK)
-            ]
-        )
-    A = np.ascontiguousarray(np.asarray(cov21, dtype=np.float64).T)  # (21, N)
-    if scale is None:
-        scale = np.maximum(1.0, np.maximum.reduce([A[PACK_INDEX[(i, i)]] for i in range(6)]))
-    shift = tol * scale
-    ok = np.ones(A.shape[1], dtype=bool)
-    L: list[list[np.ndarray | None]] = [[None] * 6 for _ in range(6)]
-    for j in range(6):
-        s = A[PACK_INDEX[(j, j)]] + shift
-        for k in range(j):
-            s = s - L[j][k] ** 2
-        ok &= s > 0
-        d = np.sqrt(np.where(s > 0, s, 1.0))
-        L[j][j] = d
-        for i in range(j + 1, 6):
-            t = A[PACK_INDEX[(j, i)]]
-            for k in range(j):
-                t = t - L[i][k] * L[j][k]
-            L[i][j] = t / d
     return ok
 
 

@@ -4,8 +4,8 @@ Reference 001, 4.5.1 (computation: "attributes of the hypothesized entity ... in
 the group"), 4.4.2 (entity frame attributes). Every attribute is computed for all segments at
 once: the per-segment sums, minima and maxima in compiled passes over the pixels (numba), so
 the cost is a few passes over the grouped pixels whatever the number of groups, and what
-follows from them vectorised over the segments. The ``*_reference`` functions are the numpy
-definitions the compiled forms are tested against.
+follows from them vectorised over the segments. The numpy definitions the compiled forms are
+tested against are test oracles, in ``tests/kernel_reference/computation_reference.py``.
 
 World frame (z up); metres, radians, seconds.
 """
@@ -90,7 +90,7 @@ def ground_below(
     continuity), the slope clipped to +-``max_slope`` and the reach to ``max_reach_m``, so a
     patch of a hillside seen past a gap is not taken for an object standing on the lower
     ground in front of it. One compiled pass (:func:`_ground_below_kernel`); the same
-    heights as :func:`ground_below_reference` (the numpy definition).
+    heights as ``ground_below_reference`` (the numpy definition).
     """
     if r_m is not None and r_m.shape != ground.shape:
         raise ComputationError(f"r_m {r_m.shape} does not match ground {ground.shape}")
@@ -116,7 +116,7 @@ def _clip(x, lo, hi):
 
 @numba.njit(cache=True, nogil=True)
 def _ground_below_kernel(ground, z_world, r_m, continued, max_slope, max_reach_m):
-    """:func:`ground_below_reference` row by row from the bottom, each column's last ground
+    """``ground_below_reference`` row by row from the bottom, each column's last ground
     height, range and slope in arrays (W,)."""
     H, W = ground.shape
     out = np.empty((H, W))
@@ -136,37 +136,6 @@ def _ground_below_kernel(ground, z_world, r_m, continued, max_slope, max_reach_m
                         slope[j] = _clip((z_world[i, j] - z1[j]) / dr, -max_slope, max_slope)
                     r1[j] = r_m[i, j]
                 z1[j] = z_world[i, j]
-    return out
-
-
-def ground_below_reference(
-    ground: np.ndarray,
-    z_world: np.ndarray,
-    r_m: np.ndarray | None = None,
-    max_slope: float = 0.3,
-    max_reach_m: float = 15.0,
-) -> np.ndarray:
-    """:func:`ground_below` in plain numpy, one row of all columns at a time (the
-    reference the compiled kernel is tested against)."""
-    H, W = ground.shape
-    out = np.full((H, W), np.nan)
-    z1 = np.full(W, np.nan)
-    r1 = np.zeros(W)
-    slope = np.zeros(W)
-    for i in range(H - 1, -1, -1):
-        if r_m is None:
-            out[i] = z1
-        else:
-            reach = np.clip(r_m[i] - r1, 0.0, max_reach_m)
-            out[i] = z1 + slope * reach
-        g = ground[i]
-        if r_m is not None and g.any():
-            dr = r_m[i] - r1
-            fresh = g & np.isfinite(z1) & (dr > 0.5)
-            s = np.clip((z_world[i] - z1) / np.where(fresh, dr, 1.0), -max_slope, max_slope)
-            slope = np.where(fresh, s, slope)
-            r1 = np.where(g, r_m[i], r1)
-        z1 = np.where(g, z_world[i], z1)
     return out
 
 
@@ -194,7 +163,7 @@ def segment_attributes(
     :func:`_segment_box` its extents along and across the yaw, and the box. The 3 x 3
     eigen-decompositions and the trigonometry stay numpy, vectorised over the K segments,
     as in the reference. Each sum adds a segment's pixels in flat order, the order
-    ``np.bincount`` adds them in :func:`segment_attributes_reference`, and every expression
+    ``np.bincount`` adds them in ``segment_attributes_reference``, and every expression
     is the reference's, so the results are the reference's to the last bit (tested).
     Non-finite points make the decomposition fail (``np.linalg.LinAlgError``), as in the
     reference.
@@ -418,7 +387,7 @@ def _segment_sums(runs, first, p, inten, range_m, t_off, ground_z):  # pragma: n
 @numba.njit(cache=True, nogil=True)
 def _segment_box(runs, first, p, c, cos, sin, z0, z1, g_n, g_sum):  # pragma: no cover
     """The oriented footprint box of each segment: its extents along (u) and across (v) the
-    yaw from the centroid, then the box as :func:`segment_attributes_reference` builds it.
+    yaw from the centroid, then the box as ``segment_attributes_reference`` builds it.
 
     runs, first as :func:`_segment_runs`; p (N, 3) float points; c (K, 3) centroids; cos,
     sin (K,) of the yaws; z0, z1, g_n, g_sum (K,) as :func:`_segment_sums`. Returns
@@ -474,105 +443,13 @@ def _segment_box(runs, first, p, c, cos, sin, z0, z1, g_n, g_sum):  # pragma: no
     return center, length, width, height, gz, clearance, area, volume
 
 
-def segment_attributes_reference(
-    labels: np.ndarray,
-    points_world: np.ndarray,
-    intensity: np.ndarray,
-    range_m: np.ndarray,
-    t_offset_ns: np.ndarray,
-    ground_z: np.ndarray,
-    n_segments: int | None = None,
-) -> SegmentAttributes:
-    """:func:`segment_attributes` in plain numpy (``bincount`` / ``reduceat`` over the
-    pixels sorted by label): the definition the compiled form is tested against. Same
-    arguments and result.
-    """
-    if points_world.shape[:2] != labels.shape:
-        raise ComputationError(f"points {points_world.shape} do not match labels {labels.shape}")
-    lab = labels.reshape(-1)
-    sel = np.flatnonzero(lab >= 0)
-    K = int(lab[sel].max(initial=-1)) + 1 if n_segments is None else n_segments
-    order = sel[np.argsort(lab[sel], kind="stable")]
-    seg = lab[order]
-    n = np.bincount(seg, minlength=K).astype(np.int64)
-    starts = np.concatenate([[0], np.cumsum(n)[:-1]])
-    nz = n > 0
-    n_safe = np.maximum(n, 1)
-    p = points_world.reshape(-1, 3)[order].astype(np.float64)
-
-    def mean(v: np.ndarray) -> np.ndarray:
-        return np.bincount(seg, weights=v, minlength=K) / n_safe
-
-    c = np.stack([mean(p[:, k]) for k in range(3)], axis=1)
-    d = p - c[seg]
-    cov = np.empty((K, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = mean(d[:, a] * d[:, b])
-    evals, evecs = np.linalg.eigh(cov + 1e-9 * np.eye(3))
-    curvature = evals[:, 0] / np.maximum(evals.sum(axis=1), 1e-12)
-    verticality = np.abs(evecs[:, 2, 0])
-    yaw = 0.5 * np.arctan2(2 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
-    u = d[:, 0] * np.cos(yaw)[seg] + d[:, 1] * np.sin(yaw)[seg]
-    v = -d[:, 0] * np.sin(yaw)[seg] + d[:, 1] * np.cos(yaw)[seg]
-
-    def reduce(f: np.ufunc, x: np.ndarray, empty: float) -> np.ndarray:
-        out = np.full(K, empty)
-        if order.size:
-            out[nz] = f.reduceat(x, starts[nz])
-        return out
-
-    u0, u1 = reduce(np.minimum, u, 0.0), reduce(np.maximum, u, 0.0)
-    v0, v1 = reduce(np.minimum, v, 0.0), reduce(np.maximum, v, 0.0)
-    z0, z1 = reduce(np.minimum, p[:, 2], 0.0), reduce(np.maximum, p[:, 2], 0.0)
-    g = ground_z.reshape(-1)[order]
-    has_g = np.isfinite(g)
-    g_n = np.bincount(seg[has_g], minlength=K)
-    g_mean = np.bincount(seg[has_g], weights=g[has_g], minlength=K) / np.maximum(g_n, 1)
-    gz = np.where(g_n > 0, np.minimum(g_mean, z0), z0)
-    length, width = u1 - u0, v1 - v0
-    height = z1 - gz
-    uc, vc = (u0 + u1) / 2, (v0 + v1) / 2
-    center = np.stack(
-        [
-            c[:, 0] + uc * np.cos(yaw) - vc * np.sin(yaw),
-            c[:, 1] + uc * np.sin(yaw) + vc * np.cos(yaw),
-            gz + height / 2,
-        ],
-        axis=1,
-    )
-    inten = np.nan_to_num(intensity.reshape(-1)[order].astype(np.float64))
-    t_off = t_offset_ns.reshape(-1)[order].astype(np.float64)
-    range_ordered_m = range_m.reshape(-1)[order].astype(np.float64)
-    return SegmentAttributes(
-        n_pixels=n,
-        centroid_xyz=c,
-        center_xyz=center,
-        yaw_rad=yaw,
-        length_m=length,
-        width_m=width,
-        height_m=height,
-        ground_z_m=gz,
-        clearance_m=z0 - gz,
-        area_m2=length * width,
-        volume_m3=length * width * height,
-        intensity=mean(inten),
-        curvature=curvature,
-        verticality=verticality,
-        thickness_m=np.sqrt(np.maximum(evals[:, 0], 0.0)),
-        breadth_m=np.sqrt(np.maximum(evals[:, 1], 0.0)),
-        range_m=reduce(np.minimum, range_ordered_m, np.inf),
-        t_offset_ns=np.round(mean(t_off)).astype(np.int64),
-    )
-
-
 def ground_plane(
     xyz_w: np.ndarray, ground: np.ndarray, centre_xyz: np.ndarray, radius_m: float
 ) -> tuple[np.ndarray, float, int] | None:
     """The plane ``z = a x + b y + c`` through the ground pixels ``ground`` (H, W) bool of
     ``xyz_w`` (H, W, 3) world metres within ``radius_m`` (horizontal) of ``centre_xyz`` (3,),
     in coordinates centred there (small numbers): least squares by its 3 x 3 normal equations
-    (the sums in one compiled pass over the pixels, :func:`ground_plane_reference` is the
+    (the sums in one compiled pass over the pixels, ``ground_plane_reference`` is the
     numpy form). Returns ``((a, b, c), rms residual m, n points)``, or None under 10 points."""
     c = np.asarray(centre_xyz, dtype=np.float64)
     sums = np.zeros(10)
@@ -590,22 +467,6 @@ def ground_plane(
         - 2 * a * xz - 2 * b * yz - 2 * k * sz + 2 * a * b * xy + 2 * a * k * sx + 2 * b * k * sy
     )  # fmt: skip
     return coef, float(np.sqrt(max(ss, 0.0) / n)), n
-
-
-def ground_plane_reference(
-    xyz_w: np.ndarray, ground: np.ndarray, centre_xyz: np.ndarray, radius_m: float
-) -> tuple[np.ndarray, float, int] | None:
-    """The numpy form of :func:`ground_plane` (residuals taken point by point)."""
-    d = xyz_w[ground] - np.asarray(centre_xyz, dtype=np.float64)
-    near = d[d[:, 0] ** 2 + d[:, 1] ** 2 < radius_m**2]
-    if near.shape[0] < 10:
-        return None
-    m = near.T @ near
-    s = near.sum(axis=0)
-    AtA = np.array([[m[0, 0], m[0, 1], s[0]], [m[0, 1], m[1, 1], s[1]], [s[0], s[1], len(near)]])
-    coef, *_ = np.linalg.lstsq(AtA, np.array([m[0, 2], m[1, 2], s[2]]), rcond=None)
-    resid = near[:, 2] - (coef[0] * near[:, 0] + coef[1] * near[:, 1] + coef[2])
-    return coef, float(np.sqrt(np.mean(resid**2))), int(near.shape[0])
 
 
 @numba.njit(cache=True, nogil=True)

@@ -19,8 +19,8 @@ sensor frame's points; z up, metres).
 coordinates, horizontal ranges, each column's lowest return), takes the sensor height and walks
 the columns; numpy gives the azimuths (its arctan2, to the bit); a second compiled call refines.
 Only the valid pixels are read and stored (no image-sized float copies).
-:func:`ground_mask_reference` is the numpy form it is tested against (the same mask and the
-same height, bit for bit).
+``ground_mask_reference`` (a test oracle, in ``tests/kernel_reference``) is the numpy form it is
+tested against (the same mask and the same height, bit for bit).
 """
 
 from __future__ import annotations
@@ -33,6 +33,16 @@ import numpy as np
 
 from core.errors import EngineError
 from sp.nan_ops import minimum as _nan_min
+
+# A column's ground may fall this much more per metre of range step (m/m) than it may rise,
+# on top of the slope and step allowance (column walk).
+GROUND_DROP_PER_M = 0.1
+# In refinement the local lowest ground is a 3x3 minimum of polar cells, so it may lie a cell
+# away: a return is not ground above it by ``refine_above_m`` plus one cell at this slope.
+REFINE_CELL_SLOPE_TAN = np.tan(0.25)
+# Highest ring index of the refinement's polar grid (rings past it share the last one), so
+# far ranges cannot make the grid unbounded.
+MAX_RING = 4095
 
 
 class GroundError(EngineError, ValueError):
@@ -110,7 +120,7 @@ def column_walk(
 
     r_m: (H, W) horizontal range from the sensor, z_m: (H, W) height relative to the sensor
     (gravity-aligned), valid: (H, W) bool; row 0 is the highest elevation. One compiled pass
-    over the valid pixels (:func:`_column_walk_kernel`); :func:`column_walk_reference` is the
+    over the valid pixels (:func:`_column_walk_kernel`); ``column_walk_reference`` is the
     same rule in numpy.
     """
     ok = np.ascontiguousarray(valid, dtype=np.bool_)
@@ -177,7 +187,7 @@ def _row_starts(valid):  # pragma: no cover
 def _column_walk_kernel(  # pragma: no cover
     r_valid, z_valid, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m
 ):
-    """:func:`column_walk_reference` row by row, every column's walk state in scalars of
+    """``column_walk_reference`` row by row, every column's walk state in scalars of
     arrays (W,): the same comparisons on the same float64 values, so the same mask.
 
     r_valid, z_valid: (N,) float64 m, the valid pixels' range and height in row-major order
@@ -207,7 +217,7 @@ def _column_walk_kernel(  # pragma: no cover
                 g = (
                     dr > 0.0
                     and (z - last_z[j]) <= run + step
-                    and (last_z[j] - z) <= run + step + 0.1 * dr
+                    and (last_z[j] - z) <= run + step + GROUND_DROP_PER_M * dr
                     and (
                         prev_ground[j]
                         or (
@@ -226,45 +236,6 @@ def _column_walk_kernel(  # pragma: no cover
     return ground_valid
 
 
-def column_walk_reference(
-    r_m: np.ndarray, z_m: np.ndarray, valid: np.ndarray, height_m: float, config: GroundConfig
-) -> np.ndarray:
-    """:func:`column_walk` in plain numpy, one row of all columns at a time (the reference
-    the compiled kernel is tested against)."""
-    H, W = r_m.shape
-    tan_s = np.tan(np.deg2rad(config.max_slope_deg))
-    tan_r = np.tan(np.deg2rad(config.resume_slope_deg))
-    ground = np.zeros((H, W), dtype=bool)
-    last_r = np.zeros(W)  # last ground return of each column
-    last_z = np.full(W, -height_m)
-    have = np.zeros(W, dtype=bool)
-    prev_r = np.zeros(W)  # last return of any kind, and whether it was ground
-    prev_ground = np.ones(W, dtype=bool)
-    for i in range(H - 1, -1, -1):
-        v = valid[i]
-        r, z = r_m[i], z_m[i]
-        start = v & ~have & (np.abs(z + height_m) <= config.start_tol_m + tan_s * r)
-        dr = r - last_r
-        rise_ok = (z - last_z) <= tan_s * np.maximum(dr, 0.0) + config.step_m
-        drop_ok = (last_z - z) <= tan_s * np.maximum(dr, 0.0) + config.step_m + 0.1 * dr
-        # the ground resumes behind an object only past a range gap, and no steeper than
-        # ``resume_slope_deg`` from the ground in front of it (a car's hood seen past its
-        # bumper is not ground)
-        resume_ok = (r - prev_r >= config.resume_gap_m + config.resume_gap_per_m * r) & (
-            (z - last_z) <= tan_r * np.maximum(dr, 0.0) + config.step_m
-        )
-        gap_ok = prev_ground | resume_ok
-        cont = v & have & (dr > 0.0) & rise_ok & drop_ok & gap_ok
-        g = start | cont
-        ground[i] = g
-        last_r = np.where(g, r, last_r)
-        last_z = np.where(g, z, last_z)
-        have |= g
-        prev_r = np.where(v, r, prev_r)
-        prev_ground = np.where(v, g, prev_ground)
-    return ground
-
-
 def refine(
     x_m: np.ndarray,
     y_m: np.ndarray,
@@ -279,7 +250,7 @@ def refine(
     to it are. Inputs (H, W) float in the gravity-aligned sensor-centred frame (m; ``r_m`` the
     horizontal range, if the caller has it); returns (H, W) bool. Ranges and the valid pixels'
     azimuths by numpy, the rest in one compiled kernel (:func:`_refine_kernel`); the same mask
-    as :func:`refine_reference`."""
+    as ``refine_reference``."""
     ok = np.ascontiguousarray(valid, dtype=np.bool_)
     r = np.hypot(x_m, y_m) if r_m is None else r_m
     # only the valid pixels take part (an invalid pixel's cell is never used); numpy's
@@ -302,7 +273,7 @@ def _refine_params(config: GroundConfig) -> tuple[float, int, float, float, floa
     return (
         float(config.cell_m),
         int(config.n_sectors),
-        float(config.refine_above_m + config.cell_m * np.tan(0.25)),
+        float(config.refine_above_m + config.cell_m * REFINE_CELL_SLOPE_TAN),
         float(config.refine_above_m),
         float(config.refine_within_m),
     )
@@ -313,7 +284,7 @@ def _refine_kernel(  # pragma: no cover
     r_valid, az_valid, z_valid, ground_valid, valid, cell, cell_m, n_sectors, above_local_m,
     above_own_m, within_m,
 ):  # fmt: skip
-    """:func:`refine_reference` with its cell indices, lowest-ground scatter, 3x3 minimum
+    """``refine_reference`` with its cell indices, lowest-ground scatter, 3x3 minimum
     (azimuth wraps) and tests in loops over the valid pixels and the cells.
 
     r_valid, az_valid, z_valid: (N,) float64, the valid pixels' range (m), azimuth (rad) and
@@ -328,7 +299,7 @@ def _refine_kernel(  # pragma: no cover
     # the cells, by the expressions of refine_reference (so the same integers)
     n_ring = 1
     for k in range(n):
-        ring = min(np.int64(r_valid[k] / cell_m), 4095)
+        ring = min(np.int64(r_valid[k] / cell_m), MAX_RING)
         sector = np.int64((az_valid[k] + np.pi) * (n_sectors / (2 * np.pi)))
         cell[k] = ring * n_sectors + min(max(sector, 0), n_sectors - 1)
         n_ring = max(n_ring, ring + 1)
@@ -387,44 +358,6 @@ def _refine_kernel(  # pragma: no cover
     return _to_image(valid, res)
 
 
-def refine_reference(
-    x_m: np.ndarray,
-    y_m: np.ndarray,
-    z_m: np.ndarray,
-    valid: np.ndarray,
-    ground: np.ndarray,
-    config: GroundConfig,
-) -> np.ndarray:
-    """:func:`refine` in plain numpy (the reference the compiled kernel is tested against)."""
-    r = np.hypot(x_m, y_m)
-    ring = np.minimum((r / config.cell_m).astype(np.int64), 4095)
-    n_ring = int(ring[valid].max(initial=0)) + 1
-    sector = ((np.arctan2(y_m, x_m) + np.pi) * (config.n_sectors / (2 * np.pi))).astype(np.int64)
-    sector = np.clip(sector, 0, config.n_sectors - 1)
-    cell = ring * config.n_sectors + sector
-    low = np.full(n_ring * config.n_sectors, np.inf)
-    g = valid & ground
-    np.minimum.at(low, cell[g], z_m[g])
-    low = low.reshape(n_ring, config.n_sectors)
-    # 3x3 minimum with wrap-around in azimuth: the local ground under objects that hide it
-    pad = np.pad(low, ((1, 1), (0, 0)), constant_values=np.inf)
-    pad = np.concatenate([pad[:, -1:], pad, pad[:, :1]], axis=1)
-    local = np.full_like(low, np.inf)
-    for di in range(3):
-        for dj in range(3):
-            np.minimum(local, pad[di : di + n_ring, dj : dj + config.n_sectors], out=local)
-    # the cell's own lowest where it has one (a 3x3 minimum on a slope sits a cell too low)
-    own = np.where(np.isfinite(low), low, local).reshape(-1)
-    local = local.reshape(-1)
-    c = np.where(valid, cell, 0)
-    above_own = z_m - own[c]
-    above_local = z_m - local[c]
-    out = ground & ~(above_local > config.refine_above_m + config.cell_m * np.tan(0.25))
-    out &= ~(above_own > config.refine_above_m)
-    out |= valid & (np.abs(above_own) <= config.refine_within_m) & np.isfinite(own[c])
-    return out & valid
-
-
 def ground_mask(
     xyz_g: np.ndarray, valid: np.ndarray, config: GroundConfig | None = None
 ) -> tuple[np.ndarray, float]:
@@ -432,7 +365,7 @@ def ground_mask(
 
     xyz_g: (H, W, 3) float points in the gravity-aligned frame centred on the sensor (m; NaN
     or anything where empty, as only valid pixels are read); valid: (H, W) bool. Returns
-    ((H, W) bool ground mask, sensor height m): those of :func:`ground_mask_reference`.
+    ((H, W) bool ground mask, sensor height m): those of ``ground_mask_reference``.
     """
     cfg = config or GroundConfig()
     if xyz_g.ndim != 3 or xyz_g.shape[2] != 3 or xyz_g.shape[:2] != valid.shape:
@@ -544,23 +477,3 @@ def _prepare_kernel(xyz, valid):  # pragma: no cover
             z_low[m] = z_col[j]
             m += 1
     return x_v, y_v, z_v, r_v, z_low[:m]
-
-
-def ground_mask_reference(
-    xyz_g: np.ndarray, valid: np.ndarray, config: GroundConfig | None = None
-) -> tuple[np.ndarray, float]:
-    """:func:`ground_mask` in plain numpy: zero-filled coordinates, :func:`np.hypot`,
-    :func:`estimate_sensor_height`, :func:`column_walk_reference` and
-    :func:`refine_reference` (the reference the compiled path is tested against)."""
-    cfg = config or GroundConfig()
-    if xyz_g.ndim != 3 or xyz_g.shape[2] != 3 or xyz_g.shape[:2] != valid.shape:
-        raise GroundError(f"xyz_g shape {xyz_g.shape} does not match valid {valid.shape}")
-    x = np.where(valid, xyz_g[..., 0], 0.0).astype(np.float64)
-    y = np.where(valid, xyz_g[..., 1], 0.0).astype(np.float64)
-    z = np.where(valid, xyz_g[..., 2], 0.0).astype(np.float64)
-    r = np.hypot(x, y)
-    h = estimate_sensor_height(z, valid, cfg)
-    ground = column_walk_reference(r, z, valid, h, cfg)
-    if cfg.refine and valid.any():
-        ground = refine_reference(x, y, z, valid, ground, cfg)
-    return ground, h

@@ -8,7 +8,8 @@ transformed into ... world coordinates"). The gravity-aligned frame is the senso
 by the sweep's orientation (no translation): heights above the sensor, for the ground.
 
 :func:`sweep_points` is one compiled pass over the pixels (numba);
-:func:`sweep_points_reference` is the numpy form it is tested against.
+``sweep_points_reference`` (a test oracle, in ``tests/kernel_reference``) is the
+numpy form it is tested against.
 """
 
 from __future__ import annotations
@@ -49,29 +50,6 @@ def sweep_points(
     R = np.ascontiguousarray(R_world_ladar, dtype=np.float64)
     _sweep_points_kernel(img.scan_points, first, R, T, *out, row_el)
     return out[0], out[1], out[2], row_el
-
-
-def sweep_points_reference(
-    img: EgosphereImage, R_world_ladar: np.ndarray, T_world_cols: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The numpy form of :func:`sweep_points` (same arguments and results)."""
-    valid = img.valid_first
-    xyz_s = np.where(valid[..., None], img.xyz[..., 0, :], 0.0).astype(np.float64)
-    xyz_g = xyz_s @ R_world_ladar.T
-    T = T_world_cols
-    if T.shape[0] == 1:
-        xyz_w = xyz_s @ T[0, :3, :3].T + T[0, :3, 3]
-    else:  # one small matmul per column: (W, H, 3) @ (W, 3, 3)'
-        p_w = np.matmul(xyz_s.transpose(1, 0, 2), T[:, :3, :3].transpose(0, 2, 1))
-        p_w += T[:, None, :3, 3]
-        xyz_w = p_w.transpose(1, 0, 2)
-    first = img.xyz[..., 0, :].astype(np.float64)
-    el = np.arctan2(first[..., 2], np.hypot(first[..., 0], first[..., 1]))
-    n = valid.sum(axis=1)
-    s = np.where(valid, el, 0.0).sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        row_el = np.where(n > 0, s / np.maximum(n, 1), np.nan)
-    return xyz_s, xyz_g, xyz_w, row_el
 
 
 @numba.njit(cache=True, nogil=True)

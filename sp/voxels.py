@@ -4,8 +4,8 @@ KISS-ICP samples a deskewed sweep to one point per half map voxel before it regi
 updates its map (the first point it meets in each voxel). :func:`first_per_voxel` finds the
 same points' indices in one compiled pass (an open-addressing hash of voxel keys), so a
 caller can thin a sweep *before* a per-point step (deskewing) and carry the points' other
-columns (per-point times) along. :func:`first_per_voxel_reference` is its numpy form
-(``np.unique`` over the voxel keys), kept for the tests.
+columns (per-point times) along. ``first_per_voxel_reference`` (a test oracle, in
+``tests/kernel_reference``) is its numpy form (``np.unique`` over the voxel keys).
 """
 
 from __future__ import annotations
@@ -39,14 +39,6 @@ def first_per_voxel(points_xyz: np.ndarray, voxel_m: float) -> np.ndarray:
         raise VoxelError("points_xyz holds NaN or inf coordinates (drop them first)")
     cap = 1 << max(int(2 * n - 1).bit_length(), 4)  # a power of two >= 2N: short probes
     return _first_per_voxel_kernel(pts, 1.0 / voxel_m, cap)
-
-
-def first_per_voxel_reference(points_xyz: np.ndarray, voxel_m: float) -> np.ndarray:
-    """The numpy form of :func:`first_per_voxel` (same arguments, same result)."""
-    pts = np.asarray(points_xyz, dtype=np.float64)
-    keys = np.floor(pts * (1.0 / voxel_m)).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return np.sort(first).astype(np.int64)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -12,7 +12,8 @@ next cycle.
 
 :func:`window_mask` computes each window's centre and half-sizes in numpy and fills the rows'
 column intervals in one compiled pass (:func:`_fill_windows_kernel`);
-:func:`window_mask_reference` is the numpy form it is tested against (the same mask).
+``window_mask_reference`` (a test oracle, in ``tests/kernel_reference``) is the numpy
+form it is tested against (the same mask).
 """
 
 from __future__ import annotations
@@ -23,6 +24,10 @@ import numba
 import numpy as np
 
 from core.errors import EngineError
+
+# Margin (rad) added to a window's elevation half-span when choosing the image rows it covers
+# (rows are compared by their mean elevation).
+ELEVATION_MARGIN_RAD = 0.01
 
 
 class WindowingError(EngineError, ValueError):
@@ -46,7 +51,7 @@ def window_mask(
     """(H, W) bool mask of the windows around points ``centers_sensor`` (A, 3) (sensor frame,
     m) with position uncertainty ``sigma_m`` (A,) m. ``row_elevation_rad`` (H,): elevation of
     each row (NaN for rows with no returns). Columns follow :mod:`sp.egosphere`'s azimuth bins.
-    The same mask as :func:`window_mask_reference`.
+    The same mask as ``window_mask_reference``.
     """
     cfg = config or WindowConfig()
     H, W = shape
@@ -67,7 +72,7 @@ def window_mask(
     col = ((np.pi - az) / col_step).astype(np.int64)
     half_c = np.ceil(half_ang / col_step).astype(np.int64)
     row_el = np.where(rows_ok, row_elevation_rad, np.inf).astype(np.float64)
-    return _fill_windows_kernel(H, W, row_el, el, half_ang + 0.01, col, half_c)
+    return _fill_windows_kernel(H, W, row_el, el, half_ang + ELEVATION_MARGIN_RAD, col, half_c)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -75,7 +80,7 @@ def _fill_windows_kernel(H, W, row_el, el, reach, col, half_c):  # pragma: no co
     """The rows' union of window column intervals, row by row.
 
     row_el: (H,) float64 rad (inf for rows without returns); el, reach: (A,) float64 rad, each
-    window's elevation and elevation half-span (plus the 0.01 rad margin); col, half_c: (A,)
+    window's elevation and elevation half-span (plus ``ELEVATION_MARGIN_RAD``); col, half_c: (A,)
     int64, its centre column and column half-width. A window covers row ``i`` where
     ``|row_el[i] - el| <= reach``, there columns ``col - half_c`` to ``col + half_c`` (at most
     W, wrapping in azimuth). Returns (H, W) bool.
@@ -107,48 +112,3 @@ def _fill_windows_kernel(H, W, row_el, el, reach, col, half_c):  # pragma: no co
                 run += diff[j]
                 mask[i, j] = run > 0
     return mask
-
-
-def window_mask_reference(
-    shape: tuple[int, int],
-    centers_sensor: np.ndarray,
-    sigma_m: np.ndarray,
-    row_elevation_rad: np.ndarray,
-    config: WindowConfig | None = None,
-) -> np.ndarray:
-    """:func:`window_mask` in plain numpy, the (window, row) pairs scattered into a difference
-    image (the reference the compiled fill is tested against; same arguments and mask)."""
-    cfg = config or WindowConfig()
-    H, W = shape
-    c = np.asarray(centers_sensor, dtype=np.float64).reshape(-1, 3)
-    s = np.asarray(sigma_m, dtype=np.float64).reshape(-1)
-    if s.shape[0] != c.shape[0]:
-        raise WindowingError(f"{c.shape[0]} window centres but {s.shape[0]} sigmas")
-    mask = np.zeros((H, W), dtype=bool)
-    rows_ok = np.isfinite(row_elevation_rad)
-    if c.shape[0] == 0 or not rows_ok.any():
-        return mask
-    range_m = np.maximum(np.linalg.norm(c, axis=1), 1.0)
-    half_m = np.minimum(cfg.base_m + cfg.k_sigma * s, cfg.max_half_m)
-    half_ang = np.arctan2(half_m, range_m)
-    az = np.arctan2(c[:, 1], c[:, 0])
-    el = np.arctan2(c[:, 2], np.hypot(c[:, 0], c[:, 1]))
-    col_step = 2 * np.pi / W
-    col = ((np.pi - az) / col_step).astype(np.int64)
-    half_c = np.ceil(half_ang / col_step).astype(np.int64)
-    row_el = np.where(rows_ok, row_elevation_rad, np.inf)
-    # (window, row) pairs inside each window's elevation span, then every row's column
-    # intervals (wrapping in azimuth) summed into a difference image: one pass, no loop
-    k, rows = np.nonzero(np.abs(row_el[None, :] - el[:, None]) <= half_ang[:, None] + 0.01)
-    if k.size == 0:
-        return mask
-    length = np.minimum(2 * half_c[k] + 1, W)
-    start = (col[k] - half_c[k]) % W
-    end = start + length
-    diff = np.zeros((H, W + 1), dtype=np.int32)
-    np.add.at(diff, (rows, start), 1)
-    np.add.at(diff, (rows, np.minimum(end, W)), -1)
-    wrap = end > W
-    np.add.at(diff, (rows[wrap], 0), 1)
-    np.add.at(diff, (rows[wrap], end[wrap] - W), -1)
-    return np.cumsum(diff[:, :W], axis=1) > 0

@@ -19,6 +19,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from kernel_reference.computation_reference import segment_attributes_reference
 
 from sp.computation import (
     ComputationError,
@@ -27,7 +28,6 @@ from sp.computation import (
     _segment_runs,
     _segment_sums,
     segment_attributes,
-    segment_attributes_reference,
 )
 
 FIELDS = [f.name for f in dataclasses.fields(SegmentAttributes)]

@@ -8,9 +8,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from kernel_reference.egosphere_reference import to_egosphere_reference
 
 from logs.types import LadarScan
-from sp.egosphere import EgosphereConfig, EgosphereImage, to_egosphere, to_egosphere_reference
+from sp.egosphere import EgosphereConfig, EgosphereImage, to_egosphere
 
 # the reference casts NaN angles of dropped points to int32
 pytestmark = pytest.mark.filterwarnings("ignore:invalid value encountered in cast:RuntimeWarning")

@@ -8,6 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from kernel_reference.ground_reference import (
+    column_walk_reference,
+    ground_mask_reference,
+    refine_reference,
+)
+from kernel_reference.windowing_reference import window_mask_reference
 
 from sp.ground import (
     GroundConfig,
@@ -16,14 +22,11 @@ from sp.ground import (
     _median_height,
     _prepare_kernel,
     column_walk,
-    column_walk_reference,
     estimate_sensor_height,
     ground_mask,
-    ground_mask_reference,
     refine,
-    refine_reference,
 )
-from sp.windowing import WindowConfig, WindowingError, window_mask, window_mask_reference
+from sp.windowing import WindowConfig, WindowingError, window_mask
 
 # the numpy references cast NaN ranges, azimuths and window sizes of empty pixels or
 # degenerate windows to int64 (values they then never use)

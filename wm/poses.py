@@ -80,7 +80,7 @@ def deskew_to_world(
     """Sensor points (N, 3) of one sweep to world points (N, 3) float64, each slice of the
     sweep moved with the body pose at the slice's middle time (``bins`` slices of the span of
     ``t_offset_ns`` (N,) ns after ``t_ns``). One compiled pass over the points
-    (:func:`deskew_to_world_reference` is its numpy form)."""
+    (``deskew_to_world_reference`` is its numpy form)."""
     off = np.ascontiguousarray(t_offset_ns, dtype=np.int64)
     span = int(off.max()) if len(off) else 0
     if span <= 0 or bins <= 1:
@@ -93,29 +93,6 @@ def deskew_to_world(
         pts = pts.astype(np.float64)
     out = np.empty((len(pts), 3), dtype=np.float64)
     _deskew_kernel(np.ascontiguousarray(pts), off, span, T, out)
-    return out
-
-
-def deskew_to_world_reference(
-    points_xyz: np.ndarray,
-    t_offset_ns: np.ndarray,
-    t_ns: int,
-    track: PoseTrack,
-    T_body_sensor: np.ndarray,
-    bins: int,
-) -> np.ndarray:
-    """The numpy form of :func:`deskew_to_world` (same arguments, same result to rounding)."""
-    off = np.asarray(t_offset_ns, dtype=np.int64)
-    span = int(off.max()) if len(off) else 0
-    pts = np.asarray(points_xyz, dtype=np.float64)
-    if span <= 0 or bins <= 1:
-        return transform_points(track.at(t_ns) @ T_body_sensor, pts)
-    which = np.clip((off * bins) // (span + 1), 0, bins - 1)
-    out = np.empty((len(pts), 3), dtype=np.float64)
-    for b in range(bins):
-        sel = which == b
-        t_mid = t_ns + round((b + 0.5) * span / bins)
-        out[sel] = transform_points(track.at(t_mid) @ T_body_sensor, pts[sel])
     return out
 
 
