@@ -26,12 +26,14 @@ and events (:mod:`sp.observations`), in order, and the result carries them
 reference 001, 4.2). New frames' ids come from the KD's id space as they are observed.
 
 Deskewing: ``T_world_ladar`` is the sensor pose at ``pose_t_ns`` (the sweep's stamp unless the
-caller says otherwise). Each column of the image fired at its own time; its points go to the
-world with the pose at that time, interpolated (or extrapolated) at constant velocity between
-the previous sweep's pose and this one (:func:`column_poses`), so a static object does not
-smear or jump by the vehicle's motion during the sweep (up to a metre at 10 m/s). The first
-sweep, or one after a gap of more than ``deskew_max_gap_s``, is taken at the one pose. Each
-object's state is stamped at the mean time of its own returns.
+caller says otherwise). The world model's node deskews each sweep once on its pose track and
+gives SP those points (``points_world``), so SP and the maps see the same points. Without them,
+each column of the image, which fired at its own time, goes to the world with the pose at
+that time, interpolated (or extrapolated) at constant velocity between the previous sweep's
+pose and this one (:func:`column_poses`), so a static object does not smear or jump by the
+vehicle's motion during the sweep (up to a metre at 10 m/s); the first sweep, or one after a
+gap of more than ``deskew_max_gap_s``, is taken at the one pose. Each object's state is
+stamped at the mean time of its own returns.
 """
 
 from __future__ import annotations
@@ -183,16 +185,20 @@ class SensoryProcessor:
         T_world_camera: np.ndarray | None = None,
         attention_world_xyz: np.ndarray | None = None,
         pose_t_ns: int | None = None,
+        points_world: np.ndarray | None = None,
     ) -> SPResult:
         """One cycle on one sweep (points in the sensor frame, ``T_world_ladar`` the sensor pose
-        at ``pose_t_ns``, by default ``scan.t_ns``). A sweep that fails is logged and skipped;
+        at ``pose_t_ns``, by default ``scan.t_ns``). ``points_world`` (N, 3) float m: the
+        sweep's points already deskewed into the world by the caller, in the scan's order (the
+        node deskews each sweep once, for its maps and for SP); without it SP deskews each
+        column itself (module docstring). A sweep that fails is logged and skipped;
         the tracks are kept. With a camera frame and its pose, each confirmed object's returns
         are projected into it for its camera intensity and coverage (:mod:`sp.appearance`); a
         camera frame that fails is logged and skipped, the sweep's result kept."""
         try:
             T = check_pose(np.asarray(T_world_ladar, dtype=np.float64), "T_world_ladar")
             t_pose = int(scan.t_ns if pose_t_ns is None else pose_t_ns)
-            result = self._process(scan, T, t_pose, attention_world_xyz)
+            result = self._process(scan, T, t_pose, attention_world_xyz, points_world)
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
             return self._failed(scan, e)
         if camera is not None and T_world_camera is not None:
@@ -232,6 +238,7 @@ class SensoryProcessor:
         T_world_ladar: np.ndarray,
         pose_t_ns: int,
         attention_world_xyz: np.ndarray | None,
+        points_world: np.ndarray | None = None,
     ) -> SPResult:
         cfg = self.config
         l2, l3, l4, l5 = self.level2, self.level3, self.level4, self.level5
@@ -240,8 +247,13 @@ class SensoryProcessor:
         # level 1: the egosphere image and its points in the world and gravity-aligned frames
         img = to_egosphere(scan, cfg.egosphere)
         valid = img.valid_first
-        T_cols = self._column_poses(img, t_ns, T_world_ladar, pose_t_ns)
+        if points_world is None:
+            T_cols = self._column_poses(img, t_ns, T_world_ladar, pose_t_ns)
+        else:  # the caller's deskew: the maps' points and SP's are the same points
+            self._last_pose, T_cols = (pose_t_ns, T_world_ladar), T_world_ladar[None]
         xyz_s, xyz_g, xyz_w, row_el = sweep_points(img, T_world_ladar[:3, :3], T_cols)
+        if points_world is not None:
+            _place(xyz_w, img, points_world, scan.n_points)
         range_m = np.where(valid, img.range_first, np.inf)
         clock.lap("egosphere")
         ground = l3.ground_pixels(xyz_g, valid)
@@ -363,6 +375,17 @@ class SensoryProcessor:
         if self._values[0] != len(self.class_names):
             self._values = (len(self.class_names), class_values(self.kd.classes, self.class_names))
         return self._values[1]
+
+
+def _place(xyz_w: np.ndarray, img: EgosphereImage, points_world: np.ndarray, n: int) -> None:
+    """Overwrite the world point (H, W, 3) of every pixel with a return by the caller's
+    deskewed point of that return (``points_world`` (n, 3) m, the scan's order)."""
+    pw = np.asarray(points_world)
+    if pw.shape != (n, 3):
+        raise PipelineError(f"points_world has shape {pw.shape}; the sweep has {n} points")
+    first = img.point_index[..., 0]
+    has = first >= 0
+    xyz_w[has] = pw[first[has]]
 
 
 def column_poses(

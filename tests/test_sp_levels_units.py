@@ -359,6 +359,35 @@ def test_a_failing_sweep_is_skipped_and_tracks_kept() -> None:
     assert math.isfinite(float(sp.tracker.tracks.x.sum()))
 
 
+def test_sp_places_returns_where_the_caller_deskewed_them(caplog) -> None:
+    """One deskew per cycle: given the sweep's world points (as the node fused them into its
+    maps), SP's world points are exactly those, wherever its own per-column model would have
+    put them; an array that is not one point per return skips the sweep, saying why."""
+    from sp.egosphere import EgosphereConfig
+    from sp.pipeline import SPConfig
+
+    kd = kd_store.open(":memory:")
+    sp = KDSensoryProcessor(
+        kd, SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W, max_returns=1))
+    )
+    T = np.eye(4)
+    T[2, 3] = SENSOR_H
+    xyz, valid, _ = flat_scene()
+    scan = _scan_of(xyz, valid, 0)
+    # the caller's deskew moved every return 0.3 m along x (a vehicle creeping mid-sweep)
+    world = scan.points_xyz.astype(np.float64) + T[:3, 3] + np.array([0.3, 0.0, 0.0])
+    r = sp.process(scan, T, points_world=world)
+    assert r.ok
+    np.testing.assert_allclose(r.points_world, world[r.point_index], atol=1e-6)
+    own = KDSensoryProcessor(
+        kd_store.open(":memory:"),
+        SPConfig(egosphere=EgosphereConfig(n_rows=H, n_cols=W, max_returns=1)),
+    ).process(scan, T)
+    assert np.allclose(own.points_world[:, 0] + 0.3, r.points_world[:, 0], atol=1e-5)
+    bad = sp.process(_scan_of(xyz, valid, 100_000_000), T, points_world=world[:-1])
+    assert not bad.ok and "points_world has shape" in caplog.text
+
+
 def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_again() -> None:
     """A list starts hypothesized; seen three sweeps running it is confirmed, while one seen
     once and never again is denied after its confidence decays below the deny threshold."""

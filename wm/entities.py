@@ -178,6 +178,7 @@ class KDSensoryProcessor(SensoryProcessor):
         T_world_camera: np.ndarray | None = None,
         attention_world_xyz: np.ndarray | None = None,
         pose_t_ns: int | None = None,
+        points_world: np.ndarray | None = None,
     ) -> SPResult:
         """:meth:`SensoryProcessor.process`, then its observations into the KD."""
         result = super().process(
@@ -187,6 +188,7 @@ class KDSensoryProcessor(SensoryProcessor):
             T_world_camera=T_world_camera,
             attention_world_xyz=attention_world_xyz,
             pose_t_ns=pose_t_ns,
+            points_world=points_world,
         )
         self.updater.apply(result.observations)
         self.observations_written(result)

@@ -6,10 +6,9 @@ keeps the KD current, ``KD(t) = KD(t-1) + Observation(t)``) and 4.5 (SP at every
 1. pose: LADAR odometry fused with wheel odometry (sp.odometry), or the log's ground truth;
    odometry never reads ground truth: its world starts at the first sweep, level with gravity
    (:func:`initial_pose` from wheel odometry, else :func:`level_from_ground`), so scorers
-   align estimates to truth themselves; the sweep is
-   deskewed into the world with the pose at each slice's time. By default the
-   odometry runs in its own process (wm.odometry_worker), ``NodeConfig.odometry_ahead`` sweeps
-   ahead of the rest;
+   align estimates to truth themselves; the sweep is deskewed into the world with the pose at
+   each slice's time, once, for the maps and SP. By default the odometry runs in its own
+   process (wm.odometry_worker), ``NodeConfig.odometry_ahead`` sweeps ahead of the rest;
 2. self state into the KD (entity ``self``, world frame);
 3. maps: every level scrolls to the new pose and fuses the points (maps.stack);
 4. SP levels 1..5 (sp.pipeline) observe the sweep: entities, their states, classes,
@@ -674,7 +673,7 @@ class WorldModelNode:
             )
         clock.lap("maps")
 
-        sp_result = self._sensory_processing(scan, T_world_ladar, t_mid, camera)
+        sp_result = self._sensory_processing(scan, T_world_ladar, t_mid, camera, pts)
         clock.lap("sp")
         self._update_entities(sp_result)
         clock.lap("entities")
@@ -776,10 +775,17 @@ class WorldModelNode:
             pass
 
     def _sensory_processing(
-        self, scan: LadarScan, T_world_ladar: np.ndarray, t_pose_ns: int, camera: CameraFrame | None
+        self,
+        scan: LadarScan,
+        T_world_ladar: np.ndarray,
+        t_pose_ns: int,
+        camera: CameraFrame | None,
+        points_world: np.ndarray | None = None,
     ) -> SPResult | None:
         """Step 4: SP levels 2..5 and their labels into the maps. ``T_world_ladar`` is the
-        sensor pose at ``t_pose_ns`` (the sweep's middle); SP deskews each column from it."""
+        sensor pose at ``t_pose_ns`` (the sweep's middle); ``points_world`` (N, 3) m the sweep
+        as the maps fused it (deskewed once, on the pose track), so SP's points and labels
+        lie where the maps' points do."""
         if self.sp is None:
             return None
         cam, T_world_camera = None, None
@@ -796,6 +802,7 @@ class WorldModelNode:
             T_world_camera=T_world_camera,
             attention_world_xyz=self.attention_world_xyz,
             pose_t_ns=t_pose_ns,
+            points_world=points_world,
         )
         if len(result.points_world):
             self.stack.fuse_labels(
