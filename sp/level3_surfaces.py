@@ -219,20 +219,26 @@ class SurfaceLevel:
     def _contact_list(self, sid: int, t_ns: int) -> int:
         """A new contact boundary of surface ``sid`` with the ground: a confirmed level-2
         slope edge belonging to the surface and lying on the ground; returns its id."""
+        bid = self._slope_edge(f"contact of {sid}", sid, t_ns)
+        if self.ground_id is not None:
+            self.ctx.record(Related(bid, "on_top_of", self.ground_id, t_ns))
+        return bid
+
+    def _slope_edge(self, name: str, sid: int, t_ns: int) -> int:
+        """A new confirmed level-2 slope edge ``name`` belonging to surface ``sid`` (a
+        contact with the ground or a crease); returns its id."""
         ctx = self.ctx
-        bid = ctx.new_entity(
-            f"contact of {sid}",
+        lid = ctx.new_entity(
+            name,
             Level.LIST,
             generic_classes=("slope_edge",) if "slope_edge" in ctx.kd.classes else (),
             images=(IMAGE_NAMES[2],),
             status=Status.CONFIRMED,
             confidence=1.0,
         )
-        ctx.record(Related(bid, "belongs_to", sid, t_ns))
-        if self.ground_id is not None:
-            ctx.record(Related(bid, "on_top_of", self.ground_id, t_ns))
-        ctx.set_class(bid, "slope_edge")
-        return bid
+        ctx.record(Related(lid, "belongs_to", sid, t_ns))
+        ctx.set_class(lid, "slope_edge")
+        return lid
 
     def object_gone(self, oid: int) -> None:
         """Object ``oid`` went: its face and the face's contact boundary go with it."""
@@ -403,18 +409,8 @@ class SurfaceLevel:
         one parent), its name naming both."""
         key = (min(sid_a, sid_b), max(sid_a, sid_b))
         if key not in self._crease:
-            ctx = self.ctx
-            lid = ctx.new_entity(
-                f"crease of {key[0]} and {key[1]}",
-                Level.LIST,
-                generic_classes=("slope_edge",) if "slope_edge" in ctx.kd.classes else (),
-                images=(IMAGE_NAMES[2],),
-                status=Status.CONFIRMED,
-                confidence=1.0,
-            )
-            ctx.record(Related(lid, "belongs_to", sid_a, t_ns))
-            ctx.record(Related(lid, "beside", sid_b, t_ns))
-            ctx.set_class(lid, "slope_edge")
+            lid = self._slope_edge(f"crease of {key[0]} and {key[1]}", sid_a, t_ns)
+            self.ctx.record(Related(lid, "beside", sid_b, t_ns))
             self._crease[key] = (lid, t_ns)
         lid = self._crease[key][0]
         self._crease[key] = (lid, t_ns)

@@ -18,11 +18,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from typing import Any
 
-import numpy as np
-
 import kd_store
 from kd_store import State, Status
-from logs.types import CameraFrame, LadarScan
 from sp.observations import (
     AppearanceObserved,
     ClassFounded,
@@ -169,27 +166,10 @@ class KDSensoryProcessor(SensoryProcessor):
         super().__init__(kd, config)
         self.updater = EntityUpdater(kd)
 
-    def process(
-        self,
-        scan: LadarScan,
-        T_world_ladar: np.ndarray,
-        *,
-        camera: CameraFrame | None = None,
-        T_world_camera: np.ndarray | None = None,
-        attention_world_xyz: np.ndarray | None = None,
-        pose_t_ns: int | None = None,
-        points_world: np.ndarray | None = None,
-    ) -> SPResult:
-        """:meth:`SensoryProcessor.process`, then its observations into the KD."""
-        result = super().process(
-            scan,
-            T_world_ladar,
-            camera=camera,
-            T_world_camera=T_world_camera,
-            attention_world_xyz=attention_world_xyz,
-            pose_t_ns=pose_t_ns,
-            points_world=points_world,
-        )
+    def process(self, *args: Any, **kwargs: Any) -> SPResult:
+        """:meth:`SensoryProcessor.process` (same arguments, passed on as given, so the two
+        signatures cannot drift apart), then its observations into the KD."""
+        result = super().process(*args, **kwargs)
         self.updater.apply(result.observations)
         self.observations_written(result)
         return result
