@@ -84,7 +84,8 @@ def decode_pointcloud2(msg: Any, topic: str, stats: ReadStats) -> LadarScan:
     Per-point time from a field ``t`` or ``offset_time`` (integer ns after the stamp) or
     ``time`` (float seconds after the stamp); ring from ``ring`` (or ``laser_number``).
 
-    The same frames as :func:`decode_pointcloud2_reference`, faster: the points are viewed in
+    The same frames as ``decode_pointcloud2_reference`` (a test oracle in
+    ``tests/kernel_reference``), faster: the points are viewed in
     place instead of copied first, x, y, z come out in one copy (not three field copies
     stacked and cast), and the per-point finiteness test only runs when the sweep has a
     non-finite coordinate at all.
@@ -136,24 +137,6 @@ def _xyz_float32(cloud: np.ndarray) -> np.ndarray:
     for i, c in enumerate("xyz"):
         xyz[:, i] = cloud[c]
     return xyz
-
-
-def decode_pointcloud2_reference(msg: Any, topic: str, stats: ReadStats) -> LadarScan:
-    """The straightforward form of :func:`decode_pointcloud2` (copy, stack, cast), kept as
-    the reference its frames are compared with in the tests.
-
-    Per-point time from a field ``t`` or ``offset_time`` (integer ns after the stamp) or
-    ``time`` (float seconds after the stamp); ring from ``ring`` (or ``laser_number``).
-    """
-    fields, dtype, points = _cloud_layout(msg)
-    cloud = points.copy().view(dtype).reshape(-1)
-    xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float32)
-    finite = np.isfinite(xyz).all(axis=1)
-    n_bad = int(finite.size - finite.sum())
-    if n_bad:
-        stats.dropped_nonfinite_points += n_bad
-        cloud, xyz = cloud[finite], xyz[finite]
-    return _scan_of(msg, topic, cloud, xyz, fields)
 
 
 def _image_pixels(msg: Any) -> np.ndarray:
@@ -368,7 +351,7 @@ class FrameAssembler:
         dets = msg.detections
         m = len(dets)
         # one array from plain lists of Python floats per field, not a small array per box
-        # stacked (the values and dtypes of _boxes_reference, faster)
+        # stacked (the values and dtypes of the tests' boxes_reference, faster)
         quats = np.array(
             [[o.x, o.y, o.z, o.w] for o in [d.bbox.center.orientation for d in dets]]
         ).reshape(m, 4)
@@ -381,28 +364,6 @@ class FrameAssembler:
             classes=[d.results[0].hypothesis.class_id if d.results else "" for d in dets],
             centers=_rows_xyz([d.bbox.center.position for d in dets]),
             sizes=_rows_xyz([d.bbox.size for d in dets]),
-            yaws=np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
-            velocities=velocities,
-            topic=topic,
-            n_returns=n_returns,
-        )
-
-    def _boxes_reference(self, msg: Any, topic: str) -> ObjectBoxes:
-        """:meth:`_boxes` as it was, with an array per box: the reference of the tests."""
-        dets = msg.detections
-        m = len(dets)
-        quats = np.array(
-            [[d.bbox.center.orientation.__getattribute__(c) for c in "xyzw"] for d in dets]
-        ).reshape(m, 4)
-        x, y, z, w = quats.T
-        velocities, n_returns = _velocities_returns(self._velocities.pop(topic, None), m)
-        return ObjectBoxes(
-            t_ns=stamp_ns(msg.header),
-            frame_id=msg.header.frame_id,
-            ids=np.array([self._track_id(d.id) for d in dets], dtype=np.int64),
-            classes=[d.results[0].hypothesis.class_id if d.results else "" for d in dets],
-            centers=np.array([_xyz(d.bbox.center.position) for d in dets]).reshape(m, 3),
-            sizes=np.array([_xyz(d.bbox.size) for d in dets]).reshape(m, 3),
             yaws=np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
             velocities=velocities,
             topic=topic,

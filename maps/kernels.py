@@ -17,7 +17,7 @@ reference the tests compare these kernels against (``FusionConfig(compiled=False
   min / max, occupancy log-odds and last-seen; one pass over the touched cells;
 * :func:`cast_rays`: 2-D free-space traversal of each beam (Amanatides and Woo's grid walk);
 * :func:`terrain`: slope, step height and traversability of a window, one pass over its cells
-  (:func:`maps.terrain.terrain_layers` is its numpy form).
+  (``terrain_layers_reference``, a test oracle, is its numpy form).
 
 Storage indices are flat toroidal indices ``(iy % size) * size + ix % size`` (see
 :mod:`maps.level`). Dense per-level scratch is never cleared: a cell's entry counts only when
@@ -541,7 +541,7 @@ def _grad(prev, centre, nxt, res):
 def terrain(
     e, rough, occ, res, max_slope, max_step, max_rough, occupied, slope, step, trav
 ):  # pragma: no cover
-    """Terrain layers of a window, exactly as :func:`maps.terrain.terrain_layers`: ``e``,
+    """Terrain layers of a window, exactly as ``terrain_layers_reference`` (a test oracle): ``e``,
     ``rough``, ``occ`` (H, W) float64 elevation (m, NaN unknown), roughness (m), occupancy
     (log-odds); writes ``slope`` (rad), ``step`` (m), ``trav`` (0..1) (H, W) float32."""
     H, W = e.shape

@@ -408,7 +408,6 @@ def _climb(
     w_ref: np.ndarray | None,
     w_mov: np.ndarray | None,
     limit_px: float | None,
-    compiled: bool = True,
 ) -> tuple[tuple[int, int], np.ndarray, float, int, bool]:
     """Move the 9-offset search to its best offset until the centre is the peak.
 
@@ -416,9 +415,9 @@ def _climb(
     keeps at least half the image); it moves only for a strictly better correlation, so a flat
     direction (an edge) does not send it wandering. Returns the integer peak, its (3, 3)
     correlation surface indexed ``[dr + 1, dc + 1]``, the window coverage, the multiply-adds
-    spent and whether the peak is pinned (at a limit, or out of steps). Without masks and
-    with ``compiled``, the climb runs in :func:`maps.pyramid_kernels.climb` (the same windows
-    and steps; this loop is its reference)."""
+    spent and whether the peak is pinned (at a limit, or out of steps). Without masks the
+    climb runs in :func:`maps.pyramid_kernels.climb` (:func:`_climb_compiled`); with masks in
+    numpy (:func:`_climb_steps`, the same windows and steps: the kernel's reference too)."""
     extent = [max(s // 2 - CLIMB_REACH_PX, 0) for s in mov.shape[:2]]
     if limit_px is not None:
         extent = [max(min(e, math.floor(limit_px)), 0) for e in extent]
@@ -426,22 +425,48 @@ def _climb(
         min(max(int(start_rc[0]), -extent[0]), extent[0]),
         min(max(int(start_rc[1]), -extent[1]), extent[1]),
     )
-    ops = 0
     reach = CLIMB_REACH_PX
     if max(extent) == CLIMB_REACH_PX and 4 * (reach + 1) <= min(mov.shape[:2]):
         # The whole search fits one window a pixel wider (the coarsest level, mostly): built
         # once, where a climb to the edge would build a second one.
         reach += 1
-    if compiled and w_ref is None and w_mov is None:
-        surface = np.empty((3, 3))
-        out = np.zeros(6, dtype=np.int64)
-        cover = pyramid_kernels.climb(
-            ref, mov, center[0], center[1], extent[0], extent[1], reach, MAX_CLIMB_STEPS,
-            CLIMB_MIN_GAIN, FLAT_STD, surface, out,
-        )  # fmt: skip
-        if out[2] == pyramid_kernels.NO_OVERLAP:
-            _no_overlap((int(out[4]), int(out[5])), reach, ref.shape, mov.shape)
-        return (int(out[0]), int(out[1])), surface, cover, int(out[3]), bool(out[2])
+    if w_ref is None and w_mov is None:
+        return _climb_compiled(ref, mov, center, extent, reach)
+    return _climb_steps(ref, mov, center, extent, reach, w_ref, w_mov)
+
+
+def _climb_compiled(
+    ref: np.ndarray,
+    mov: np.ndarray,
+    center: tuple[int, int],
+    extent: list[int],
+    reach: int,
+) -> tuple[tuple[int, int], np.ndarray, float, int, bool]:
+    """The unmasked climb of :func:`_climb` in :func:`maps.pyramid_kernels.climb`."""
+    surface = np.empty((3, 3))
+    out = np.zeros(6, dtype=np.int64)
+    cover = pyramid_kernels.climb(
+        ref, mov, center[0], center[1], extent[0], extent[1], reach, MAX_CLIMB_STEPS,
+        CLIMB_MIN_GAIN, FLAT_STD, surface, out,
+    )  # fmt: skip
+    if out[2] == pyramid_kernels.NO_OVERLAP:
+        _no_overlap((int(out[4]), int(out[5])), reach, ref.shape, mov.shape)
+    return (int(out[0]), int(out[1])), surface, cover, int(out[3]), bool(out[2])
+
+
+def _climb_steps(
+    ref: np.ndarray,
+    mov: np.ndarray,
+    center: tuple[int, int],
+    extent: list[int],
+    reach: int,
+    w_ref: np.ndarray | None,
+    w_mov: np.ndarray | None,
+) -> tuple[tuple[int, int], np.ndarray, float, int, bool]:
+    """The climb of :func:`_climb` in numpy, from ``center`` within ``extent`` (rows, cols),
+    windows ``reach`` px beyond the 3x3: the masked search runs it, and it is the definition
+    the compiled climb is held to (``tests/kernel_reference/pyramid_reference.py``)."""
+    ops = 0
     win = _Window(ref, mov, center, reach, w_ref, w_mov)
     for _ in range(MAX_CLIMB_STEPS):
         if not win.covers(center):
@@ -494,7 +519,6 @@ def _register_translation(
     wmov_pyr: list[np.ndarray] | None,
     max_shift_px: float | None,
     initial_rc: tuple[float, float] = (0.0, 0.0),
-    compiled: bool = True,
 ) -> Match:
     levels = len(ref_pyr)
     top = levels - 1
@@ -505,7 +529,7 @@ def _register_translation(
         wr = None if wref_pyr is None else wref_pyr[lev]
         wm = None if wmov_pyr is None else wmov_pyr[lev]
         center, surface, cover, n, pinned = _climb(
-            ref_pyr[lev], mov_pyr[lev], center, wr, wm, limit, compiled
+            ref_pyr[lev], mov_pyr[lev], center, wr, wm, limit
         )
         ops += n
         if lev > 0:
@@ -556,7 +580,6 @@ def register(
     valid_moving: np.ndarray | None = None,
     rotations_rad: Sequence[float] | None = None,
     initial_shift_rc: tuple[float, float] = (0.0, 0.0),
-    compiled: bool = True,
 ) -> Match:
     """Coarse-to-fine correlation of two images (4.5.5): the offset, peak and confidence.
 
@@ -571,8 +594,6 @@ def register(
                    about the image centre, the best peak wins and a parabola through its
                    neighbours refines the angle.
     initial_shift_rc: a predicted offset to start from (e.g. the previous cycle's flow).
-    compiled:      the unmasked search by the compiled climb (:mod:`maps.pyramid_kernels`);
-                   False: the numpy form, its reference (masked searches always use it).
     Returns a :class:`Match`; ``moving[r, c] ~= reference[r - shift_r, c - shift_c]``.
     """
     wref = _as_weight(valid_reference, np.shape(reference), "valid_reference")
@@ -596,7 +617,7 @@ def register(
     if rotations_rad is None or len(rotations_rad) == 0:
         mov_pyr, wmov_pyr = _weighted_pyramids(mov, wmov, n)
         return _register_translation(
-            ref_pyr, mov_pyr, wref_pyr, wmov_pyr, max_shift_px, initial_shift_rc, compiled
+            ref_pyr, mov_pyr, wref_pyr, wmov_pyr, max_shift_px, initial_shift_rc
         )
     return _register_rotation(
         ref_pyr, wref_pyr, mov, wmov, n, list(rotations_rad), max_shift_px, initial_shift_rc

@@ -1,10 +1,10 @@
 """Compiled climb of the plain (unmasked) correlation search of :mod:`maps.pyramid` (numba).
 
-:func:`climb` is the loop form of :func:`maps.pyramid._climb` with its ``_Window`` for two
-images without masks: the same windows (every pixel of ``mov`` whose partner in ``ref`` exists
+:func:`climb` is the loop form of :func:`maps.pyramid._climb_steps` with its ``_Window`` for
+two images without masks: the same windows (every pixel of ``mov`` whose partner in ``ref`` exists
 for every offset within the window's reach of the offset it was built at), the same 9-offset
-steps, stopping rule and search limits. The numpy form stays the reference the tests compare
-this against (``register(..., compiled=False)``) and serves the masked search.
+steps, stopping rule and search limits. The numpy form serves the masked search and is the
+reference the tests hold this to (``register_reference`` in ``tests/kernel_reference``).
 
 What differs is only how the sums are taken, all in one pass each and no Python call per
 offset: a window's sums and sums of squares of ``ref`` for all its offsets by sliding row and

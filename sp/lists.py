@@ -24,8 +24,9 @@ compiled passes:
 
 :func:`range_jump_edges`, :func:`brightness_edges`, :func:`block_moments`, :func:`list_slots`
 (and its fused form) and :func:`list_sums` are compiled single passes over the image (numba;
-compiled on first call, cached on disk); ``*_numpy`` and ``*_reference`` are their references
-in numpy and OpenCV, compared in the tests.
+compiled on first call, cached on disk). :func:`range_jump_edges_reference` stays here, the
+numpy form :func:`range_jump_edges` falls back to for dtypes it was not compiled for; the
+numpy forms of the others are test oracles (``tests/kernel_reference/lists_reference.py``).
 """
 
 from __future__ import annotations
@@ -308,32 +309,13 @@ def block_moments(xyz: np.ndarray, mask: np.ndarray, bh: int, bw: int) -> np.nda
     (B row-major over the block grid, partial blocks at the right and bottom included):
     the count, the sums of x, y, z and of their six products (:data:`MOMENTS` order), the
     lowest and highest z (inf / -inf for an empty block). One compiled pass over the image;
-    :func:`block_moments_numpy` is its reference."""
+    ``block_moments_reference`` (a test oracle) is its numpy form."""
     H, W = mask.shape
     nbr, nbc = -(-H // bh), -(-W // bw)
     out = _moments_init(nbr, nbc)
     _block_moments_kernel(
         np.ascontiguousarray(xyz), np.ascontiguousarray(mask, dtype=np.bool_), bh, bw, nbc, out
     )
-    return out
-
-
-def block_moments_numpy(xyz: np.ndarray, mask: np.ndarray, bh: int, bw: int) -> np.ndarray:
-    """Reference of :func:`block_moments` in plain numpy (one bincount per moment)."""
-    H, W = mask.shape
-    nbc = -(-W // bw)
-    nbr = -(-H // bh)
-    rows, cols = np.nonzero(mask)
-    b = (rows // bh) * nbc + cols // bw
-    p = xyz[rows, cols].astype(np.float64)
-    x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    B = nbr * nbc
-    out = _moments_init(nbr, nbc)
-    terms = [np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z]
-    for k, t in enumerate(terms):
-        out[:, k] = np.bincount(b, weights=t, minlength=B)
-    np.minimum.at(out[:, 10], b, z)
-    np.maximum.at(out[:, 11], b, z)
     return out
 
 
@@ -582,8 +564,8 @@ def list_slots(
     ``list_ids`` (S,) int64. Returns (slots (H, W) int64: the slot, -1 no list, ``-2 - key``
     where the key has no slot yet (:func:`fill_slots` fills them once the lists exist); list
     ids (H, W) int64 (the level-2 entity image, -1 none); branches (H, W) int8 from
-    :func:`edge_branches`; the sorted keys that have no slot). :func:`list_slots_numpy` is its
-    reference."""
+    :func:`edge_branches`; the sorted keys that have no slot). ``list_slots_reference`` (a
+    test oracle) is its numpy form."""
     H, W = owner.shape
     slots = np.empty((H, W), dtype=np.int64)
     ids = np.empty((H, W), dtype=np.int64)
@@ -657,33 +639,6 @@ def fill_slots(slots: np.ndarray, ids: np.ndarray, lut: np.ndarray, list_ids: np
         slot = lut[-2 - slots.reshape(-1)[pending]]
         slots.reshape(-1)[pending] = slot
         ids.reshape(-1)[pending] = np.where(slot >= 0, list_ids[np.maximum(slot, 0)], -1)
-
-
-def list_slots_numpy(
-    owner: np.ndarray,
-    range_edge: np.ndarray,
-    brightness_edge: np.ndarray,
-    patch: np.ndarray,
-    lut: np.ndarray,
-    list_ids: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Reference of :func:`list_slots` in plain numpy."""
-    branches = edge_branches(range_edge | brightness_edge)
-    kind = np.full(owner.shape, -1, dtype=np.int64)
-    kind[patch] = ListKind.SURFACE_PATCH
-    kind[brightness_edge] = ListKind.BRIGHTNESS_EDGE
-    kind[range_edge] = ListKind.RANGE_EDGE
-    kind[vertices(branches)] = ListKind.VERTEX
-    on = (kind >= 0) & (owner >= 0)
-    key = owner * len(ListKind) + kind
-    inside = on & (key < lut.size)
-    slots = np.full(owner.shape, -1, dtype=np.int64)
-    slots[inside] = lut[key[inside]]
-    wait = on & (slots < 0)
-    slots[wait] = -2 - key[wait]
-    ids = np.full(owner.shape, -1, dtype=np.int64)
-    ids[slots >= 0] = list_ids[slots[slots >= 0]]
-    return slots, ids, branches, np.unique(key[wait])
 
 
 SUMS = ("n", "range", "range_step", "inten_step", "edge", "vertex", "branches", "r", "c",
@@ -760,7 +715,7 @@ def list_sums(
     to a 4-neighbour (columns wrap, rows stop at the border, NaN or infinite neighbours
     skipped), edge and
     vertex pixels, branches, row, column and their second moments. One compiled pass;
-    :func:`list_sums_numpy` is its reference."""
+    ``list_sums_reference`` (a test oracle) is its numpy form."""
     out = np.zeros((n_slots, len(SUMS)))
     _list_sums_kernel(
         np.ascontiguousarray(slot, dtype=np.int64),
@@ -770,63 +725,6 @@ def list_sums(
         np.ascontiguousarray(branches, dtype=np.int8),
         out,
     )
-    return out
-
-
-def list_sums_numpy(
-    slot: np.ndarray,
-    range_m: np.ndarray,
-    intensity: np.ndarray,
-    edge: np.ndarray,
-    branches: np.ndarray,
-    n_slots: int,
-) -> np.ndarray:
-    """Reference of :func:`list_sums` in plain numpy (bincounts)."""
-    W = slot.shape[1]
-    pix = np.flatnonzero(slot.reshape(-1) >= 0)
-    s = slot.reshape(-1)[pix]
-    r, c = np.divmod(pix, W)
-    br = branches[r, c].astype(np.float64)
-    rf, cf = r.astype(np.float64), c.astype(np.float64)
-    terms = [
-        np.ones(pix.size),
-        _finite_or_zero(range_m[r, c].astype(np.float64)),
-        _neighbour_step(range_m.astype(np.float64), r, c, _ALONG_ROW),
-        _neighbour_step(intensity.astype(np.float64), r, c),
-        edge[r, c].astype(np.float64),
-        ((br == 1) | (br >= 3)).astype(np.float64),
-        br,
-        rf,
-        cf,
-        rf * rf,
-        cf * cf,
-        rf * cf,
-    ]
-    return np.stack([np.bincount(s, weights=t, minlength=n_slots) for t in terms], axis=1)
-
-
-def _finite_or_zero(x: np.ndarray) -> np.ndarray:
-    return np.where(np.isfinite(x), x, 0.0)
-
-
-_ALONG_ROW = ((0, 1), (0, -1))
-_FOUR = ((0, 1), (0, -1), (1, 0), (-1, 0))
-
-
-def _neighbour_step(
-    img: np.ndarray, r: np.ndarray, c: np.ndarray, offsets: tuple = _FOUR
-) -> np.ndarray:
-    """(P,) largest |img[p] - img[neighbour]| over the neighbours ``offsets`` (row, column
-    steps) of pixels (r, c); columns wrap round (the egosphere is closed in azimuth), rows stop
-    at the border; NaN and infinite neighbours are skipped (0 when none)."""
-    H, W = img.shape
-    v = img[r, c]
-    out = np.zeros(r.size)
-    for dr, dc in offsets:
-        rr = np.clip(r + dr, 0, H - 1)
-        with np.errstate(invalid="ignore"):  # inf - inf: an empty pixel, skipped
-            d = np.abs(img[rr, (c + dc) % W] - v)
-        out = np.fmax(out, np.where(np.isfinite(d), d, 0.0))
     return out
 
 

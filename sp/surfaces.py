@@ -44,8 +44,8 @@ whose normals differ by more than ``crease_angle_deg`` meet along the intersecti
 their planes; the pixels near both surfaces whose points lie within ``crease_tol_m`` (or
 ``crease_tol_px`` pixel footprints) of that line are their crease, a level-2 ``slope_edge``
 list of both. Its two passes, :func:`near_blocks` and :func:`crease_pixels`, are compiled
-(numba; on first call, cached on disk); ``_near_blocks_numpy`` and ``_crease_pixels_numpy``
-are their references, compared in the tests.
+(numba; on first call, cached on disk); their numpy forms are test oracles
+(``tests/kernel_reference/surfaces_reference.py``).
 """
 
 from __future__ import annotations
@@ -569,24 +569,6 @@ def plane_fit(
     return mean, normal, n.astype(np.int64)
 
 
-def _near_blocks_numpy(block_label: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray]:
-    """Reference of :func:`near_blocks` (one shifted comparison of the grid per offset)."""
-    nbr, nbc = block_label.shape
-    idx = np.arange(nbr * nbc).reshape(nbr, nbc)
-    offsets = [(0, dc) for dc in range(1, gap + 1)]
-    offsets += [(dr, dc) for dr in range(1, gap + 1) for dc in range(-gap, gap + 1)]
-    out_i, out_j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-    for dr, dc in offsets:
-        if dr >= nbr or 2 * abs(dc) > nbc:
-            continue
-        a = block_label[: nbr - dr]
-        b = np.roll(block_label, -dc, axis=1)[dr:]
-        hit = (a >= 0) & (b >= 0) & (a != b)
-        out_i.append(idx[: nbr - dr][hit])
-        out_j.append(np.roll(idx, -dc, axis=1)[dr:][hit])
-    return np.concatenate(out_i), np.concatenate(out_j)
-
-
 @numba.njit(cache=True, nogil=True)
 def _near_blocks_kernel(block_label: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarray]:
     nbr, nbc = block_label.shape
@@ -616,43 +598,8 @@ def near_blocks(block_label: np.ndarray, gap: int) -> tuple[np.ndarray, np.ndarr
     """Pairs of blocks (i, j) (flat indices into the (nbr, nbc) grid ``block_label``) of
     different surfaces (labels >= 0) within ``gap`` grid steps (Chebyshev distance, columns
     wrapping round), each pair once. One compiled pass over the grid;
-    :func:`_near_blocks_numpy` is its reference (same pairs, another order)."""
+    ``near_blocks_reference`` (a test oracle) is its numpy form (same pairs, another order)."""
     return _near_blocks_kernel(np.ascontiguousarray(block_label, dtype=np.int64), int(gap))
-
-
-def _crease_pixels_numpy(
-    pair: np.ndarray,
-    blk: np.ndarray,
-    n_block_cols: int,
-    block: tuple[int, int],
-    label: np.ndarray,
-    free: np.ndarray,
-    xyz: np.ndarray,
-    id_a: np.ndarray,
-    id_b: np.ndarray,
-    p0: np.ndarray,
-    u: np.ndarray,
-    tol_m: float,
-    tol_per_m: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Reference of :func:`crease_pixels` (the candidate pixels expanded, then filtered)."""
-    H, W = label.shape
-    bh, bw = block
-    br, bc = np.divmod(blk, n_block_cols)
-    pr = (br[:, None] * bh + np.arange(bh).repeat(bw)[None, :]).reshape(-1)
-    pc = (bc[:, None] * bw + np.tile(np.arange(bw), bh)[None, :]).reshape(-1)
-    q = np.repeat(pair, bh * bw)
-    ok = (pr < H) & (pc < W)
-    px, q = pr[ok] * W + pc[ok], q[ok]
-    own = label.reshape(-1)[px]
-    ok = (own == id_a[q]) | (own == id_b[q]) | ((own < 0) & free.reshape(-1)[px])
-    px, q = px[ok], q[ok]
-    p = xyz.reshape(-1, 3)[px]
-    d = p - p0[q]
-    tol2 = np.maximum(tol_m**2, tol_per_m**2 * np.einsum("ij,ij->i", p, p))
-    with np.errstate(invalid="ignore"):
-        on = np.einsum("ij,ij->i", d, d) - np.einsum("ij,ij->i", d, u[q]) ** 2 <= tol2
-    return px[on].astype(np.int64), q[on].astype(np.int64)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -719,7 +666,8 @@ def crease_pixels(
     of the pair's line (through ``p0`` (C, 3), unit direction ``u`` (C, 3)), or within
     ``tol_per_m`` times its range from the origin if that is more. Returns (flat
     pixel (K,) int64, pair (K,) int64), in the order of the blocks given, row-major inside
-    each. One compiled pass; :func:`_crease_pixels_numpy` is its reference (same output)."""
+    each. One compiled pass; ``crease_pixels_reference`` (a test oracle) is its numpy form
+    (same output)."""
     return _crease_pixels_kernel(
         np.ascontiguousarray(pair, dtype=np.int64),
         np.ascontiguousarray(blk, dtype=np.int64),
@@ -748,7 +696,6 @@ def find_creases(
     normal: np.ndarray,
     point: np.ndarray,
     config: SurfaceConfig | None = None,
-    compiled: bool = True,
     az_step_rad: float = 0.0,
 ) -> Creases:
     """Creases between surfaces (module docstring), all pairs at once.
@@ -760,7 +707,6 @@ def find_creases(
     xyz:         (H, W, 3) points (m), in the frame of the planes (NaN where none).
     ids:         (S,) int64 the label of each surface's pixels.
     normal, point: (S, 3) unit normal and a point of each surface's plane.
-    compiled:    the compiled passes (else their numpy references).
     az_step_rad: azimuth step of the image: the tolerance is at least ``crease_tol_px``
                  pixel footprints at the pixel's range (points in a sensor-centred frame).
 
@@ -771,7 +717,7 @@ def find_creases(
     cfg = config or SurfaceConfig()
     nbr, nbc = block_label.shape
     g = cfg.crease_gap_blocks
-    i, j = (near_blocks if compiled else _near_blocks_numpy)(block_label, g)
+    i, j = near_blocks(block_label, g)
     if i.size == 0:
         return _no_creases()
     flat = block_label.reshape(-1)
@@ -805,6 +751,6 @@ def find_creases(
     p0 = np.linalg.solve(np.stack([na, nb, u], axis=1), np.r_[rhs, [0.0 * a]].T[..., None])
     args = (pair_blk, blk, nbc, block, label, free, xyz, ids[a], ids[b], p0[..., 0], u)
     tol = (cfg.crease_tol_m, cfg.crease_tol_px * az_step_rad)
-    px, q = (crease_pixels if compiled else _crease_pixels_numpy)(*args, *tol)
+    px, q = crease_pixels(*args, *tol)
     used, crease = np.unique(q, return_inverse=True)
     return Creases(a[used], b[used], px, crease.astype(np.int64))

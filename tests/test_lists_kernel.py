@@ -3,9 +3,9 @@
 * range edges (:func:`range_jump_edges`, behind ``sp.segments.range_edges``) against the numpy
   form with ``np.roll`` (:func:`range_jump_edges_reference`);
 * the fused slots-and-sums pass (:func:`list_slots_and_sums`) against the numpy slots
-  (:func:`list_slots_numpy`) and the per-pixel sums kernel (:func:`list_sums`, which adds the
+  (:func:`list_slots_reference`) and the per-pixel sums kernel (:func:`list_sums`, which adds the
   same float64 values in the same order: the sums are compared bit for bit) and, within
-  1e-12, the numpy sums (:func:`list_sums_numpy`, another summation order).
+  1e-12, the numpy sums (:func:`list_sums_reference`, another summation order).
 
 On synthetic sweeps built like the simulator's (ground, walls seen at grazing angles, cars,
 poles, foliage of scattered ranges, sky and dropped returns, painted stripes and NaN in the
@@ -19,14 +19,13 @@ import itertools
 
 import numpy as np
 import pytest
+from kernel_reference.lists_reference import list_slots_reference, list_sums_reference
 
 from sp.lists import (
     brightness_edges,
     list_slots,
     list_slots_and_sums,
-    list_slots_numpy,
     list_sums,
-    list_sums_numpy,
     range_jump_edges,
     range_jump_edges_reference,
 )
@@ -249,7 +248,7 @@ def check_lists(args: tuple, range_m: np.ndarray, intensity: np.ndarray) -> tupl
     returns its (slots, ids, branches, missing, sums)."""
     r_edge, b_edge, list_ids = args[1], args[2], args[5]
     slots, ids, branches, missing, sums = list_slots_and_sums(*args, range_m, intensity)
-    ref = list_slots_numpy(*args)
+    ref = list_slots_reference(*args)
     for got, want in zip((slots, ids, branches, missing), ref, strict=True):
         np.testing.assert_array_equal(got, want)
     assert branches.dtype == np.int8 and missing.dtype == np.int64
@@ -272,7 +271,7 @@ def test_list_slots_and_sums_match_the_references_on_sweeps(seed: int) -> None:
     r64, i64 = s.range_m.astype(np.float64), s.intensity.astype(np.float64)
     slots64, _, branches64, _, sums64 = check_lists(args, r64, i64)
     edge = args[1] | args[2]
-    ref = list_sums_numpy(slots64, r64, i64, edge, branches64, args[5].size)
+    ref = list_sums_reference(slots64, r64, i64, edge, branches64, args[5].size)
     np.testing.assert_allclose(sums64, ref, rtol=1e-12, atol=0.0)
 
 

@@ -1,12 +1,13 @@
 """The fast MCAP decoding path gives exactly the frames, stats and errors of the reference path.
 
 Each piece replaced for speed kept its old form as ``*_reference``: the ``mcap`` library's
-chunk reading (:func:`logs.mcap_log._chunk_records_reference`), rosbags' own typestore,
-:func:`~logs.ros_decode.decode_pointcloud2_reference` and
-``FrameAssembler._boxes_reference``. These tests read the same logs both ways (fresh logs from
-the project's writer and from the ``mcap`` library's, uncompressed and compressed, intact and
-damaged) and compare every array bit for bit, with its dtype and shape, and every stat and
-error message; and decode PointCloud2 layouts the writer never makes both ways.
+chunk reading (:func:`logs.mcap_log._chunk_records_reference`, also the engine's fallback),
+rosbags' own typestore, and the test oracles ``decode_pointcloud2_reference`` and
+``boxes_reference`` (``tests/kernel_reference/ros_decode_reference.py``). These tests read the
+same logs both ways (fresh logs from the project's writer and from the ``mcap`` library's,
+uncompressed and compressed, intact and damaged) and compare every array bit for bit, with its
+dtype and shape, and every stat and error message; and decode PointCloud2 layouts the writer
+never makes both ways.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from kernel_reference.ros_decode_reference import boxes_reference, decode_pointcloud2_reference
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Message, Schema
@@ -62,8 +64,8 @@ def reference_paths() -> Iterator[None]:
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(mcap_log, "_chunk_records", lambda body: None)
         mp.setattr(mcap_log, "_reading_typestore", lambda: get_typestore(Stores.EMPTY))
-        mp.setattr(ros_decode, "decode_pointcloud2", ros_decode.decode_pointcloud2_reference)
-        mp.setattr(ros_decode.FrameAssembler, "_boxes", ros_decode.FrameAssembler._boxes_reference)
+        mp.setattr(ros_decode, "decode_pointcloud2", decode_pointcloud2_reference)
+        mp.setattr(ros_decode.FrameAssembler, "_boxes", boxes_reference)
         yield
 
 
@@ -564,7 +566,7 @@ CLOUDS: dict[str, Callable[[], Any]] = {
 
 def _decode_both(msg: Any) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
     out = []
-    for decode in (ros_decode.decode_pointcloud2, ros_decode.decode_pointcloud2_reference):
+    for decode in (ros_decode.decode_pointcloud2, decode_pointcloud2_reference):
         stats = ReadStats()
         try:
             out.append(("scan", decode(msg, "/ladar/points", stats), stats))
@@ -604,7 +606,7 @@ def test_pointcloud2_through_cdr_in_both_byte_orders() -> None:
             ref_msg = ref_store.deserialize_cdr(raw, PC2)
             fast_stats, ref_stats = ReadStats(), ReadStats()
             fast = ros_decode.decode_pointcloud2(fast_msg, "/p", fast_stats)
-            ref = ros_decode.decode_pointcloud2_reference(ref_msg, "/p", ref_stats)
+            ref = decode_pointcloud2_reference(ref_msg, "/p", ref_stats)
             assert_outcomes_same(("scan", fast, fast_stats), ("scan", ref, ref_stats))
 
 
@@ -695,7 +697,7 @@ def test_boxes_are_the_reference_boxes(good_log: Path) -> None:
     n = 0
     for msg in msgs:
         a = fast._boxes(msg, "/ground_truth/objects")
-        b = ref._boxes_reference(msg, "/ground_truth/objects")
+        b = boxes_reference(ref, msg, "/ground_truth/objects")
         assert_same(a, b, "boxes")
         n += len(a)
     assert n > 50 and fast._track_ids == ref._track_ids and len(fast._track_ids) > 0

@@ -5,6 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from kernel_reference.pyramid_reference import register_reference
+from kernel_scenes import texture
 
 from maps.pyramid import (
     PyramidError,
@@ -135,3 +137,11 @@ def test_an_edge_gives_no_confidence_along_its_length():
     m = register(stripes, moved)
     assert abs(m.shift_rc[1] - 2.5) < 0.1
     assert m.confidence == 0.0
+
+
+def test_a_window_larger_than_the_image_is_refused_like_the_reference() -> None:
+    """The compiled climb refuses a window larger than the image as the numpy climb does."""
+    ref = texture((16, 16), 3, blur=1.0)
+    for reg in (register, register_reference):
+        with pytest.raises(PyramidError, match="larger than the image"):
+            reg(ref, ref[:3, :3])

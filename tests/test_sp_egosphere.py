@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
+import kernel_scenes
 import numpy as np
 import pytest
+from kernel_reference.egosphere_reference import to_egosphere_reference
 
 from core.geometry import rpy_to_matrix, se3, transform_points
 from logs.types import LadarScan
@@ -108,3 +112,35 @@ def test_empty_scan_is_an_empty_image_and_malformed_scans_are_refused():
         to_egosphere(bad)
     with pytest.raises(EgosphereError, match="elevation_max_deg"):
         EgosphereConfig(elevation_min_deg=5, elevation_max_deg=1)
+
+
+# the reference casts NaN angles of dropped points to int32
+@pytest.mark.filterwarnings("ignore:invalid value encountered in cast:RuntimeWarning")
+def test_work_arrays_reused_across_sweeps_and_threads_leave_no_trace() -> None:
+    # to_egosphere keeps its work arrays between calls (one set per thread): a large sweep,
+    # a small one with more layers, then the large one again must each give their own image.
+    big, small = (
+        kernel_scenes.random_scan(20, 40_000, True),
+        kernel_scenes.random_scan(21, 2_000, False),
+    )
+    cfg1 = EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1)
+    cfg3 = EgosphereConfig(n_rows=16, n_cols=128, max_returns=3)
+    first = to_egosphere(big, cfg1)
+    np.testing.assert_array_equal(first.point_index, to_egosphere_reference(big, cfg1).point_index)
+    small_img = to_egosphere(small, cfg3)
+    np.testing.assert_array_equal(
+        small_img.point_index, to_egosphere_reference(small, cfg3).point_index
+    )
+    again = to_egosphere(big, cfg1)
+    np.testing.assert_array_equal(first.point_index, again.point_index)
+
+    def project(scan: LadarScan, cfg: EgosphereConfig) -> list[np.ndarray]:
+        return [to_egosphere(scan, cfg).point_index for _ in range(50)]
+
+    with ThreadPoolExecutor(max_workers=2) as pool:  # the kernels release the GIL
+        runs = [pool.submit(project, big, cfg1), pool.submit(project, small, cfg3)]
+        got = [r.result() for r in runs]
+    for images, (scan, cfg) in zip(got, [(big, cfg1), (small, cfg3)], strict=True):
+        want = to_egosphere_reference(scan, cfg).point_index
+        for image in images:
+            np.testing.assert_array_equal(image, want)

@@ -7,6 +7,11 @@ import math
 
 import numpy as np
 import pytest
+from kernel_reference.lists_reference import (
+    block_moments_reference,
+    list_slots_reference,
+    list_sums_reference,
+)
 
 import kd_store
 from kd_store import Level
@@ -16,16 +21,13 @@ from sp.lists import (
     ListConfig,
     ListKind,
     block_moments,
-    block_moments_numpy,
     brightness_edges,
     edge_branches,
     fill_slots,
     list_attributes,
     list_slots,
     list_slots_and_sums,
-    list_slots_numpy,
     list_sums,
-    list_sums_numpy,
     patch_grid,
     vertices,
 )
@@ -43,7 +45,7 @@ def test_block_moments_match_numpy(shape: tuple[int, int], fill: float) -> None:
     mask = RNG.random(shape) < fill
     for bh, bw in ((4, 16), (2, 3), (1, 1)):
         got = block_moments(xyz, mask, bh, bw)
-        ref = block_moments_numpy(xyz, mask, bh, bw)
+        ref = block_moments_reference(xyz, mask, bh, bw)
         np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-9)
     assert np.isinf(block_moments(xyz, np.zeros(shape, bool), 2, 2)[:, 10]).all()
 
@@ -60,7 +62,7 @@ def test_list_slots_and_sums_match_numpy(seed: int) -> None:
     lut[g.permutation(lut.size)[: lut.size // 2]] = np.arange(lut.size // 2)
     list_ids = np.arange(lut.size) * 3 + 100
     got = list_slots(owner, r_edge, b_edge, patch, lut, list_ids)
-    ref = list_slots_numpy(owner, r_edge, b_edge, patch, lut, list_ids)
+    ref = list_slots_reference(owner, r_edge, b_edge, patch, lut, list_ids)
     for a, b in zip(got, ref, strict=True):
         np.testing.assert_array_equal(a, b)
     slots, ids, branches, missing = got
@@ -89,14 +91,14 @@ def test_list_slots_and_sums_match_numpy(seed: int) -> None:
         np.testing.assert_array_equal(x, y)
     np.testing.assert_allclose(
         fused[4],
-        list_sums_numpy(got[0], rng, inten, r_edge | b_edge, got[2], list_ids.size),
+        list_sums_reference(got[0], rng, inten, r_edge | b_edge, got[2], list_ids.size),
         rtol=1e-6,
         atol=1e-9,
     )
     n = int(slots.max()) + 1
     np.testing.assert_allclose(
         list_sums(slots, rng, inten, edge, branches, n),
-        list_sums_numpy(slots, rng, inten, edge, branches, n),
+        list_sums_reference(slots, rng, inten, edge, branches, n),
         rtol=1e-6,  # the kernel takes float32 intensity steps in float32, the reference in 64
         atol=1e-9,
     )

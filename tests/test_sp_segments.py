@@ -7,9 +7,11 @@ the mask, as the pipeline does.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
+from kernel_scenes import non_ground, segment_scene
 
 from sp.segments import (
     SegmentConfig,
@@ -18,6 +20,7 @@ from sp.segments import (
     _links,
     _range_step,
     label_objects,
+    label_objects_reference,
     merge_collinear,
     merge_grazing,
 )
@@ -409,3 +412,21 @@ def test_strips_side_by_side_across_the_line_of_sight_stay_apart() -> None:
     centers = np.array([[20.0, 0.0], [21.5, 0.0]])
     lab = merge_grazing(centers, np.full(2, 0.05), np.full(2, 2.0), np.zeros(2), COL_STEP)
     assert lab[0] == lab[1]
+
+
+def test_scenes_exercise_every_rule():
+    """The scenes the kernel harness holds label_objects to its reference on
+    (test_kernel_equivalence.py) mean something only if each rule changes the labels
+    somewhere."""
+    changed = {"row_gap": 0, "step_m": 0, "near_pixels": 0, "min_pixels": 0}
+    off = {"row_gap": 0, "step_m": 0.0, "near_pixels": 0, "min_pixels": 1}
+    base = SegmentConfig(min_pixels=4)
+    for seed, (h, w) in itertools.product(range(3), [(16, 1024), (64, 1024)]):
+        xyz, rng, valid, row_step, col_step = segment_scene(seed, h, w)
+        mask = non_ground(xyz, valid, seed)
+        ref = label_objects_reference(xyz, rng, mask, row_step, col_step, base)
+        for name, value in off.items():
+            cfg = dataclasses.replace(base, **{name: value})
+            other = label_objects_reference(xyz, rng, mask, row_step, col_step, cfg)
+            changed[name] += int(not np.array_equal(ref, other))
+    assert all(n > 0 for n in changed.values()), changed

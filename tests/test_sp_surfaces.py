@@ -9,6 +9,11 @@ import math
 
 import numpy as np
 import pytest
+from kernel_reference.surfaces_reference import (
+    crease_pixels_reference,
+    find_creases_reference,
+    near_blocks_reference,
+)
 
 import kd_store
 from kd_store import Level, Status
@@ -23,8 +28,6 @@ from sp.surfaces import (
     SurfaceConfig,
     SurfaceObservations,
     SurfaceTracker,
-    _crease_pixels_numpy,
-    _near_blocks_numpy,
     components,
     components_scipy,
     crease_pixels,
@@ -501,7 +504,7 @@ def test_find_creases_ignores_coplanar_and_distant_surfaces() -> None:
     assert cr.pixel.size > 0 and np.all(cr.crease == 0)
     assert np.all(np.isin(label.reshape(-1)[cr.pixel], [0, 2, -1]))
     assert np.all(np.hypot(*xyz.reshape(-1, 3)[cr.pixel, :2].T) <= 0.25)
-    ref = find_creases(blocks, (bh, bw), *args, SurfaceConfig(), compiled=False)
+    ref = find_creases_reference(blocks, (bh, bw), *args, SurfaceConfig())
     np.testing.assert_array_equal(ref.pixel, cr.pixel)
     narrow = SurfaceConfig(crease_gap_blocks=1)
     assert len(find_creases(blocks, (bh, bw), *args, narrow)) == 0
@@ -522,7 +525,7 @@ def test_crease_kernels_match_their_numpy_references(seed: int) -> None:
         blocks[:] = -1  # degenerate: no surface at all
     for gap in (0, 1, 2, 3):
         got = near_blocks(blocks, gap)
-        want = _near_blocks_numpy(blocks, gap)
+        want = near_blocks_reference(blocks, gap)
         assert sorted(zip(*got, strict=True)) == sorted(zip(*want, strict=True))
     bh, bw = int(g.integers(1, 5)), int(g.integers(1, 6))
     H, W = nbr * bh - int(g.integers(0, bh)), nbc * bw  # a last block row cut short
@@ -537,14 +540,14 @@ def test_crease_kernels_match_their_numpy_references(seed: int) -> None:
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     args = (pair, blk, nbc, (bh, bw), label, free, xyz, g.integers(0, S, C),
             g.integers(0, S, C), g.normal(0.0, 1.0, (C, 3)), u, 0.5, 0.4)  # fmt: skip
-    got, want = crease_pixels(*args), _crease_pixels_numpy(*args)
+    got, want = crease_pixels(*args), crease_pixels_reference(*args)
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
     n = g.normal(0.0, 1.0, (S, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     fa = (blocks, (bh, bw), label, free, xyz, np.arange(S), n, g.normal(0.0, 1.0, (S, 3)))
     a = find_creases(*fa, az_step_rad=0.1)
-    b = find_creases(*fa, compiled=False, az_step_rad=0.1)
+    b = find_creases_reference(*fa, az_step_rad=0.1)
     for name in ("a", "b", "pixel", "crease"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
