@@ -9,6 +9,7 @@ it and after it leaves the window.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,7 +36,7 @@ class LayerSpec:
         return np.full(shape, self.fill, dtype=np.dtype(self.dtype))
 
 
-NAN = float("nan")
+NAN = math.nan  # one NaN object (wm.config reads NaN as it): equal specs compare equal
 
 # The default layers of every level. Heights are world z in metres; times int64 nanoseconds.
 DEFAULT_LAYERS: tuple[LayerSpec, ...] = (

@@ -6,6 +6,8 @@
     wm run LOG --kd KD.duckdb [--overwrite | --append] [--report report.json] [--render DIR]
            [--poses odometry|truth] [--skip-corrupt]  (an existing KD only with one of them)
            [--snapshot S.duckdb [--snapshot-every 5]]  (a read-only copy others may open)
+           [--config FILE.yaml]  (also serve, whatif, render; KD.config.yaml records the run's)
+    wm config --default | FILE.yaml                    (the whole configuration as YAML)
     wm check KD.duckdb                                 (integrity: rows point at frames)
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
     wm whatif LOG [--kd KD.duckdb] --waypoints "t,x,y;t,x,y;..." [--seconds S]
@@ -174,17 +176,26 @@ def _parquet_target(value: str, kd: Path, overwrite: bool = False) -> Path:
     return out
 
 
-def _node_config(args: argparse.Namespace):
-    from wm.config import NodeConfig, PoseSource
+def _engine_config(args: argparse.Namespace):
+    """The run's configuration: ``--config FILE`` over the defaults, then the flags given
+    (--poses, --snapshot, --snapshot-every) over that."""
+    from dataclasses import replace
 
+    from wm.config import PoseSource
+    from wm.engine_config import EngineConfig
+
+    path = getattr(args, "config", None)
+    engine = EngineConfig.from_yaml(path) if path is not None else EngineConfig()
+    flags = {
+        "pose_source": PoseSource(args.poses) if getattr(args, "poses", None) else None,
+        "snapshot_path": getattr(args, "snapshot", None),
+        "snapshot_every_s": getattr(args, "snapshot_every", None),
+    }
     try:
-        return NodeConfig(
-            pose_source=PoseSource(args.poses),
-            snapshot_path=getattr(args, "snapshot", None),
-            snapshot_every_s=getattr(args, "snapshot_every", 5.0),
-        )
+        node = replace(engine.node, **{k: v for k, v in flags.items() if v is not None})
     except ValueError as e:  # a bad --snapshot-every
         raise UserError(str(e)) from None
+    return replace(engine, node=node)
 
 
 def _check_log(path: str) -> Path:
@@ -257,12 +268,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     from wm.run import run_log
 
     log = _check_log(args.log)
-    config = _node_config(args)
-    if config.snapshot_path is not None:  # refused before --overwrite removes anything
-        snapshot_target(args.kd, config.snapshot_path)
+    config = _engine_config(args)
+    if config.node.snapshot_path is not None:  # refused before --overwrite removes anything
+        snapshot_target(args.kd, config.node.snapshot_path)
+    kd = _kd_target(args.kd, getattr(args, "overwrite", False), log, getattr(args, "append", False))
+    config_path = None
+    if kd != ":memory:":  # the configuration the run ran with, next to its results
+        config_path = Path(f"{kd}.config.yaml")
+        config_path.parent.mkdir(parents=True, exist_ok=True)
+        config.to_yaml(config_path)
     report = run_log(
         log,
-        _kd_target(args.kd, getattr(args, "overwrite", False), log, getattr(args, "append", False)),
+        kd,
         config=config,
         report_path=args.report,
         render_dir=args.render,
@@ -274,9 +291,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(report.text())
     if args.report:
         print(f"report {args.report}")
+    if config_path is not None:
+        print(f"config {config_path}")
     lacked = _produced_nothing(report, log)
     if lacked is not None:
         raise UserError(lacked)
+    return 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    """Print a whole configuration as YAML: the defaults (``--default``), or FILE's changes
+    over them (which checks FILE), for a file to start from or to see what a run will use."""
+    from wm.engine_config import EngineConfig
+
+    if (args.file is None) == (not args.default):
+        raise UserError("config: give --default, or a configuration FILE to check and show")
+    config = EngineConfig() if args.default else EngineConfig.from_yaml(args.file)
+    print(config.to_yaml(), end="")
     return 0
 
 
@@ -314,10 +345,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.ingest:
         from wm.ingest import IngestNode
 
-        live = IngestNode(args.kd, _node_config(args), args.queue).start()
+        live = IngestNode(args.kd, _engine_config(args), args.queue).start()
         what = f"ROS 2 messages posted to /v1/ingest (queue {args.queue} frames)"
     else:
-        live = LiveNode(_check_log(args.replay), args.kd, _node_config(args), args.rate).start()
+        live = LiveNode(_check_log(args.replay), args.kd, _engine_config(args), args.rate).start()
         what = f"{args.replay} at {args.rate:g}x"
     print(f"serving {what} on http://{args.host}:{args.port}/v1 "
           f"(schema: /openapi.json); KD {args.kd}; Ctrl-C stops")  # fmt: skip
@@ -447,7 +478,7 @@ def cmd_whatif(args: argparse.Namespace) -> int:
     if args.log is not None:
         from wm.run import run_node
 
-        node = run_node(_check_log(args.log), args.kd, _node_config(args), seconds=args.seconds)
+        node = run_node(_check_log(args.log), args.kd, _engine_config(args), seconds=args.seconds)
         try:
             lines = whatif_lines(
                 node.kd, node.stack, node.self_id, node.stack.T_world_body, t_s, xy_body,
@@ -532,7 +563,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         from wm.render import render_run
         from wm.run import run_node
 
-        node = run_node(_check_log(paths_in[0]), ":memory:", _node_config(args), args.seconds)
+        node = run_node(_check_log(paths_in[0]), ":memory:", _engine_config(args), args.seconds)
         try:
             paths = render_run(node, Path(args.out))
         finally:
@@ -574,8 +605,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     rc = cmd_run(
         argparse.Namespace(
             log=str(out), kd=str(kd), report=str(Path(args.out) / "report.json"),
-            render=str(Path(args.out) / "pictures"), poses=args.poses, no_progress=False,
-            seconds=None, overwrite=True,  # the demo's own KD of an earlier demo
+            render=str(Path(args.out) / "pictures"), poses=args.poses, config=args.config,
+            no_progress=False, seconds=None, overwrite=True,  # the demo's own KD of an earlier demo
         )
     )  # fmt: skip
     print(f"\nKD: {kd} (try: wm query {kd} \"SELECT class_name, status, count(*) FROM entities"
@@ -627,10 +658,16 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--memory-limit", default="1GB", help="DuckDB memory limit (default 1GB)")
     q.set_defaults(func=cmd_query)
 
-    def pose_flag(sp: argparse.ArgumentParser) -> None:
+    def config_flags(sp: argparse.ArgumentParser) -> None:
         sp.add_argument(
-            "--poses", choices=("odometry", "truth"), default="odometry",
-            help="vehicle poses from LADAR+wheel odometry (default) or the log's ground truth",
+            "--poses", choices=("odometry", "truth"), default=None,
+            help="vehicle poses from LADAR+wheel odometry (default) or the log's ground truth "
+            "(node.pose_source)",
+        )  # fmt: skip
+        sp.add_argument(
+            "--config", default=None, metavar="FILE.yaml",
+            help="engine configuration: the fields it gives change the defaults (wm config "
+            "--default prints them all); flags given override it",
         )  # fmt: skip
 
     def snapshot_flags(sp: argparse.ArgumentParser) -> None:
@@ -640,7 +677,7 @@ def build_parser() -> argparse.ArgumentParser:
             "the node writes (docs/kd.md); an existing S only if it is an earlier snapshot",
         )  # fmt: skip
         sp.add_argument(
-            "--snapshot-every", type=float, default=5.0, metavar="SECONDS",
+            "--snapshot-every", type=float, default=None, metavar="SECONDS",
             help="publish the snapshot at most this often, in log seconds (default 5), and at "
             "the end",
         )  # fmt: skip
@@ -666,9 +703,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--skip-corrupt", action="store_true",
         help="skip corrupt or duplicated log records (counted in the report) instead of stopping",
     )  # fmt: skip
-    pose_flag(r)
+    config_flags(r)
     snapshot_flags(r)
     r.set_defaults(func=cmd_run)
+
+    k = sub.add_parser("config", help="print the engine configuration as YAML (--default)")
+    k.add_argument("file", nargs="?", default=None, help="a configuration file to check and show")
+    k.add_argument("--default", action="store_true", help="the defaults: a file to start from")
+    k.set_defaults(func=cmd_config)
 
     c = sub.add_parser("check", help="integrity of a KD file: every row points at a frame")
     c.add_argument("kd", help="KD file (DuckDB), opened read-only")
@@ -694,7 +736,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--waypoints", required=True, help="'t,x,y;...' seconds, body-frame metres")
     f.add_argument("--level", default="subsystem", help="map level (default subsystem)")
     f.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
-    pose_flag(f)
+    config_flags(f)
     f.set_defaults(func=cmd_whatif)
 
     g = sub.add_parser(
@@ -707,7 +749,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", default=None, help="folder for the PNG files")
     g.add_argument("--kd", default=None, help="draw the maps a run stored in this KD file")
     g.add_argument("--seconds", type=float, default=None, help="only the first S seconds")
-    pose_flag(g)
+    config_flags(g)
     g.set_defaults(func=cmd_render)
 
     e = sub.add_parser("evaluate", help="scores of a KD against a log's ground truth")
@@ -737,7 +779,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--token-env", default=None,
         help="name of an environment variable holding a bearer token every request must carry",
     )  # fmt: skip
-    pose_flag(v)
+    config_flags(v)
     snapshot_flags(v)
     v.set_defaults(func=cmd_serve)
 
@@ -777,7 +819,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="simulate the default scenario and run the world model on it")
     d.add_argument("--out", default="out", help="folder for the demo's files (default: out/)")
     d.add_argument("--seconds", type=float, default=None, help="duration (default: scenario's)")
-    pose_flag(d)
+    config_flags(d)
     d.set_defaults(func=cmd_demo)
     return p
 

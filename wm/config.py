@@ -5,6 +5,9 @@ Table 2): ``primitive`` (0.04 m), ``subsystem`` (0.4 m), ``vehicle`` (4 m), ``se
 Each node level runs its slow work (terrain, value-judgment cost layer) at its own period:
 "the coarse levels need not run every sensor frame" (reference 001, 4.4.10: the planning
 horizon and replanning interval grow by about an order of magnitude per level).
+
+The root of a run's configuration, with the subsystems the node builds, is
+:class:`wm.engine_config.EngineConfig`.
 """
 
 from __future__ import annotations

@@ -85,6 +85,7 @@ from sp.odometry import OdometryError
 from sp.pipeline import SensoryProcessor, SPResult
 from wm import predict, vj
 from wm.config import NodeConfig, PoseSource
+from wm.engine_config import EngineConfig
 from wm.entities import EntityUpdater
 from wm.odometry_worker import OdometryReply, OdometryWorker
 from wm.poses import PoseError, PoseTrack, deskew_to_world
@@ -229,14 +230,17 @@ class WorldModelNode:
     def __init__(
         self,
         kd: kd_store.KnowledgeDatabase,
-        config: NodeConfig | None = None,
+        config: EngineConfig | NodeConfig | None = None,
         stack: MapStack | None = None,
     ) -> None:
         self.kd = kd
-        self.config = config or NodeConfig()
-        self.stack = stack if stack is not None else MapStack()
+        # the whole configuration (a bare NodeConfig: default SP, odometry and maps), and
+        # its node section, which the cycle reads
+        self.engine_config = EngineConfig.of(config)
+        self.config = self.engine_config.node
+        self.stack = stack if stack is not None else MapStack(self.engine_config.maps)
         self.stats = NodeStats()
-        self.sp = SensoryProcessor(kd) if self.config.use_sp else None
+        self.sp = SensoryProcessor(kd, self.engine_config.sp) if self.config.use_sp else None
         self.entities = EntityUpdater(kd)
         if self.sp is None:
             self.stats.notes.append("SP levels 2..5 off (NodeConfig.use_sp)")
@@ -627,10 +631,13 @@ class WorldModelNode:
             from sp.odometry import LadarOdometry
 
             T0 = self.T_world_body0
+            odo = self.engine_config.odometry
             if self.config.odometry_process:
-                self.odometry = OdometryWorker(self.T_body_ladar, T0)
+                self.odometry = OdometryWorker(self.T_body_ladar, T0, odo)
             else:
-                self.odometry = LadarOdometry(T_body_sensor=self.T_body_ladar, T_world_body0=T0)
+                self.odometry = LadarOdometry(
+                    odo, T_body_sensor=self.T_body_ladar, T_world_body0=T0
+                )
         return self.odometry
 
     # --- the cycle -------------------------------------------------------------------------

@@ -23,14 +23,17 @@ import os
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from core.errors import EngineError
 from core.process import die_with_parent
 from logs.types import LadarScan, OdometryFrame
+
+if TYPE_CHECKING:
+    from sp.odometry import OdometryConfig
 
 RESULT_TIMEOUT_S = 120.0
 _POLL_S = 0.2  # how often a node waiting for a reply checks that the process still runs
@@ -67,17 +70,21 @@ class OdometryReply:
     skipped: list[str] = field(default_factory=list)
 
 
-def _serve(requests: Any, results: Any, T_body_sensor, T_world_body0, parent: int) -> None:
+def _serve(
+    requests: Any, results: Any, T_body_sensor, T_world_body0, parent: int, config: Any = None
+) -> None:
     """The child's loop: feed wheel odometry, register sweeps, answer each sweep in order."""
     die_with_parent(parent)
     _exit_with_parent(parent)  # where prctl is not there (or not allowed)
     from sp.odometry import LadarOdometry, OdometryConfig
 
-    # one registration thread: this process has the core the node's process leaves, and a
+    # one registration thread unless the configuration names a number (0, as many as
+    # cores, is one here): this process has the core the node's process leaves, and a
     # second thread would take turns with the node on its own core
-    odo = LadarOdometry(
-        OdometryConfig(max_threads=1), T_body_sensor=T_body_sensor, T_world_body0=T_world_body0
-    )
+    config = config or OdometryConfig()
+    if config.max_threads == 0:
+        config = replace(config, max_threads=1)
+    odo = LadarOdometry(config, T_body_sensor=T_body_sensor, T_world_body0=T_world_body0)
     skipped: list[str] = []
     while True:
         kind, item = requests.get()
@@ -101,7 +108,12 @@ class OdometryWorker:
     """The odometry process: :meth:`add_wheel_odometry`, :meth:`submit` a sweep, then take its
     :meth:`result` (estimates in submission order)."""
 
-    def __init__(self, T_body_sensor: np.ndarray | None, T_world_body0: np.ndarray | None):
+    def __init__(
+        self,
+        T_body_sensor: np.ndarray | None,
+        T_world_body0: np.ndarray | None,
+        config: OdometryConfig | None = None,
+    ):
         # fork: the child needs nothing the parent holds, and a spawned child would re-run
         # the caller's main script (scripts without a __main__ guard would loop)
         ctx = mp.get_context("fork")
@@ -109,7 +121,7 @@ class OdometryWorker:
         self._results = ctx.Queue()
         self._proc = ctx.Process(
             target=_serve,
-            args=(self._requests, self._results, T_body_sensor, T_world_body0, os.getpid()),
+            args=(self._requests, self._results, T_body_sensor, T_world_body0, os.getpid(), config),
             daemon=True,
             name="wm-odometry",
         )

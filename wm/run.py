@@ -30,6 +30,7 @@ from logs import LogSource, open_log
 from logs.prefetch import FramePrefetcher
 from logs.types import CameraFrame, LadarScan, LogMessage, ObjectBoxes, OdometryFrame
 from wm.config import NodeConfig, PoseSource
+from wm.engine_config import EngineConfig
 from wm.node import WorldModelNode
 from wm.tiles import keep_windows, map_stack_over_kd
 from wm.truth import OdometryScore, RasterTruth, TerrainTruth, elevation_error
@@ -167,7 +168,7 @@ def run_log(
     log_path: str | Path,
     kd_path: str | Path = ":memory:",
     *,
-    config: NodeConfig | None = None,
+    config: EngineConfig | NodeConfig | None = None,
     report_path: str | Path | None = None,
     render_dir: str | Path | None = None,
     progress: bool = True,
@@ -185,7 +186,8 @@ def run_log(
     in the report's ``skipped`` (as the messages lost, per reason) instead of stopping the
     run. Damaged truth that only scores the run (the terrain attachment or its metadata)
     never stops it: that score is left out and a note says why."""
-    config = config or NodeConfig()
+    engine = EngineConfig.of(config)
+    config = engine.node
     source = open_log(Path(log_path), skip_corrupt=skip_corrupt)
     info = source.info()
     total = sum(t.count for t in info.topics)
@@ -202,8 +204,9 @@ def run_log(
         _reader(source, decode_process) as (frames_in, reader),
         kd_store.open(kd_path, run="new", source=str(log_path)) as kd,
     ):
-        stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
-        node = WorldModelNode(kd, config, stack)
+        # map tiles in the KD (in memory: the node's own stack)
+        stack = map_stack_over_kd(kd, engine.maps) if str(kd_path) != ":memory:" else None
+        node = WorldModelNode(kd, engine, stack)
         odo = OdometryScore()
         first_t, last_t = None, None
         frames = _cpu_timed(frames_in, read_cpu_s)
@@ -483,17 +486,19 @@ def _metrics(node, odo: OdometryScore, terrain) -> dict[str, Any]:
 def run_node(
     log_path: str | Path,
     kd_path: str | Path = ":memory:",
-    config: NodeConfig | None = None,
+    config: EngineConfig | NodeConfig | None = None,
     seconds: float | None = None,
 ) -> WorldModelNode:
     """Feed a log (or its first ``seconds``) through a node and return it, its KD still open
     (the caller closes ``node.kd``): for What If / render from the shell and for tests. A KD
     file gets the map tiles and the final windows, as after :func:`run_log`."""
     source = open_log(Path(log_path))
-    config = config or NodeConfig()
+    engine = EngineConfig.of(config)
+    config = engine.node
     kd = kd_store.open(kd_path, run="new", source=str(log_path))
-    stack = map_stack_over_kd(kd) if str(kd_path) != ":memory:" else None  # tiles in the KD
-    node = WorldModelNode(kd, config, stack)
+    # map tiles in the KD (in memory: the node's own stack)
+    stack = map_stack_over_kd(kd, engine.maps) if str(kd_path) != ":memory:" else None
+    node = WorldModelNode(kd, engine, stack)
     first_t = None
     try:
         with compute_threads(config.compute_threads), node:  # finishes, or flushes on an error

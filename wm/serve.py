@@ -179,7 +179,7 @@ class LiveNode:
     def _run(self) -> None:
         import kd_store
         from kd_store.query import served_settings
-        from wm.config import NodeConfig
+        from wm.engine_config import EngineConfig
         from wm.node import WorldModelNode
         from wm.tiles import map_stack_over_kd
 
@@ -191,8 +191,9 @@ class LiveNode:
             self.kd = kd_store.open(  # a KD file that exists gets one more run
                 self.kd_path, settings=served_settings(), run="new", source=source_name
             )
-            stack = map_stack_over_kd(self.kd) if self.kd_path != ":memory:" else None
-            self.node = WorldModelNode(self.kd, self.config or NodeConfig(), stack)
+            engine = EngineConfig.of(self.config)  # a NodeConfig, an EngineConfig or None
+            stack = map_stack_over_kd(self.kd, engine.maps) if self.kd_path != ":memory:" else None
+            self.node = WorldModelNode(self.kd, engine, stack)
         except Exception as e:  # reported by start()
             self.status.error = f"{type(e).__name__}: {e}"
             self._ready.set()
