@@ -26,8 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import duckdb
-
 from kd_store import persist
 from kd_store.errors import KDError
 from kd_store.query import kd_settings
@@ -178,7 +176,7 @@ def check_file(path: str | Path) -> KDCheck:
         con.close()
 
 
-def _check(con: duckdb.DuckDBPyConnection, where: str) -> KDCheck:
+def _check(con: persist.Connection, where: str) -> KDCheck:
     rows = con.execute("SELECT value FROM kd_meta WHERE key = 'schema_version'").fetchall()
     version = int(rows[0][0]) if rows else 0
     present = {
@@ -203,9 +201,7 @@ def _check(con: duckdb.DuckDBPyConnection, where: str) -> KDCheck:
     return KDCheck(where, version, counts, defects)
 
 
-def _defect(
-    con: duckdb.DuckDBPyConnection, kind: str, table: str, sql: str, what: str
-) -> Defect | None:
+def _defect(con: persist.Connection, kind: str, table: str, sql: str, what: str) -> Defect | None:
     """The defect ``sql`` finds (its ``id`` column), or None when it finds no row."""
     count = int(con.execute(f"SELECT count(*) FROM ({sql})").fetchall()[0][0])
     if not count:

@@ -9,8 +9,11 @@ million updates is appended without per-row Python.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
+
 import numpy as np
 
+from kd_store.errors import KDError
 from kd_store.frames import State
 from kd_store.states import StateColumns, concat
 
@@ -104,6 +107,24 @@ class ShortTermMemory:
     def trim(self, t_now_ns: int) -> None:
         for h in self.history.values():
             h.trim(t_now_ns)
+
+    def drop(self, entity_ids: np.ndarray) -> None:
+        """Forget every row of ``entity_ids`` at every level."""
+        for h in self.history.values():
+            h.drop(entity_ids)
+
+    def set_attention(
+        self, node: str, entity_ids: Iterable[int], known: Callable[[int], bool]
+    ) -> None:
+        """Set the entities-of-attention list of a node level (``known(id)``: the entity is
+        in the KD)."""
+        if node not in self.attention:
+            raise KDError(f"attention: unknown node level {node!r} (have {sorted(self.attention)})")
+        ids = [int(i) for i in entity_ids]
+        for i in ids:
+            if not known(i):
+                raise KDError(f"attention list of {node!r}: entity {i} is not in the KD")
+        self.attention[node] = ids
 
     def attended(self) -> set[int]:
         return {i for ids in self.attention.values() for i in ids}

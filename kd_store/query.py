@@ -1,4 +1,9 @@
-"""SQL from outside the engine (a command line, a network client) over a KD file.
+"""Read-only SQL over a KD: readers for other threads, and SQL from outside the engine.
+
+Reference 001, section 4.4 (the KD answers queries about what it holds). A
+:class:`SQLReader` is one thread's read-only view of a KD being written (its own cursor, a
+consistent snapshot per query); :func:`query_file` and :func:`query_reader` run SQL from
+outside the engine (a command line, a network client) over a KD file or a live KD.
 
 The text is not trusted: the connection is opened read-only with DuckDB's external access off
 (no other file, directory, URL or extension can be reached: ``read_csv('/etc/passwd')``,
@@ -6,7 +11,7 @@ The text is not trusted: the connection is opened read-only with DuckDB's extern
 its configuration locked (``SET``, ``PRAGMA`` cannot lift the limits), a memory limit (it
 bounds DuckDB's operators: sorts, joins, aggregates; not one huge value in the result, such as
 ``repeat('x', 2000000000)``, which DuckDB builds outside it) and a time limit; and one SELECT
-only (:func:`kd_store.store._read_only_query`). The result is read batch by batch and refused
+only (:func:`kd_store.persist.read_only_query`). The result is read batch by batch and refused
 once it passes a row or byte limit, so a ``SELECT * FROM range(10_000_000)`` stops at the limit
 instead of being held whole; one huge value is refused by the byte limit, but only after DuckDB
 has built it. The views are those of docs/kd.md.
@@ -15,6 +20,8 @@ has built it. The views are those of docs/kd.md.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,6 +59,42 @@ class QueryLimits:
             )
 
 
+class SQLReader:
+    """Read-only SQL on its own DuckDB cursor (use one per thread)."""
+
+    def __init__(self, cursor: persist.Connection) -> None:
+        self._cur = cursor
+        self._in_tx = False
+
+    def sql(
+        self, query: str, max_rows: int | None = None, max_bytes: int | None = None
+    ) -> pa.Table:
+        """One read-only SELECT; a result of more than ``max_rows`` rows or ``max_bytes``
+        bytes (Arrow buffers) is refused with a KDError before it is read whole (None: no
+        limit)."""
+        return persist.read_only_query(
+            self._cur, query, own_tx=not self._in_tx, max_rows=max_rows, max_bytes=max_bytes
+        )
+
+    @contextmanager
+    def snapshot(self) -> Iterator[SQLReader]:
+        """Run several queries against one snapshot: ``with r.snapshot(): r.sql(...); ...``."""
+        self._cur.execute("BEGIN TRANSACTION")
+        self._in_tx = True
+        try:
+            yield self
+        finally:
+            self._in_tx = False
+            self._cur.execute("ROLLBACK")
+
+    def interrupt(self) -> None:
+        """Stop the query running on this reader (from another thread)."""
+        self._cur.interrupt()
+
+    def close(self) -> None:
+        self._cur.close()
+
+
 def kd_settings() -> dict[str, object]:
     """The DuckDB configuration every KD is opened with (:func:`kd_store.open`): its SQL
     reaches the KD's own tables and views only, never another file, directory, URL or
@@ -79,8 +122,8 @@ def served_settings(limits: QueryLimits = QueryLimits()) -> dict[str, object]:
     return {k: v for k, v in sandbox_settings(limits).items() if k not in ("memory_limit",)}
 
 
-def query_reader(reader, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
-    """One read-only SELECT through ``reader`` (a :class:`kd_store.store.SQLReader` of a KD
+def query_reader(reader: SQLReader, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
+    """One read-only SELECT through ``reader`` (a :class:`SQLReader` of a KD
     opened with :func:`served_settings`), interrupted after ``limits.timeout_s`` and refused
     past ``limits.max_rows`` rows or ``limits.max_bytes`` bytes."""
     return _time_limited(
@@ -113,8 +156,6 @@ def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) 
     """One read-only SELECT over the KD file ``path`` in a sandboxed connection; the result as
     Arrow. Raises KDError naming the query for anything refused, failed, timed out or over
     the result limits (``limits.max_rows``, ``limits.max_bytes``)."""
-    from kd_store.store import _read_only_query
-
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"KD file {p} does not exist")
@@ -123,7 +164,7 @@ def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) 
         return _time_limited(
             sql,
             limits,
-            lambda: _read_only_query(
+            lambda: persist.read_only_query(
                 con, sql, max_rows=limits.max_rows, max_bytes=limits.max_bytes
             ),
             con.interrupt,

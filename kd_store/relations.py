@@ -14,7 +14,7 @@ with the frame-to-frame pointers.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
@@ -273,3 +273,113 @@ class RelationGraph:
             if r.key == key:
                 return r
         return None
+
+
+#: Spatial kinds (4.4.2, situational pointers): they link entities only.
+SPATIAL = frozenset(
+    {K.ON_TOP_OF, K.BENEATH, K.BESIDE, K.IN_FRONT_OF, K.BEHIND, K.INSIDE_OF, K.NEAR}
+)
+
+
+class FramePointers:
+    """The KD's pointers between frames: a :class:`RelationGraph` plus the checks that need to
+    know what each end is.
+
+    ``kind_of(frame_id, where)`` says ``"entity"`` or ``"event"`` (KDError naming ``where``
+    for an unknown id); ``now(t_ns)`` is ``t_ns`` or, when None, this cycle's time (else 0).
+    Times are int64 nanoseconds."""
+
+    def __init__(
+        self,
+        graph: RelationGraph,
+        kind_of: Callable[[int, str], str],
+        now: Callable[[int | None], int],
+    ) -> None:
+        self.graph = graph
+        self._kind_of = kind_of
+        self._now = now
+
+    def relate(self, src: int, kind: RelationKind | str, dst: int, t_ns: int | None) -> None:
+        """Point ``src --kind--> dst`` from ``t_ns`` on, if both ends may be so linked."""
+        kind = _kind(kind, src, dst)
+        where = f"relation {src} {kind.value} {dst}"
+        ks, kd = self._kind_of(src, where), self._kind_of(dst, where)
+        if kind in (K.BELONGS_TO, K.HAS_PART) and ks != kd:
+            raise KDError(f"{where}: a {ks} cannot be part of an {kd} (or the other way)")
+        if kind in SPATIAL and "event" in (ks, kd):
+            raise KDError(
+                f"{where}: spatial relations link entities, {src} is a {ks}, {dst} a {kd}"
+            )
+        if kind == K.INVOLVES and (ks, kd) != ("event", "entity"):
+            raise KDError(f"{where}: involves points from an event to an entity, not {ks}->{kd}")
+        self.graph.add(src, kind, dst, self._now(t_ns))
+
+    def unrelate(self, src: int, kind: RelationKind | str, dst: int, t_ns: int | None) -> bool:
+        """End ``src --kind--> dst`` at ``t_ns`` (kept in history); False if it was not open."""
+        return self.graph.close(src, _kind(kind, src, dst), dst, self._now(t_ns))
+
+    def pointers(
+        self, frame_id: int, kind: RelationKind | str | None, t_ns: int | None
+    ) -> list[int]:
+        self._kind_of(frame_id, "pointers")
+        return self.graph.out(frame_id, None if kind is None else RelationKind(kind), t_ns)
+
+    def pointed_by(
+        self, frame_id: int, kind: RelationKind | str | None, t_ns: int | None
+    ) -> list[int]:
+        self._kind_of(frame_id, "pointed_by")
+        return self.graph.inn(frame_id, None if kind is None else RelationKind(kind), t_ns)
+
+    def relations(self, frame_id: int) -> list[Relation]:
+        self._kind_of(frame_id, "relations")
+        return self.graph.relations_of(frame_id)
+
+    def parent(self, frame_id: int, t_ns: int | None) -> int | None:
+        self._kind_of(frame_id, "parent")
+        return self.graph.parent(frame_id, t_ns)
+
+    def parts(self, frame_id: int, t_ns: int | None) -> list[int]:
+        return sorted(self.pointers(frame_id, K.HAS_PART, t_ns))
+
+    def ancestors(self, frame_id: int, t_ns: int | None) -> list[int]:
+        self._kind_of(frame_id, "ancestors")
+        return self.graph.ancestors(frame_id, t_ns)
+
+    def parts_tree(self, frame_id: int, t_ns: int | None) -> list[tuple[int, int]]:
+        self._kind_of(frame_id, "parts_tree")
+        return self.graph.parts_tree(frame_id, t_ns)
+
+    def neighbourhood(
+        self,
+        frame_id: int,
+        kinds: Iterable[RelationKind | str] | None,
+        depth: int,
+        t_ns: int | None,
+    ) -> dict[int, int]:
+        self._kind_of(frame_id, "neighbourhood")
+        ks = None if kinds is None else [RelationKind(k) for k in kinds]
+        return self.graph.neighbourhood(frame_id, ks, depth, t_ns)
+
+    def involving(self, entity_id: int) -> list[int]:
+        """Events with an open ``involves`` pointer to ``entity_id``."""
+        self._kind_of(entity_id, "events by participant")
+        return self.graph.inn(entity_id, K.INVOLVES)
+
+    def mark_touching(self, nodes: Iterable[int]) -> None:
+        """Mark every relation from or into ``nodes`` for writing (they just entered
+        long-term memory, so their pointers can be written now)."""
+        for node in nodes:
+            self.graph.dirty.update(r.key for r in self.graph.relations_of(node))
+            self.graph.dirty.update(r.key for r in self.graph.relations_into(node))
+
+    def collect(self, in_ltm: Callable[[int], bool]) -> list[Relation]:
+        """The changed relations the next flush writes: both ends in long-term memory."""
+        rels = [r for k in self.graph.dirty if (r := self.graph.find(k)) is not None]
+        return [r for r in rels if in_ltm(r.src) and in_ltm(r.dst)]
+
+
+def _kind(kind: RelationKind | str, src: int, dst: int) -> RelationKind:
+    try:
+        return RelationKind(kind)
+    except ValueError:
+        raise KDError(f"relation {src} {kind!r} {dst}: unknown relation kind") from None

@@ -66,8 +66,10 @@ def check_tile(level: object, tx: object, ty: object, layers: object, t_ns: obje
 class TileMemory:
     """Pending tiles, a cache of clean ones and the set of keys on disk (loaded on first use).
 
-    ``read_keys()`` lists the keys on disk; ``read_tile(key)`` reads one (or None). Both are
-    given by the store, so this class never touches DuckDB itself.
+    ``read_keys()`` lists the keys on disk; ``read_tile(key)`` reads one (or None);
+    ``write(tiles)`` writes pending tiles on their own once ``write_batch`` of them wait (one
+    transaction; False: not written, e.g. a read-only KD). All are given by the store, so this
+    class never touches DuckDB itself.
     """
 
     def __init__(
@@ -75,10 +77,14 @@ class TileMemory:
         read_keys: Callable[[], Iterable[TileKey]],
         read_tile: Callable[[TileKey], MapTile | None],
         cache_tiles: int,
+        write: Callable[[list[MapTile]], bool] | None = None,
+        write_batch: int = 64,
     ) -> None:
         self._read_keys = read_keys
         self._read_tile = read_tile
         self._cache_tiles = cache_tiles
+        self._write = write
+        self._write_batch = write_batch
         self.pending: dict[TileKey, MapTile] = {}
         self._cache: OrderedDict[TileKey, MapTile] = OrderedDict()
         self._stored: set[TileKey] | None = None
@@ -89,8 +95,14 @@ class TileMemory:
         return self._stored
 
     def put(self, tile: MapTile) -> None:
+        """Keep ``tile`` pending (replacing its key whole); bounded RAM: a full batch of
+        pending tiles is written on its own."""
         self._cache.pop(tile.key, None)
         self.pending[tile.key] = tile
+        if self._write is not None and len(self.pending) >= self._write_batch:
+            tiles = list(self.pending.values())
+            if self._write(tiles):
+                self.written(tiles)
 
     def get(self, key: TileKey) -> dict[str, np.ndarray] | None:
         tile = self.pending.get(key)
