@@ -7,6 +7,7 @@ test_wm_serve's."""
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -255,6 +256,158 @@ def test_check_safety_around_true_objects_and_on_open_ground(served, log) -> Non
     assert c.check_safety([[tuple(p) for p in square]]) == ok
 
 
+def _reference_safety(live, polys: list[np.ndarray], z: float, hull: bool) -> dict:
+    """CheckSafety as it was first written, under the node's lock throughout: every cell of
+    the polygon's bounding-box window tested against every edge, every box against the
+    polygon by :func:`maps.submap.inside_polygon`; the answer's shape."""
+    from maps.submap import inside_polygon
+    from wm import serve_ros as ros
+    from wm.serve_views import find_level, map_window
+
+    out = []
+    with live.lock:
+        lvl, cycle = find_level(live.node.stack, "subsystem"), live.snapshot.cycle_t_ns
+        boxes = ros._entity_boxes(live.node, polys, cycle)
+        for poly in polys:
+            lo, hi = poly.min(axis=0), poly.max(axis=0)
+            c, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            w = map_window(lvl, c[0], c[1], half[0], ["traversability"], half_y_m=half[1])
+            ny, nx = w.shape
+            rows, cols = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+            res, (ox, oy) = w.resolution_m, w.origin_xy
+            xy = np.stack([ox + (cols.ravel() + 0.5) * res, oy + (rows.ravel() + 0.5) * res], 1)
+            trav = w.values["traversability"].astype(np.float64).ravel()
+            inside = inside_polygon(xy, poly)
+            if not inside.any():
+                inside[np.argmin(np.linalg.norm(xy - poly.mean(axis=0), axis=1))] = True
+            trav, xy = trav[inside], xy[inside]
+            hits = []
+            for k in range(len(boxes)):
+                bc = ros.box_corners(boxes.centers_xyz[k], *boxes.sizes_lwh[k, :2], boxes.yaws[k])
+                if (
+                    inside_polygon(bc, poly).any()
+                    or inside_polygon(poly, bc).any()
+                    or ros._segments_cross(bc, np.roll(bc, -1, 0), poly, np.roll(poly, -1, 0))
+                ):
+                    hits.append((int(boxes.ids[k]), bc))
+            known = np.isfinite(trav)
+            blocked = known & (trav <= 0.0)
+            pts = ros._untraversable_points(hits, xy[blocked], w.resolution_m, z) if hull else []
+            out.append({
+                "is_safe": bool(known.any() and not blocked.any() and not hits),
+                "traversability": float(trav[known].mean()) if known.any() else None,
+                "untraversable_polygon": {"header": ros.header_of(cycle),
+                                          "polygon": {"points": pts}},
+                "why": ros._safety_why(hits, trav, xy), "known_fraction": float(known.mean()),
+            })  # fmt: skip
+    keys = ("is_safe", "traversability", "untraversable_polygon", "why", "known_fraction")
+    return {k: [o[k] for o in out] for k in keys}
+
+
+def _safety_polygons(centre: np.ndarray) -> list[np.ndarray]:
+    """Polygons around ``centre`` (world m): boxes, circles, a concave L and a star, rotated
+    and of many sizes, some smaller than a cell (the nearest cell stands in), some reaching
+    beyond the map level's window."""
+    from wm.serve_ros import box_corners
+
+    rng = np.random.default_rng(7)
+    polys = []
+    for k in range(40):
+        c = centre + rng.uniform(-45.0, 45.0, 2)
+        r = float(rng.choice([0.1, 1.0, 3.0, 8.0, 30.0]))
+        kind = k % 4
+        if kind == 0:
+            polys.append(box_corners(c, 2 * r, r, float(rng.uniform(-3, 3))))
+        elif kind == 1:
+            a = np.linspace(0.0, 2 * np.pi, 37)[:-1]
+            polys.append(c + r * np.stack([np.cos(a), np.sin(a)], axis=1))
+        elif kind == 2:
+            L = np.array([[0, 0], [4, 0], [4, 1], [1, 1], [1, 4], [0, 4]], dtype=float)
+            polys.append(c + 0.25 * r * L)
+        else:
+            a = np.linspace(0.0, 2 * np.pi, 15)[:-1] + float(rng.uniform(0, 1))
+            rad = np.where(np.arange(14) % 2 == 0, r, 0.4 * r)
+            polys.append(c + rad[:, None] * np.stack([np.cos(a), np.sin(a)], axis=1))
+    return polys
+
+
+def test_check_safety_answers_as_the_reference(served) -> None:
+    """The verdicts worked out outside the node's lock, from a copy of each polygon's cells,
+    are those of the first implementation (every cell against every edge, under the lock),
+    field by field, on polygons of every shape around the vehicle, some holding entities and
+    blocked cells, with and without the untraversable hull."""
+    live, base = served
+    polys = _safety_polygons(np.array(_self(base)["position"][:2]))
+    for hull in (True, False):
+        body = {"polygons": [_polygon(p, 0.5) for p in polys],
+                "compute_untraversable_polygon": hull}  # fmt: skip
+        code, ans = call(base, SAFETY, body)
+        assert code == 200, ans
+        want = _reference_safety(live, polys, 0.5, hull)
+        assert ans["untraversable_polygons"] == want["untraversable_polygon"]
+        for key in ("is_safe", "traversability", "why", "known_fraction"):
+            assert ans[key] == want[key], key
+    # the case exercises what it should: safe and unsafe polygons, entities, blocked cells
+    assert True in ans["is_safe"] and False in ans["is_safe"]
+    assert any(w.startswith("entit") for w in ans["why"]), ans["why"]
+    assert any(w.startswith("blocked") for w in ans["why"]), ans["why"]
+
+
+class _HoldTimes:
+    """A stand-in for the node's lock that records how long each holder kept it (s)."""
+
+    def __init__(self, lock) -> None:
+        self.lock, self.holds, self._t = lock, [], 0.0
+
+    def __enter__(self) -> None:
+        self.lock.acquire()
+        self._t = time.perf_counter()
+
+    def __exit__(self, *exc) -> None:
+        self.holds.append(time.perf_counter() - self._t)
+        self.lock.release()
+
+    def locked(self) -> bool:
+        return self.lock.locked()
+
+
+def test_large_check_safety_holds_the_node_lock_briefly(served, monkeypatch) -> None:
+    """A CheckSafety at the size limit (100 polygons of 100 points over about 1 000 000
+    cells) reads the node under its lock and judges the polygons after releasing it: every
+    verdict is worked out with the lock free, and the lock is held for a small part of the
+    request (it used to be held throughout, about 2 s, stalling the node's cycle)."""
+    import wm.serve_ros as ros
+
+    live, base = served
+    me = np.array(_self(base)["position"][:2])
+    res = 0.4  # the subsystem level's cells, m; the limit is checked below
+    half = 0.5 * 98 * res  # each polygon's bounding box 99 x 99 cells
+    a = np.linspace(0.0, 2 * np.pi, 101)[:-1]
+    circle = half * np.stack([np.cos(a), np.sin(a)], axis=1)
+    polys = [me + 2.2 * half * np.array([k % 10 - 4.5, k // 10 - 4.5]) + circle
+             for k in range(100)]  # fmt: skip
+    judged_locked = []
+    judge = ros.polygon_safety
+
+    def watched(*args, **kw):
+        judged_locked.append(live.lock.locked())
+        return judge(*args, **kw)
+
+    monkeypatch.setattr(ros, "polygon_safety", watched)
+    holds = _HoldTimes(live.lock)
+    monkeypatch.setattr(live, "lock", holds)
+    body = {"polygons": [_polygon(p) for p in polys], "compute_untraversable_polygon": True}
+    t0 = time.perf_counter()
+    code, ans = call(base, SAFETY, body)
+    wall = time.perf_counter() - t0
+    assert code == 200, ans
+    assert len(ans["is_safe"]) == 100 and judged_locked == [False] * 100
+    # near the limit: a polygon of twice the area is refused
+    assert call(base, SAFETY, {"polygons": [_polygon(2 * circle + me)] * 100})[0] == 413
+    held = max(holds.holds)
+    assert held < 0.3 * wall, (held, wall, holds.holds)
+
+
 def test_polygon_geometry_helpers() -> None:
     """Point in polygon (a concave one), box overlap by corner, by edges crossing only, and
     apart; a convex hull."""
@@ -270,6 +423,33 @@ def test_polygon_geometry_helpers() -> None:
     assert not box_overlaps_polygon(box_corners(np.array([3.0, 3.0]), 1.0, 1.0, 0.3), L)
     hull = convex_hull(np.array([[0, 0], [2, 0], [1, 1], [2, 2], [0, 2], [1, 0.5]], float))
     assert sorted(map(tuple, hull.tolist())) == [(0, 0), (0, 2), (2, 0), (2, 2)]
+
+
+def test_grid_and_point_tests_match_inside_polygon() -> None:
+    """The cell test CheckSafety uses (crossings per row) and its few-point test give
+    maps.submap.inside_polygon's answers exactly, on random convex, star-shaped and
+    self-crossing polygons, some with vertices on the cell centres' lines, near and far
+    from the origin."""
+    from maps.submap import inside_polygon
+    from wm.serve_ros import _inside_grid, _inside_points
+
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        k = int(rng.integers(3, 40))
+        c = rng.uniform(-1e3, 1e3, 2) * (1e5 if trial % 7 == 0 else 1.0)
+        a = np.sort(rng.uniform(0.0, 2 * np.pi, k))
+        r = rng.uniform(0.5, 20.0, k)
+        poly = c + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+        if trial % 3 == 0:  # any vertex order, on a lattice of the cells' size
+            poly = np.round(c + rng.uniform(-20.0, 20.0, (k, 2)) / 0.4) * 0.4
+        res = [0.1, 0.4, 0.25, 1.0][trial % 4]
+        ox, oy = np.floor((poly.min(axis=0) - 3.0) / res) * res
+        nx, ny = (int(n) for n in rng.integers(5, 120, 2))
+        xc, yr = ox + (np.arange(nx) + 0.5) * res, oy + (np.arange(ny) + 0.5) * res
+        xy = np.stack(np.broadcast_arrays(xc[None, :], yr[:, None]), axis=-1).reshape(-1, 2)
+        assert (_inside_grid(xc, yr, poly).ravel() == inside_polygon(xy, poly)).all(), trial
+        few = xy[rng.choice(len(xy), 50)]
+        assert (_inside_points(few, poly) == inside_polygon(few, poly)).all(), trial
 
 
 # --- IsPathValid -------------------------------------------------------------------------------

@@ -712,9 +712,11 @@ def create_app(
                 plans = [_plan_of(p, i) for i, p in enumerate(req.plans)]
                 wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
                 result = wi.simulate(plans, level=req.level, horizon_s=req.horizon_s, start=start)
-                ev = vj.evaluate(result, req.goal_xy, node.config.vj)
             except WhatIfError as e:
                 raise bad(e) from None
+            vj_config = node.config.vj
+        # the judgment reads only the rollouts: no need to hold the cycle up for it
+        ev = vj.evaluate(result, req.goal_xy, vj_config)
         out = []
         for i in range(len(plans)):
             collided = result.collision_entity[i] >= 0

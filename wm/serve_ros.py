@@ -55,7 +55,10 @@ it): with ``compute_untraversable_polygon`` the convex hull of the impassable ce
 overlapping entities' boxes, else (or with nothing untraversable) no points. Extensions:
 ``why`` and ``known_fraction`` (of its cells) per polygon. Polygons need 3 to
 :data:`MAX_POLYGON_POINTS` points and an area; at most :data:`MAX_POLYGONS`, and at most
-:data:`wm.serve_views.MAX_BINARY_VALUES` cells in their bounding boxes together (413).
+:data:`wm.serve_views.MAX_BINARY_VALUES` cells in their bounding boxes together (413). The
+node's lock is held only to copy each polygon's cells (:func:`polygon_window`) and the
+entities' boxes; the verdicts are worked out from the copies after it is released, so a
+large request holds up neither the node's cycle nor other requests.
 
 **IsPathValid** (:func:`judge_path`): What If rolls the path out as a waypoint plan from the
 vehicle's present state; the answer gives that ``plan`` with ``horizon_s`` and ``level``, and
@@ -95,7 +98,6 @@ import numpy as np
 from fastapi import FastAPI, HTTPException
 from pydantic import BaseModel, Field
 
-from maps.submap import inside_polygon
 from wm.config import PlannerConfig, VehicleConfig
 from wm.serve import Finite, _why
 from wm.serve_views import (
@@ -441,10 +443,48 @@ def _segments_cross(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarr
     return bool(np.any((d1 * d2 < 0) & (d3 * d4 < 0)))
 
 
+def _inside_points(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of a few points ``xy`` (N, 2) lie inside the simple polygon ``poly``
+    (K, 2): :func:`maps.submap.inside_polygon`'s even-odd rule and arithmetic, all edges at
+    once ((N, K) arrays, so for small N: a box's corners, a polygon's points)."""
+    x0, y0 = poly[:, 0], poly[:, 1]
+    nxt = np.roll(poly, -1, axis=0)
+    x1, y1 = nxt[:, 0], nxt[:, 1]
+    x, y = xy[:, 0, None], xy[:, 1, None]
+    straddles = (y0 > y) != (y1 > y)  # never for a horizontal edge: its division is unused
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crosses = straddles & (x < x0 + (y - y0) * (x1 - x0) / (y1 - y0))
+    return np.logical_xor.reduce(crosses, axis=1)
+
+
+def _inside_grid(xc: np.ndarray, yr: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """(ny, nx) bool: which centres of the grid of columns at x ``xc`` (nx,, increasing) and
+    rows at y ``yr`` (ny,) lie inside the simple polygon ``poly`` (K, 2). The even-odd rule
+    of :func:`maps.submap.inside_polygon` with its arithmetic, so the same cells: a ray from
+    (x, y) towards +x crosses an edge that straddles the row where ``x < x_cross``; the
+    crossings are worked out once per row and edge (ny x K), and a cell's count is how many
+    of its row's crossings lie beyond its column (a reverse cumulative sum over columns),
+    instead of testing every cell against every edge."""
+    x0, y0 = poly[:, 0], poly[:, 1]
+    nxt = np.roll(poly, -1, axis=0)
+    x1, y1 = nxt[:, 0], nxt[:, 1]
+    y = yr[:, None]
+    straddles = (y0 > y) != (y1 > y)  # (ny, K); never for a horizontal edge
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_cross = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+    r, e = np.nonzero(straddles)
+    # the columns whose centre is left of the crossing: xc[c] < x_cross <=> c < first
+    first = np.searchsorted(xc, x_cross[r, e], side="left")
+    nx = len(xc)
+    ends = np.bincount(r * (nx + 1) + first, minlength=len(yr) * (nx + 1))
+    beyond = np.cumsum(ends.reshape(len(yr), nx + 1)[:, ::-1], axis=1)[:, ::-1]
+    return (beyond[:, 1:] & 1).astype(bool)
+
+
 def box_overlaps_polygon(corners: np.ndarray, poly: np.ndarray) -> bool:
     """Whether a convex box (4, 2) and a simple polygon (K, 2) overlap: a corner of one lies
     inside the other, or their edges cross."""
-    if inside_polygon(corners, poly).any() or inside_polygon(poly, corners).any():
+    if _inside_points(corners, poly).any() or _inside_points(poly, corners).any():
         return True
     return _segments_cross(corners, np.roll(corners, -1, 0), poly, np.roll(poly, -1, 0))
 
@@ -460,32 +500,43 @@ def convex_hull(pts: np.ndarray) -> np.ndarray:
     return pts[idx].astype(np.float64)
 
 
-def polygon_cells(level: Any, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Traversability (N,) and cell-centre world xy (N, 2) m of the level's cells whose
-    centres ``poly`` holds (the cell holding its centroid when it holds none), read through
-    the map window of its bounding box."""
+def polygon_window(level: Any, poly: np.ndarray) -> MapWindow:
+    """The traversability of the level's cells in the bounding box of ``poly`` (K, 2) world
+    m: a copy (:func:`wm.serve_views.map_window`), taken under the node's lock so that the
+    verdict can be worked out after it is released."""
     lo, hi = poly.min(axis=0), poly.max(axis=0)
     c, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    w = map_window(level, c[0], c[1], half[0], ["traversability"], half_y_m=half[1])
+    return map_window(level, c[0], c[1], half[0], ["traversability"], half_y_m=half[1])
+
+
+def polygon_cells(w: MapWindow, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Traversability (N,) and cell-centre world xy (N, 2) m of the cells of ``w``
+    (:func:`polygon_window`) whose centres ``poly`` holds (the cell nearest its vertices'
+    mean when it holds none), in row-major order (rows south to north)."""
     ny, nx = w.shape
     res = w.resolution_m
-    rows, cols = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
-    xy = np.stack([w.origin_xy[0] + (cols.ravel() + 0.5) * res,
-                   w.origin_xy[1] + (rows.ravel() + 0.5) * res], axis=1)  # fmt: skip
+    xc = w.origin_xy[0] + (np.arange(nx) + 0.5) * res
+    yr = w.origin_xy[1] + (np.arange(ny) + 0.5) * res
     trav = w.values["traversability"].astype(np.float64).ravel()
-    inside = inside_polygon(xy, poly)
+    inside = _inside_grid(xc, yr, poly).ravel()
     if not inside.any():
-        inside = np.zeros(len(xy), dtype=bool)
+        xy = np.stack(np.broadcast_arrays(xc[None, :], yr[:, None]), axis=-1).reshape(-1, 2)
         inside[np.argmin(np.linalg.norm(xy - poly.mean(axis=0), axis=1))] = True
-    return trav[inside], xy[inside]
+    rows, cols = np.divmod(np.flatnonzero(inside), nx)
+    return trav[inside], np.stack([xc[cols], yr[rows]], axis=1)
 
 
 def overlapping_boxes(boxes: Any, poly: np.ndarray) -> list[tuple[int, np.ndarray]]:
     """(entity id, footprint corners (4, 2)) of the boxes (:class:`wm.shapes.EntityBoxes`,
     world frame) that overlap the polygon (K, 2)."""
     out = []
+    # a box more than a millimetre beside the polygon's bounding box cannot overlap it (the
+    # margin keeps the float rounding of the exact tests below far from mattering)
+    lo, hi = poly.min(axis=0) - 1e-3, poly.max(axis=0) + 1e-3
     for k in range(len(boxes)):
         corners = box_corners(boxes.centers_xyz[k], *boxes.sizes_lwh[k, :2], boxes.yaws[k])
+        if np.any(corners.max(axis=0) < lo) or np.any(corners.min(axis=0) > hi):
+            continue
         if box_overlaps_polygon(corners, poly):
             out.append((int(boxes.ids[k]), corners))
     return out
@@ -522,17 +573,18 @@ def _untraversable_points(hits: list, blocked_xy: np.ndarray, res: float, z: flo
 
 
 def polygon_safety(
-    level: Any, boxes: Any, poly: np.ndarray, z: float, hull: bool, cycle_t_ns: int
+    w: MapWindow, boxes: Any, poly: np.ndarray, z: float, hull: bool, cycle_t_ns: int
 ) -> dict:
     """One polygon's CheckSafety verdict (module docstring): ``is_safe``, ``traversability``,
     ``untraversable_polygon`` (PolygonStamped, its points at height ``z`` m when ``hull``),
-    ``why``, ``known_fraction``. ``boxes``: the entities' boxes
-    (:class:`wm.shapes.EntityBoxes`) as of the cycle, world frame."""
-    trav, xy = polygon_cells(level, poly)
+    ``why``, ``known_fraction``. ``w``: the polygon's :func:`polygon_window`; ``boxes``: the
+    entities' boxes (:class:`wm.shapes.EntityBoxes`) as of the cycle, world frame. Reads
+    neither the node nor its maps, so it runs outside the node's lock."""
+    trav, xy = polygon_cells(w, poly)
     known = np.isfinite(trav)
     blocked = known & (trav <= 0.0)
     hits = overlapping_boxes(boxes, poly)
-    points = _untraversable_points(hits, xy[blocked], level.resolution_m, z) if hull else []
+    points = _untraversable_points(hits, xy[blocked], w.resolution_m, z) if hull else []
     return {
         "is_safe": bool(known.any() and not blocked.any() and not hits),
         "traversability": float(trav[known].mean()) if known.any() else None,
@@ -754,16 +806,20 @@ def add_ros_routes(app: FastAPI, live: Any) -> None:
         on, its mean traversability, and (``compute_untraversable_polygon``) the hull of what
         is not; ``why`` per polygon (module docstring of wm.serve_ros)."""
         polys = [_polygon_xy(p, k) for k, p in enumerate(req.polygons)]
+        # under the lock only what reads the node: the entities' boxes and a copy of each
+        # polygon's cells (at most MAX_BINARY_VALUES in all); the verdicts, which test every
+        # cell, come after, so a large request holds neither the cycle nor other requests up
         with live.lock:
             node, cycle = running()
             lvl = find_level(node.stack, req.level)
             _check_polygon_cells(lvl, polys)
             boxes = _entity_boxes(node, polys, cycle)
-            out = [
-                polygon_safety(lvl, boxes, poly, p.polygon.points[0].z,
-                               req.compute_untraversable_polygon, cycle)
-                for poly, p in zip(polys, req.polygons, strict=True)
-            ]  # fmt: skip
+            windows = [polygon_window(lvl, poly) for poly in polys]
+        out = [
+            polygon_safety(w, boxes, poly, p.polygon.points[0].z,
+                           req.compute_untraversable_polygon, cycle)
+            for w, poly, p in zip(windows, polys, req.polygons, strict=True)
+        ]  # fmt: skip
         return {
             "is_safe": [o["is_safe"] for o in out],
             "traversability": [o["traversability"] for o in out],

@@ -161,6 +161,13 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+def _clip(a: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``np.clip(a, lo, hi)`` for ``lo <= hi``, value for value (NaN and the sign of zero
+    included): the rollout clips a few plans' values four times a step, where ``np.clip``'s
+    Python-level dispatch costs several times the two ufuncs."""
+    return np.minimum(hi, np.maximum(lo, a))
+
+
 def rollout(
     start: Start,
     n_steps: int,
@@ -193,11 +200,11 @@ def rollout(
             kw = np.where(dist > 1e-6, 2.0 * np.sin(err) / np.maximum(dist, 1e-6), 0.0)
         else:
             vw, kw = speed_want[:, k], curv_want[:, k]  # type: ignore[index]
-        dv = np.clip(vw - vk, -veh.max_decel_mps2 * dt, veh.max_accel_mps2 * dt)
-        vn = np.clip(vk + dv, 0.0, veh.max_speed_mps)
-        kc = np.clip(kw, -veh.max_curvature_1pm, veh.max_curvature_1pm)
+        dv = _clip(vw - vk, -veh.max_decel_mps2 * dt, veh.max_accel_mps2 * dt)
+        vn = _clip(vk + dv, 0.0, veh.max_speed_mps)
+        kc = _clip(kw, -veh.max_curvature_1pm, veh.max_curvature_1pm)
         vm = 0.5 * (vk + vn)
-        w = np.clip(vm * kc, -veh.max_yaw_rate_rps, veh.max_yaw_rate_rps)
+        w = _clip(vm * kc, -veh.max_yaw_rate_rps, veh.max_yaw_rate_rps)
         clipped = (np.abs(vn - vw) > 1e-6) | (np.abs(kc - kw) > 1e-9)
         limited += clipped | (np.abs(w - vm * kc) > 1e-9)
         th_mid = th + 0.5 * w * dt
