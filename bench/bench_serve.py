@@ -1,6 +1,7 @@
 """The live node's API under load (wm.serve), on localhost: a 12 s default-scenario log replayed
-in real time, once alone (the baseline) and once while a load generator sends a bounded mix of
-requests at a fixed rate (entity lookups, circle queries, What If with 10 plans, small SQL).
+in real time, once alone (the baseline) and once while a load generator in processes of its own
+sends a bounded mix of requests at a fixed rate (entity lookups, circle queries, What If with
+10 plans, small SQL).
 Figures: p50 / p99 latency per endpoint, the node's mean wall time per cycle under load against
 alone, and the staleness of answers (lag of the newest cycle behind the newest frame read).
 Targets (the network API's): p99 <= 20 ms for lookups and region queries, <= 60 ms for What
@@ -16,6 +17,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -67,8 +69,11 @@ def _requests(me: dict, ids: list[int]) -> list[tuple[str, str, str, dict | None
 
 
 def _load(port: int, live, lat: dict[str, list[float]], errors: list[str]) -> None:
-    """Worker threads sending the mix at RATE_PER_S in all until the replay ends (bounded by
-    the log's length)."""
+    """Send the mix at RATE_PER_S in all until the replay ends (bounded by the log's length),
+    from WORKERS processes of their own: the server's process runs only the server (and the
+    node), so its figures are not its clients' Python competing for its interpreter lock."""
+    import multiprocessing
+
     c = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
 
     def call(method: str, path: str, body: dict | None) -> tuple[int, dict]:
@@ -82,34 +87,54 @@ def _load(port: int, live, lat: dict[str, list[float]], errors: list[str]) -> No
     mix = _requests(me, [e["entity_id"] for e in reg["entities"]] or [me["entity_id"]])
     c.close()
 
-    def worker(k: int) -> None:
-        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
-        period = WORKERS / RATE_PER_S
-        t_next, n = time.perf_counter(), k
-        while not live.status.done:
-            name, method, path, body = mix[n % len(mix)]
-            n += WORKERS
-            t0 = time.perf_counter()
-            try:
-                data = None if body is None else json.dumps(body)
-                conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
-                r = conn.getresponse()
-                r.read()
-                if r.status >= 500:
-                    errors.append(f"{name}: HTTP {r.status}")
-            except OSError as e:
-                errors.append(f"{name}: {e}")
-                conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
-            lat.setdefault(name, []).append(1e3 * (time.perf_counter() - t0))
-            t_next = max(t_next + period, time.perf_counter() - period)  # no catch-up bursts
-            time.sleep(max(0.0, t_next - time.perf_counter()))
-        conn.close()
+    # spawn, not fork: the server's process has threads (uvicorn, the node) a fork would copy
+    # in whatever state they are in
+    ctx = multiprocessing.get_context("spawn")
+    stop, results = ctx.Event(), ctx.Queue()
+    procs = [ctx.Process(target=_worker, args=(port, mix, k, stop, results), daemon=True)
+             for k in range(WORKERS)]  # fmt: skip
+    for p in procs:
+        p.start()
+    while not live.status.done:
+        time.sleep(0.05)
+    stop.set()
+    for _ in procs:  # before joining: a process ends only once its queue is drained
+        got_lat, got_errors = results.get(timeout=120)
+        for name, ms in got_lat.items():
+            lat.setdefault(name, []).extend(ms)
+        errors.extend(got_errors)
+    for p in procs:
+        p.join(30)
 
-    threads = [threading.Thread(target=worker, args=(k,)) for k in range(WORKERS)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+
+def _worker(port: int, mix: list, k: int, stop: Any, results: Any) -> None:
+    """One load process: every WORKERS-th request of ``mix`` from the ``k``-th on, paced at
+    RATE_PER_S / WORKERS, until ``stop`` is set; puts (latencies ms by endpoint, errors) on
+    ``results``."""
+    lat: dict[str, list[float]] = {}
+    errors: list[str] = []
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    period = WORKERS / RATE_PER_S
+    t_next, n = time.perf_counter(), k
+    while not stop.is_set():
+        name, method, path, body = mix[n % len(mix)]
+        n += WORKERS
+        t0 = time.perf_counter()
+        try:
+            data = None if body is None else json.dumps(body)
+            conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
+            r = conn.getresponse()
+            r.read()
+            if r.status >= 500:
+                errors.append(f"{name}: HTTP {r.status}")
+        except OSError as e:
+            errors.append(f"{name}: {e}")
+            conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        lat.setdefault(name, []).append(1e3 * (time.perf_counter() - t0))
+        t_next = max(t_next + period, time.perf_counter() - period)  # no catch-up bursts
+        time.sleep(max(0.0, t_next - time.perf_counter()))
+    conn.close()
+    results.put((lat, errors))
 
 
 def _run(log: Path, tmp: Path, loaded: bool) -> tuple[dict, dict[str, list[float]], list[str]]:

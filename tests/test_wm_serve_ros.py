@@ -647,3 +647,74 @@ def test_bad_ros_requests_get_a_4xx_naming_the_value(served, path, body, code, n
     got, answer = call(base, urllib.parse.quote(path, safe="/?=&"), body)
     assert got == code, answer
     assert names in json.dumps(answer, ensure_ascii=False)
+
+
+def test_what_if_and_is_path_valid_answer_while_the_node_lock_is_held(served) -> None:
+    """What If, its start and IsPathValid read the copy the last cycle published, never the
+    node's lock: with the lock held by another thread (as a cycle in progress holds it) they
+    answer, from that cycle (``cycle_t_ns``), as What If in-process over the KD and the maps
+    of that cycle answers (the node has finished: the KD is the last cycle's)."""
+    import threading
+
+    from wm.whatif import ControlPlan, WaypointPlan, WhatIf
+
+    live, base = served
+    cycle = live.snapshot.cycle_t_ns
+    assert cycle == live.status.cycle_t_ns >= 0
+    me = np.array(_self(base)["position"][:2])
+    plans = [
+        {"name": f"p{k}", "t_s": [0.0, 5.0], "speed_mps": [3.0, 3.0],
+         "curvature_1pm": [0.05 * (k - 2)] * 2}
+        for k in range(5)
+    ]  # fmt: skip
+    points = me + np.stack([np.arange(0.0, 15.0, 1.0), np.zeros(15)], axis=1)
+    held, done = threading.Event(), threading.Event()
+    node = live.node
+    in_process = {}
+
+    def hold() -> None:
+        with live.lock:
+            held.set()
+            wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
+            ctl = [ControlPlan(np.array(p["t_s"]), np.array(p["speed_mps"]),
+                               np.array(p["curvature_1pm"]), p["name"]) for p in plans]  # fmt: skip
+            in_process["whatif"] = wi.simulate(ctl, horizon_s=5.0)
+            in_process["start"] = wi.start_from_kd()
+            done.wait(60)  # until the requests are answered (or a request's time runs out)
+
+    holder = threading.Thread(target=hold)
+    holder.start()
+    try:
+        assert held.wait(30)
+        code, ans = call(base, "/v1/whatif", {"plans": plans, "horizon_s": 5.0, "traces": True})
+        code_s, start = call(base, "/v1/whatif/start")
+        code_p, path = call(base, PATH, {"path": _path(points)})
+        assert live.lock.locked()  # answered with the lock held throughout
+    finally:
+        done.set()
+        holder.join(60)
+    assert code == 200 and code_s == 200 and code_p == 200, (ans, start, path)
+    assert ans["cycle_t_ns"] == start["cycle_t_ns"] == path["cycle_t_ns"] == cycle
+    want = in_process["whatif"]
+    assert ans["t0_ns"] == want.t0_ns == start["t0_ns"] == in_process["start"].t0_ns
+    assert start["xy"] == in_process["start"].xy.tolist()
+    for i, p in enumerate(ans["plans"]):
+        tr = p["trace"]
+        assert (
+            tr["xy"] == want.xy[i].tolist()
+            and tr["nearest_entity"] == want.nearest_entity[i].tolist()
+        )
+        for k in ("traversability", "cost", "elevation", "clearance_m", "unknown_fraction"):
+            np.testing.assert_array_equal(np.array(tr[k], dtype=float),
+                                          np.where(np.isfinite(getattr(want, k)[i]),
+                                                   getattr(want, k)[i], np.nan))  # fmt: skip
+        collided = want.collision_entity[i] >= 0
+        assert p["collision_entity"] == (int(want.collision_entity[i]) if collided else None)
+    # IsPathValid's rollout is What If's over the same cycle
+    with live.lock:
+        wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
+        plan = WaypointPlan(np.array(path["plan"]["t_s"]), np.array(path["plan"]["xy"]), "path")
+        res = wi.simulate([plan], level=path["level"], horizon_s=path["horizon_s"])
+    assert path["end_gap_m"] == float(
+        np.linalg.norm(res.xy[0, -1] - points[path["end_pose_index"] - 1])
+    )

@@ -113,3 +113,58 @@ def test_bad_plans_are_refused_with_a_clear_message(plan, level, message) -> Non
     kd, _ = _kd_with_box()
     with pytest.raises(WhatIfError, match=message):
         _whatif(kd).simulate([plan], start=START, level=level)
+
+
+def _result_equal(a, b) -> None:
+    for name, v in vars(a).items():
+        w = getattr(b, name)
+        if isinstance(v, np.ndarray):
+            assert np.array_equal(v, w, equal_nan=True), name
+        else:
+            assert v == w, name
+
+
+def test_what_if_over_a_copy_answers_as_over_the_kd_then() -> None:
+    """WhatIf.over a WhatIfCopy answers as WhatIf over the KD and the stack did when the copy
+    was taken (start, maps, entities near the start, collisions), and goes on doing so after
+    the KD and the maps change: a new box in the path, a wall of blocked cells, a moved self."""
+    from wm.whatif import SAMPLED_LAYERS, WhatIfCopy
+
+    kd, box_id = _kd_with_box(center_xy=(20.0, 0.0), velocity=(0.0, 0.1, 0.0))
+    me = kd.add_entity("self", Level.OBJECT, generic_classes=("vehicle",),
+                       status=Status.CONFIRMED, confidence=1.0)  # fmt: skip
+    kd.observe(me.id, State(10**9, "world", (0.0, 0.0, 0.0), velocity_xyz=(4.0, 0.0, 0.0)))
+    far = kd.add_entity("rock", Level.OBJECT, generic_classes=("rock",), status=Status.CONFIRMED)
+    kd.observe(far.id, State(0, "world", (500.0, 0.0, 0.5)))  # beyond the reach: left out
+    stack = MapStack()
+    stack.move_to(np.zeros(2))
+    lvl = stack.level("subsystem")
+    xy = np.stack([np.linspace(0.0, 30.0, 200), np.linspace(-3.0, 3.0, 200)], 1)
+    for layer, value in (("elevation", 0.1), ("slope", 0.05), ("traversability", 0.8),
+                         ("cost", 0.3)):  # fmt: skip
+        lvl.write(layer, xy, value)
+    plans = [STRAIGHT, ControlPlan(np.array([0.0]), np.array([3.0]), np.array([0.1]), "left")]
+    live = WhatIf(kd, stack, self_id=me.id)
+    want = live.simulate(plans, horizon_s=6.0)
+    assert want.collision_entity[0] == box_id  # the case holds a collision
+
+    copy = WhatIfCopy.of(kd, stack, me.id, ["subsystem", "vehicle"])
+    assert [lv.name for lv in copy.stack.levels] == ["subsystem", "vehicle"]
+    assert copy.nbytes == sum(2 * 256 * 256 * 4 for _ in SAMPLED_LAYERS)  # float32 layers
+    assert copy.boxes.ids.tolist() == [box_id, far.id]  # not self, id order
+    over = WhatIf.over(copy)
+    _result_equal(want, over.simulate(plans, horizon_s=6.0))
+    near = over.entities_near(np.zeros(2), 100.0, 2 * 10**9)
+    assert near.ids.tolist() == [box_id] and near.centers_xyz[0, 1] == pytest.approx(0.2)
+
+    # the node goes on: the copy does not
+    lvl.write("traversability", np.array([[10.0, 0.0]]), 0.0)
+    lvl.storage("elevation")[...] = 5.0
+    stack.move_to(np.array([8.0, 0.0]))
+    kd.observe(me.id, State(2 * 10**9, "world", (4.0, 0.0, 0.0)))
+    rock = kd.add_entity("rock", Level.OBJECT, generic_classes=("rock",), status=Status.CONFIRMED)
+    kd.observe(rock.id, State(10**9, "world", (6.0, 0.0, 0.5)))
+    assert not np.array_equal(live.simulate(plans, horizon_s=6.0).xy, want.xy)
+    _result_equal(want, over.simulate(plans, horizon_s=6.0))
+    with pytest.raises(WhatIfError, match="primitive"):  # a level not copied does not exist
+        over.simulate(plans, level="primitive")

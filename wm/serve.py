@@ -7,12 +7,16 @@ answers What Is? queries from BG and other modules"; docs/architecture.md, the n
 
 :class:`LiveNode` feeds the log's frames to a :class:`~wm.node.WorldModelNode` in a thread of its
 own, paced by their stamps (``rate`` times real time; 0: as fast as it can), and flushes the KD
-as ``wm run`` does. A query takes the node's lock, so it sees the KD between two cycles, never
-in the middle of one: an answer is at most one cycle behind the newest fused sweep, and says
-which (``cycle_t_ns``). Lookups of the present in the world frame (self, an entity, a region
-without a class filter) are answered from a copy of the KD's entity columns the node takes at
-the end of each cycle (:class:`CycleSnapshot`), without waiting for the cycle in progress;
-SQL reads the KD file as of the node's last flush (each second of log time).
+as ``wm run`` does. A query sees the KD between two cycles, never in the middle of one: an
+answer is at most one cycle behind the newest fused sweep, and says which (``cycle_t_ns``).
+At the end of each cycle, under the node's lock, the node's thread copies what the frequent
+queries read (:class:`CycleSnapshot`): the KD's entity columns, and what What If reads of the
+KD and the maps (the self state, the boxes and risks of the entities it checks plans against,
+and the four layers it samples of each level: :class:`wm.whatif.WhatIfCopy`). Lookups of the
+present in the world frame (self, an entity, a region without a class filter), What If and
+Nav2's IsPathValid are answered from that copy without taking the lock, so they neither wait
+for the cycle in progress nor hold it up; other queries take the lock. SQL reads the KD file
+as of the node's last flush (each second of log time).
 
 :func:`create_app` is the HTTP API (FastAPI; OpenAPI schema at ``/openapi.json``), versioned
 under ``/v1``. Every answer carries the time of the cycle it comes from (``cycle_t_ns``, int64
@@ -78,6 +82,14 @@ class ServeError(EngineError, ValueError):
     """A live node or server that cannot start or answer (names the value)."""
 
 
+def served_whatif_config() -> Any:
+    """The :class:`~wm.config.WhatIfConfig` the server's What If and IsPathValid roll out
+    with (its defaults: a client's plans mean the same on every server)."""
+    from wm.config import WhatIfConfig
+
+    return WhatIfConfig()
+
+
 @dataclass
 class LiveStatus:
     """What the live node has done so far (times int64 ns of log time, -1 before any)."""
@@ -86,6 +98,7 @@ class LiveStatus:
     cycle_t_ns: int = -1  # the newest cycle's sweep time
     newest_frame_t_ns: int = -1  # the newest frame read from the log
     cycle_ms: float = math.nan  # wall time of the newest cycle
+    snapshot_ms: float = math.nan  # wall time of the newest cycle's copy (CycleSnapshot)
     feed_s: float = 0.0  # wall time spent feeding the node (all cycles), s
     frames: int = 0
     skipped: int = 0
@@ -95,18 +108,32 @@ class LiveStatus:
 
 @dataclass(frozen=True)
 class CycleSnapshot:
-    """The KD's entities as one cycle left them (:meth:`KnowledgeDatabase.current_columns`),
-    so lookups and region queries are answered without waiting for the cycle in progress."""
+    """What one cycle left, copied at its end under the node's lock, so that lookups, region
+    queries, What If and IsPathValid are answered without waiting for the cycle in progress:
+    the KD's entities (:meth:`KnowledgeDatabase.current_columns`) and what What If reads of
+    the KD and the maps (:class:`wm.whatif.WhatIfCopy`; None for a node without maps)."""
 
     cycle_t_ns: int
     self_id: int | None
     cols: dict[str, np.ndarray]
     row: dict[int, int]
+    whatif: Any | None = None
 
     @classmethod
-    def of(cls, kd: Any, self_id: int | None, cycle_t_ns: int) -> CycleSnapshot:
+    def of(
+        cls, kd: Any, self_id: int | None, cycle_t_ns: int, stack: Any | None = None
+    ) -> CycleSnapshot:
+        """Copy ``kd``'s entities and, with ``stack``, what What If reads of both (the levels
+        What If serves: :func:`served_whatif_config`); call it under the node's lock."""
         cols = kd.current_columns()
-        return cls(cycle_t_ns, self_id, cols, {int(i): k for k, i in enumerate(cols["id"])})
+        wi = None
+        if stack is not None:
+            from wm.whatif import WhatIfCopy
+
+            levels = served_whatif_config().steps_s
+            wi = WhatIfCopy.of(kd, stack, self_id, levels, cols=cols)
+        row = {int(i): k for k, i in enumerate(cols["id"])}
+        return cls(cycle_t_ns, self_id, cols, row, wi)
 
     def entity(self, k: int) -> dict:
         c = self.cols
@@ -242,12 +269,17 @@ class LiveNode:
         self._account(cycles, time.perf_counter() - t)
 
     def _cycle(self, step: Any) -> list:
-        """Run ``step()`` (feed or finish) under the lock; when it ran cycles, copy the
-        entities the last one left for the lock-free lookups."""
+        """Run ``step()`` (feed or finish) under the lock; when it ran cycles, copy what the
+        last one left for the answers that do not take the lock (:class:`CycleSnapshot`)."""
         with self.lock:
             cycles = step()
             if cycles:
-                self.snapshot = CycleSnapshot.of(self.kd, self.node.self_id, int(cycles[-1].t_ns))
+                t = time.perf_counter()
+                node = self.node
+                self.snapshot = CycleSnapshot.of(
+                    self.kd, node.self_id, int(cycles[-1].t_ns), node.stack
+                )
+                self.status.snapshot_ms = 1e3 * (time.perf_counter() - t)
         return cycles
 
     def _account(self, cycles: list, wall_s: float) -> None:
@@ -456,6 +488,27 @@ def _why(result: Any, i: int) -> str:
     )
 
 
+def published(live: LiveNode) -> CycleSnapshot:
+    """The newest cycle's :class:`CycleSnapshot`, for the answers that do not take the node's
+    lock: 503 when the node is not running, 400 before its first cycle (nothing to answer
+    from: no self state, no maps yet)."""
+    snap = live.snapshot  # one read: a cycle ending now replaces it whole
+    if live.node is None or live.closed:
+        raise HTTPException(503, "the live node is not running (not started, or stopped)")
+    if snap is None:
+        raise HTTPException(400, "the node has run no cycle yet: no self state to start from")
+    if snap.whatif is None:
+        raise HTTPException(503, "the live node keeps no maps: What If cannot run")
+    return snap
+
+
+def what_if_over(snap: CycleSnapshot) -> Any:
+    """:class:`~wm.whatif.WhatIf` over the copy ``snap`` holds, with the server's config."""
+    from wm.whatif import WhatIf
+
+    return WhatIf.over(snap.whatif, served_whatif_config())
+
+
 def create_app(
     live: LiveNode,
     token: str | None = None,
@@ -506,7 +559,8 @@ def create_app(
     @app.get("/v1/status")
     def status() -> dict:
         """Cycles run, the newest cycle's sweep time, the lag of the answers behind the newest
-        frame read, the newest cycle's wall time, frames read and skipped."""
+        frame read, the newest cycle's wall time and that of its copy for the lock-free answers
+        (``snapshot_ms``, part of the cycle's), frames read and skipped."""
         s = live.status
         lag = s.newest_frame_t_ns - s.cycle_t_ns if s.cycle_t_ns >= 0 else None
         return {
@@ -515,6 +569,7 @@ def create_app(
             "newest_frame_t_ns": s.newest_frame_t_ns,
             "lag_ns": lag,
             "cycle_ms": None if math.isnan(s.cycle_ms) else s.cycle_ms,
+            "snapshot_ms": None if math.isnan(s.snapshot_ms) else s.snapshot_ms,
             "mean_cycle_ms": 1e3 * s.feed_s / s.cycles if s.cycles else None,
             "frames": s.frames,
             "skipped": s.skipped,
@@ -664,16 +719,14 @@ def create_app(
         the self entity's newest state (world frame; ``xy`` m, ``yaw_rad``, ``speed_mps``,
         ``t0_ns``). Posted back as ``start``, it lets several requests simulate from one state
         while the node runs on. 400 before the first fused sweep (no self state yet)."""
-        from wm.whatif import WhatIf, WhatIfError
+        from wm.whatif import WhatIfError
 
-        with live.lock:
-            if live.node is None or live.closed:
-                raise HTTPException(503, "the live node is not running (not started, or stopped)")
-            node, cycle = live.node, live.status.cycle_t_ns
-            try:
-                s = WhatIf(node.kd, node.stack, self_id=node.self_id).start_from_kd()
-            except WhatIfError as e:  # no self state yet: a 400, as /v1/self answers it
-                raise bad(e) from None
+        snap = published(live)
+        try:
+            s = what_if_over(snap).start_from_kd()
+        except WhatIfError as e:  # no self state yet: a 400, as /v1/self answers it
+            raise bad(e) from None
+        cycle = snap.cycle_t_ns
         return {"cycle_t_ns": cycle, **_start_json(s.xy, s.yaw, s.speed_mps, s.t0_ns)}
 
     @app.post("/v1/plan")
@@ -701,21 +754,20 @@ def create_app(
         samples, clearance m, nearest entity, entity risk) at full precision, where null is NaN
         (unknown) for map samples and +inf (no entity near) for ``clearance_m``."""
         from wm import vj
-        from wm.whatif import WhatIf, WhatIfError
+        from wm.whatif import WhatIfError
 
-        with live.lock:
-            if live.node is None or live.closed:
-                raise HTTPException(503, "the live node is not running (not started, or stopped)")
-            node, cycle = live.node, live.status.cycle_t_ns
-            start = _start_of(req.start, cycle)
-            try:
-                plans = [_plan_of(p, i) for i, p in enumerate(req.plans)]
-                wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
-                result = wi.simulate(plans, level=req.level, horizon_s=req.horizon_s, start=start)
-            except WhatIfError as e:
-                raise bad(e) from None
-            vj_config = node.config.vj
-        # the judgment reads only the rollouts: no need to hold the cycle up for it
+        # from the newest cycle's copy: a rollout neither waits for the cycle in progress nor
+        # holds it up, and answers as What If over the KD and the maps did when it was taken
+        snap = published(live)
+        cycle = snap.cycle_t_ns
+        start = _start_of(req.start, cycle)
+        try:
+            plans = [_plan_of(p, i) for i, p in enumerate(req.plans)]
+            wi = what_if_over(snap)
+            result = wi.simulate(plans, level=req.level, horizon_s=req.horizon_s, start=start)
+        except WhatIfError as e:
+            raise bad(e) from None
+        vj_config = live.node.config.vj  # set once with the node, never changed
         ev = vj.evaluate(result, req.goal_xy, vj_config)
         out = []
         for i in range(len(plans)):

@@ -86,7 +86,9 @@ vehicle model's). Extensions: ``why`` (the blocking cell or entity, in the words
 judged, ``[first, end)``), ``end_gap_m`` (from where the rollout ends to the last pose
 judged: a large gap says the vehicle model did not follow the path, e.g. one behind it, where
 it stops rather than reverse, and the poses it did not reach were not judged). At most
-:data:`MAX_PATH_POSES` poses and a rollout of :data:`MAX_HORIZON_S` (413 beyond).
+:data:`MAX_PATH_POSES` poses and a rollout of :data:`MAX_HORIZON_S` (413 beyond). The rollout
+reads the newest cycle's copy (:class:`wm.serve.CycleSnapshot`), as ``/v1/whatif`` does, so
+it never takes the node's lock.
 """
 
 from __future__ import annotations
@@ -834,7 +836,8 @@ def add_ros_routes(app: FastAPI, live: Any) -> None:
         ``/v1/whatif`` rolls out ``plan``); the first invalid pose (or all) where the rollout
         is blocked, collides, or costs ``max_cost`` or more; ``why`` (module docstring of
         wm.serve_ros)."""
-        from wm.whatif import WaypointPlan, WhatIf, WhatIfError
+        from wm.serve import published, what_if_over
+        from wm.whatif import WaypointPlan, WhatIfError
 
         for name in ("layer_name", "footprint"):
             if getattr(req, name):
@@ -843,22 +846,23 @@ def add_ros_routes(app: FastAPI, live: Any) -> None:
                     "with the vehicle model's footprint) is served",
                 )  # fmt: skip
         xy, stamps = _path_arrays(req.path)
-        with live.lock:
-            node, cycle = running()
-            wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
-            try:
-                start = wi.start_from_kd()
-                first, end = judged_span(xy, start.xy, req.max_lookahead_distance)
-                speed = path_speed(start.speed_mps, wi.config.vehicle)
-                t_pose = path_schedule(xy, stamps, first, end, speed)
-                t_s, wp = _waypoints(xy[first:end], t_pose)
-                dt = wi.config.steps_s.get(req.level, math.nan)
-                horizon = plan_horizon_s(t_s, wp, dt, wi.config.vehicle)
-                plan = WaypointPlan(t_s, wp, "path")
-                result = wi.simulate([plan], level=req.level, start=start, horizon_s=horizon)
-            except WhatIfError as e:
-                raise HTTPException(400, str(e)) from None
-            verdict = judge_path(req, result, xy[:end], t_pose, first)
+        # from the newest cycle's copy, as /v1/whatif: never waits for the cycle in progress
+        snap = published(live)
+        cycle = snap.cycle_t_ns
+        wi = what_if_over(snap)
+        try:
+            start = wi.start_from_kd()
+            first, end = judged_span(xy, start.xy, req.max_lookahead_distance)
+            speed = path_speed(start.speed_mps, wi.config.vehicle)
+            t_pose = path_schedule(xy, stamps, first, end, speed)
+            t_s, wp = _waypoints(xy[first:end], t_pose)
+            dt = wi.config.steps_s.get(req.level, math.nan)
+            horizon = plan_horizon_s(t_s, wp, dt, wi.config.vehicle)
+            plan = WaypointPlan(t_s, wp, "path")
+            result = wi.simulate([plan], level=req.level, start=start, horizon_s=horizon)
+        except WhatIfError as e:
+            raise HTTPException(400, str(e)) from None
+        verdict = judge_path(req, result, xy[:end], t_pose, first)
         return {
             "success": True, **verdict, "first_pose_index": first, "end_pose_index": end,
             "end_gap_m": float(np.linalg.norm(result.xy[0, -1] - xy[end - 1])),

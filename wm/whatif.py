@@ -10,18 +10,26 @@ constant-velocity predictions for each step, are checked for collision with the 
 by python-fcl (footprint collision: both boxes stand on one plane, 2.5D). All plans of a call
 are rolled out together (numpy over plans); fcl runs only where footprint circles meet.
 
+What If reads the KD (the self state, the object entities near the start, their values) and
+the map stack (four layers of the level asked: :data:`SAMPLED_LAYERS`) and writes neither.
+:class:`WhatIfCopy` holds exactly that, taken from a KD and a stack between two node cycles;
+:meth:`WhatIf.over` answers from such a copy as :class:`WhatIf` over the KD and the stack
+would at that moment, so a server answers without holding the node up (:mod:`wm.serve`).
+
 Frames and units: world frame, metres, radians, seconds after ``t0_ns``; yaw about z.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 import kd_store
 from core.errors import EngineError
-from kd_store import Level, Status
+from kd_store import Level, State, Status
+from maps.level import MapLevel
 from maps.stack import MapStack
 from wm.config import VehicleConfig, WhatIfConfig
 from wm.shapes import EntityBoxes, boxes_of
@@ -74,6 +82,14 @@ STEP_FLOATS: dict[str, float] = {
     "traversability": np.nan, "cost": np.nan, "unknown_fraction": np.nan,
     "clearance_m": np.inf, "entity_risk": np.nan,
 }  # fmt: skip
+
+#: The map layers a rollout samples along its footprint (:meth:`WhatIf._sample_maps`); all a
+#: :class:`LevelCopy` holds.
+SAMPLED_LAYERS: tuple[str, ...] = ("elevation", "slope", "traversability", "cost")
+
+#: The KD entities a rollout is checked against: object-level ones that are neither denied
+#: nor gone (:meth:`WhatIf.entities_near`).
+COLLIDING_STATUSES: tuple[Status, ...] = (Status.CONFIRMED, Status.HYPOTHESIZED)
 
 
 @dataclass
@@ -233,11 +249,136 @@ def _wanted(plans: list[Plan], times: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(out)
 
 
+# --- a copy of what What If reads ---------------------------------------------------------------
+
+
+class LevelCopy(MapLevel):
+    """The :data:`SAMPLED_LAYERS` of one map level, copied as they are now (storage order, with
+    the window's origin), read as the level reads them.
+
+    A :class:`~maps.level.MapLevel` so that every index transform What If uses is the level's
+    own code, not a second copy of it; built without ``MapLevel.__init__``, which would
+    allocate every layer and read the tile store. Treat it as read-only: it has no store, and
+    the level it came from goes on without it."""
+
+    def __init__(self, level: MapLevel, layers: tuple[str, ...] = SAMPLED_LAYERS) -> None:
+        self.config = level.config
+        self.size = level.size
+        self.resolution_m = level.resolution_m
+        self.specs = {name: level.specs[name] for name in layers}
+        self.store = None
+        # the node writes its layers in place (fusion, terrain, the cost layer, scrolling):
+        # only a copy stays as this cycle left it
+        self._data = {name: level.storage(name).copy() for name in layers}
+        self._fills = [(arr, self.specs[name].fill) for name, arr in self._data.items()]
+        self.origin_cell = level.origin_cell
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the copied layers."""
+        return sum(a.nbytes for a in self._data.values())
+
+
+class StackCopy:
+    """Levels of a map stack as :class:`LevelCopy` (finest first): the part of
+    :class:`~maps.stack.MapStack` What If reads (``levels``, ``level(name)``)."""
+
+    def __init__(self, levels: list[LevelCopy]) -> None:
+        self.levels = levels
+
+    level = MapStack.level  # the same lookup, and the same error naming the levels there are
+
+
+@dataclass(frozen=True)
+class WhatIfCopy:
+    """What :class:`WhatIf` reads of a KD and a map stack, taken at one moment (between two
+    node cycles), so that rollouts can be answered later, in another thread, as they would
+    have been then (:meth:`WhatIf.over`).
+
+    ``self_state``: the self entity's current state (None: it has none). The candidates for
+    collision checks (:data:`COLLIDING_STATUSES`, object level, world frame, not self), M of
+    them in id order: ``positions`` (M, 3) world m, the current positions a KD region query
+    tests; ``boxes`` their :class:`~wm.shapes.EntityBoxes` at their states' times with their
+    risks; ``state_t_ns`` (M,) int64 those times."""
+
+    stack: StackCopy
+    self_id: int | None
+    self_state: State | None
+    positions: np.ndarray
+    boxes: EntityBoxes
+    state_t_ns: np.ndarray
+
+    @classmethod
+    def of(
+        cls,
+        kd: kd_store.KnowledgeDatabase,
+        stack: MapStack,
+        self_id: int | None,
+        levels: Iterable[str],
+        cols: dict[str, np.ndarray] | None = None,
+    ) -> WhatIfCopy:
+        """Copy what What If reads of ``kd`` and of ``stack``'s ``levels`` (names; others
+        left out); ``cols``: ``kd.current_columns()`` if the caller has taken it already.
+        Call it where nothing writes the KD or the stack (the node's thread, or its lock)."""
+        want = set(levels)
+        stack_copy = StackCopy([LevelCopy(lvl) for lvl in stack.levels if lvl.name in want])
+        self_state = kd.get(self_id).state if self_id is not None else None
+        c = kd.current_columns() if cols is None else cols
+        keep = (c["frame"] == "world") & (c["level"] == int(Level.OBJECT))
+        keep &= np.isin(c["status"], [s.value for s in COLLIDING_STATUSES])
+        if self_id is not None:
+            keep &= c["id"] != self_id
+        rows = np.flatnonzero(keep)
+        rows = rows[np.argsort(c["id"][rows], kind="stable")]  # the KD's region order
+        frames = [kd.get(int(i)) for i in c["id"][rows]]
+        boxes, t_ns = _boxes_and_times(kd, frames)
+        return cls(stack_copy, self_id, self_state, c["position"][rows], boxes, t_ns)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the copied map layers (the entities' arrays are small beside them)."""
+        return sum(lvl.nbytes for lvl in self.stack.levels)
+
+    def candidates(self, xy: np.ndarray, radius_m: float) -> tuple[EntityBoxes, np.ndarray]:
+        """The candidates within ``radius_m`` of world ``xy`` (the KD's circle test on their
+        current positions), as :func:`_boxes_and_times` gives them."""
+        region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), float(radius_m))
+        kd_store.spatial.check_region(region)  # the KD refuses a region that is not finite
+        sel = np.flatnonzero(region.contains(self.positions))
+        b = self.boxes
+        boxes = EntityBoxes(b.ids[sel], b.centers_xyz[sel], b.sizes_lwh[sel], b.yaws[sel],
+                            b.velocities_xyz[sel], b.risks[sel])  # fmt: skip
+        return boxes, self.state_t_ns[sel]
+
+
+def _boxes_and_times(
+    kd: kd_store.KnowledgeDatabase, frames: list[kd_store.EntityFrame]
+) -> tuple[EntityBoxes, np.ndarray]:
+    """The boxes of ``frames`` with their risks (value judgment) and, aligned with them, the
+    times (int64 ns) of the states they stand at."""
+    risks = [entity_value(kd, f).risk for f in frames]
+    boxes = boxes_of(frames, risks)
+    kept = [f.state.t_ns for f in frames if f.state is not None and f.state.frame == "world"]
+    return boxes, np.array(kept, dtype=np.int64).reshape(len(boxes))
+
+
+def _moved_to(boxes: EntityBoxes, state_t_ns: np.ndarray, t_ns: int) -> EntityBoxes:
+    """``boxes`` at time ``t_ns`` (int64 ns): each moved from its state's time at its constant
+    velocity (states may be older than a rollout's start)."""
+    if not len(boxes):
+        return boxes
+    dt = (int(t_ns) - state_t_ns) * 1e-9
+    c = boxes.centers_xyz + dt[:, None] * boxes.velocities_xyz
+    return EntityBoxes(boxes.ids, c, boxes.sizes_lwh, boxes.yaws, boxes.velocities_xyz,
+                       boxes.risks)  # fmt: skip
+
+
 # --- What If -----------------------------------------------------------------------------------
 
 
 class WhatIf:
-    """The What If interface over a KD and a map stack (module docstring).
+    """The What If interface over a KD and a map stack (module docstring), or over a copy of
+    what it reads of them (:meth:`over`).
 
     ``self_id`` is the KD entity of the vehicle itself (left out of collision checks and used
     as the default start)."""
@@ -257,12 +398,22 @@ class WhatIf:
         w = np.linspace(-0.5, 0.5, f[1]) * self.config.vehicle.width_m
         U, W = np.meshgrid(u, w, indexing="ij")
         self._foot = np.stack([U.ravel(), W.ravel()], 1)  # (F, 2) body-frame offsets
+        self.copy: WhatIfCopy | None = None
+
+    @classmethod
+    def over(cls, copy: WhatIfCopy, config: WhatIfConfig | None = None) -> WhatIf:
+        """What If reading ``copy`` instead of a KD and a stack: its answers are those
+        ``WhatIf(kd, stack, config, self_id)`` gave when the copy was taken (for the levels
+        copied)."""
+        wi = cls(None, copy.stack, config, copy.self_id)  # type: ignore[arg-type]
+        wi.copy = copy
+        return wi
 
     def start_from_kd(self) -> Start:
         """The vehicle's current state from the KD's ``self`` entity."""
         if self.self_id is None:
             raise WhatIfError("no start given and no self entity to take it from")
-        s = self.kd.get(self.self_id).state
+        s = self.copy.self_state if self.copy is not None else self.kd.get(self.self_id).state
         if s is None:
             raise WhatIfError(f"self entity {self.self_id} has no state yet")
         from core.geometry import quat_to_matrix, yaw_of
@@ -368,21 +519,16 @@ class WhatIf:
                 }
 
     def entities_near(self, xy: np.ndarray, radius_m: float, t_ns: int) -> EntityBoxes:
-        """Object-level entities (not denied or gone, not self) within ``radius_m`` of ``xy``."""
-        region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), float(radius_m))
-        ids = self.kd.region(
-            region, statuses=[Status.CONFIRMED, Status.HYPOTHESIZED], levels=[Level.OBJECT]
-        )
-        frames = [self.kd.get(int(i)) for i in ids if int(i) != self.self_id]
-        risks = [entity_value(self.kd, f).risk for f in frames]
-        boxes = boxes_of(frames, risks)
-        # positions as of t_ns: states may be older than the start (constant velocity)
-        dt = np.array([(t_ns - f.state.t_ns) * 1e-9 for f in frames if f.state is not None])
-        if len(boxes):
-            c = boxes.centers_xyz + dt[: len(boxes), None] * boxes.velocities_xyz
-            boxes = EntityBoxes(boxes.ids, c, boxes.sizes_lwh, boxes.yaws,
-                                boxes.velocities_xyz, boxes.risks)  # fmt: skip
-        return boxes
+        """Object-level entities (not denied or gone, not self) within ``radius_m`` of ``xy``,
+        at their positions as of ``t_ns`` (constant velocity from their states)."""
+        if self.copy is not None:
+            boxes, state_t_ns = self.copy.candidates(xy, radius_m)
+        else:
+            region = kd_store.Circle("world", (float(xy[0]), float(xy[1])), float(radius_m))
+            ids = self.kd.region(region, statuses=list(COLLIDING_STATUSES), levels=[Level.OBJECT])
+            frames = [self.kd.get(int(i)) for i in ids if int(i) != self.self_id]
+            boxes, state_t_ns = _boxes_and_times(self.kd, frames)
+        return _moved_to(boxes, state_t_ns, t_ns)
 
     def _collisions(
         self, xy: np.ndarray, yaw: np.ndarray, t_s: np.ndarray, start: Start, ents: EntityBoxes
