@@ -33,7 +33,16 @@ GEOMETRIC_ROOT: dict[int, str] = {1: "point", 2: "list", 3: "surface", 4: "objec
 
 @dataclass(frozen=True, slots=True)
 class ClassPrototype:
-    """One class: ``attributes`` name -> prototype value, ``weights`` name -> weight >= 0."""
+    """One class: ``attributes`` name -> prototype value, ``weights`` name -> weight >= 0.
+
+    ``fitted``: the prototype was fitted on labelled training data (``wm.fit_classes``): each
+    value is the centre of the class's ``log(x + eps)`` and each weight one over its standard
+    deviation, and the classifier scores it by that likelihood (``sp.classify``); otherwise
+    the values are written down (catalogue dimensions) and scored by the normalised dot
+    product of reference 001, 4.5.1. ``modes``: a fitted class the sensor shows in several ways
+    (a car seen whole, a parked car seen as its roof over the row in front) has one (attributes,
+    weights) pair per way, fitted on its cluster of samples; it matches as its best mode, and
+    ``attributes`` and ``weights`` describe the class as a whole."""
 
     name: str
     kind: ClassKind
@@ -42,6 +51,8 @@ class ClassPrototype:
     attributes: Mapping[str, float] = field(default_factory=dict)
     weights: Mapping[str, float] = field(default_factory=dict)
     value: Value = field(default_factory=Value)
+    fitted: bool = False
+    modes: tuple[tuple[Mapping[str, float], Mapping[str, float]], ...] = ()
 
 
 class ClassLibrary:
@@ -55,10 +66,40 @@ class ClassLibrary:
         self.dirty.clear()
 
     @classmethod
-    def default(cls) -> ClassLibrary:
-        """The library shipped in ``kd_store/classes.yaml``."""
+    def default(cls, fitted: bool = True) -> ClassLibrary:
+        """The library shipped in ``kd_store/classes.yaml``, with the prototypes fitted on
+        training data (``kd_store/classes_fitted.yaml``, made by ``wm.fit_classes``) in
+        place of the written-down ones unless ``fitted`` is False."""
         text = resources.files("kd_store").joinpath("classes.yaml").read_text()
-        return cls.from_yaml(text, "kd_store/classes.yaml")
+        lib = cls.from_yaml(text, "kd_store/classes.yaml")
+        overlay = resources.files("kd_store").joinpath("classes_fitted.yaml")
+        if fitted and overlay.is_file():
+            lib.apply_fitted(overlay.read_text(), "kd_store/classes_fitted.yaml")
+            lib.dirty.clear()
+        return lib
+
+    def apply_fitted(self, text: str, source: str | Path = "<yaml>") -> None:
+        """Replace the attributes and weights of the classes named in a fitted overlay (the
+        layout ``wm.fit_classes`` writes: ``classes: [{name, attributes: {a: [value,
+        weight]}}]``) and mark them fitted; their kind, level, ``is_a`` and value stay."""
+        try:
+            rows = yaml.safe_load(text)["classes"]
+            for row in rows:
+                base = self.get(str(row["name"]))
+                attrs = row["attributes"]
+                modes = tuple(
+                    ({k: float(v[0]) for k, v in m.items()}, {k: float(v[1]) for k, v in m.items()})
+                    for m in row.get("modes") or ()
+                )
+                fitted = ClassPrototype(
+                    base.name, base.kind, base.level, base.is_a,
+                    attributes={k: float(v[0]) for k, v in attrs.items()},
+                    weights={k: float(v[1]) for k, v in attrs.items()},
+                    value=base.value, fitted=True, modes=modes,
+                )  # fmt: skip
+                self.add(fitted)
+        except (yaml.YAMLError, KeyError, TypeError, ValueError, IndexError) as e:
+            raise KDError(f"fitted classes {source}: not a fitted-classes document ({e})") from None
 
     @classmethod
     def from_yaml(cls, text: str, source: str | Path = "<yaml>") -> ClassLibrary:
@@ -133,6 +174,11 @@ class ClassLibrary:
         for k, v in (*p.attributes.items(), *p.weights.items()):
             if not math.isfinite(v):
                 raise KDError(f"{where}: attribute {k!r} has a non-finite value or weight {v!r}")
+        for attributes, weights in p.modes:
+            if set(weights) != set(attributes) or not all(
+                math.isfinite(v) and v >= 0 for v in (*attributes.values(), *weights.values())
+            ):
+                raise KDError(f"{where}: a mode with bad values or weights: {dict(attributes)}")
         if any(w < 0 for w in p.weights.values()):
             raise KDError(f"{where}: negative weight in {dict(p.weights)}")
         for k in VALUE_FIELDS:

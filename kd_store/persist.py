@@ -10,6 +10,7 @@ process dies mid-way (DuckDB's write-ahead log is replayed on the next open).
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import zlib
@@ -45,9 +46,10 @@ Connection = duckdb.DuckDBPyConnection
 
 #: 1: frames, states, events, relations, classes. 2: adds ``map_tile_rows``. 3: adds
 #: ``run_rows`` and a ``run_id`` on every row of the other data tables (rows of older files
-#: become run 0). Older files are migrated when opened for writing; read-only, they are read
-#: as they are (no tiles in version 1, every row in run 0).
-SCHEMA_VERSION = 3
+#: become run 0). 4: ``fitted`` and ``modes`` on ``class_prototypes`` (older prototypes were
+#: written down, not fitted). Older files are migrated when opened for writing; read-only,
+#: they are read as they are (no tiles in version 1, every row in run 0, none fitted).
+SCHEMA_VERSION = 4
 OLDEST_VERSION = 1
 TABLES = (
     "kd_meta",
@@ -134,6 +136,11 @@ def _migrate(con: duckdb.DuckDBPyConnection, version: int) -> None:
         for table in RUN_TABLES:
             if _has_table(con, table) and not has_runs(con, table):
                 con.execute(f"ALTER TABLE {table} ADD COLUMN run_id BIGINT NOT NULL DEFAULT 0")
+        if _has_table(con, "class_prototypes") and not _has_column(
+            con, "class_prototypes", "fitted"
+        ):
+            con.execute("ALTER TABLE class_prototypes ADD COLUMN fitted BOOLEAN DEFAULT false")
+            con.execute("ALTER TABLE class_prototypes ADD COLUMN modes VARCHAR DEFAULT '[]'")
         con.execute(resources.files("kd_store").joinpath("schema.sql").read_text())
         if version < 3:
             con.execute(
@@ -158,11 +165,12 @@ def _has_table(con: duckdb.DuckDBPyConnection, name: str) -> bool:
 def has_runs(con: duckdb.DuckDBPyConnection, table: str = "entity_frames") -> bool:
     """Whether ``table`` has a ``run_id`` column (schema version 3 on; False for a read-only
     file of an older version, whose rows all belong to run 0)."""
-    q = (
-        "SELECT count(*) FROM information_schema.columns "
-        "WHERE table_name = ? AND column_name = 'run_id'"
-    )
-    return bool(con.execute(q, [table]).fetchall()[0][0])
+    return _has_column(con, table, "run_id")
+
+
+def _has_column(con: duckdb.DuckDBPyConnection, table: str, column: str) -> bool:
+    q = "SELECT count(*) FROM information_schema.columns WHERE table_name = ? AND column_name = ?"
+    return bool(con.execute(q, [table, column]).fetchall()[0][0])
 
 
 # ---------------------------------------------------------------- runs
@@ -431,6 +439,10 @@ def classes_to_arrow(protos: list[ClassPrototype]) -> pa.Table:
     }
     for k in VALUE_FIELDS:
         cols[k] = pa.array([float(getattr(p.value, k)) for p in protos], type=pa.float64())
+    cols["fitted"] = pa.array([p.fitted for p in protos], type=pa.bool_())
+    cols["modes"] = pa.array(
+        [json.dumps([[dict(a), dict(w)] for a, w in p.modes]) for p in protos], type=pa.string()
+    )
     return pa.table(cols)
 
 
@@ -444,6 +456,8 @@ def classes_from_arrow(table: pa.Table) -> list[ClassPrototype]:
             attributes=dict(r["attributes"]),
             weights=dict(r["weights"]),
             value=Value(**{k: r[k] for k in VALUE_FIELDS}),
+            fitted=bool(r.get("fitted") or False),  # files before schema version 4: none
+            modes=tuple((a, w) for a, w in json.loads(r.get("modes") or "[]")),
         )
         for r in table.to_pylist()
     ]

@@ -105,7 +105,9 @@ CREATE TABLE IF NOT EXISTS class_prototypes (
     worth_defend DOUBLE NOT NULL,
     worth_defeat DOUBLE NOT NULL,
     cost DOUBLE NOT NULL,
-    risk DOUBLE NOT NULL
+    risk DOUBLE NOT NULL,
+    fitted BOOLEAN NOT NULL DEFAULT false,
+    modes VARCHAR NOT NULL DEFAULT '[]'  -- JSON: [[{attribute: value}, {attribute: weight}], ...]
 );
 
 -- One row per layer of a map tile (kd_store/tiles.py); a tile's rows are written together.
@@ -181,7 +183,7 @@ FROM (SELECT id, created_ns, run_id, unnest(images) AS img FROM entity_frames);
 
 CREATE OR REPLACE VIEW classes AS
 SELECT name, kind, level, is_a, attributes, weights,
-       worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk
+       worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk, fitted, modes
 FROM class_prototypes;
 
 CREATE OR REPLACE VIEW map_tiles AS

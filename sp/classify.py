@@ -1,4 +1,5 @@
-"""Classification: normalised dot product of attribute vectors with the class prototypes.
+"""Classification: attribute vectors against the class prototypes, by a normalised dot
+product (written-down prototypes) or by a likelihood (prototypes fitted on training data).
 
 Reference 001, 4.5.1 (classification: "the attributes of an entity are compared with the
 attributes of class prototypes ... a normalised dot product"), 4.4.3 (generic and specific
@@ -36,7 +37,19 @@ across that plane: a wall piece is a plane, a car a bent one, a crown a volume o
 ``breadth_m`` (their spread along the middle axis: an upright person is narrow, at most a
 0.9 m wide body's 0.26 m, where a wall piece of person height is as broad as it is long).
 
-The rules and prototypes come from published typical dimensions (cars 3.5-5.5 m long,
+Fitted prototypes (``ClassPrototype.fitted``: ``kd_store/classes_fitted.yaml``, made by
+``wm.fit_classes`` from SP's own attributes of labelled tracks on training seeds) replace the
+written-down ones of their level in the default library, since what a sensor shows of a class
+(a person's head between two scan rows, a parked car's roof over the row in front) is learned
+better than written down. Their values are the centres of the classes' ``log(x + eps)`` and
+their weights one over its spread, so they are scored by that likelihood instead of the dot
+product (:meth:`Classifier._likelihood`; a class seen in several ways has one vector per way,
+``modes``, and matches as its best); the ``AT_MOST`` rule holds for them too (the value is the
+most the class showed), and so do the ``PLAUSIBLE`` bounds but for the lower bounds of the
+extents, which partial views undercut and the fit has seen. The two kinds of score are not
+on one scale, so a level with fitted prototypes classifies by those alone.
+
+The written-down rules and prototypes come from published typical dimensions (cars 3.5-5.5 m long,
 1.5-2.1 m wide, 1.3-2.0 m high; persons 1.0-2.0 m high, 0.3-0.9 m wide; free-standing walls
 10-25 m long, 0.4-0.6 m thick, 1.5-2.5 m high) and the shape of such bodies; the shape
 prototypes were checked against (not fitted to) the simulator's development seeds 5 and 6
@@ -152,6 +165,10 @@ class Classifier:
             for p in self.library
             if p.level == self.level and p.kind == ClassKind.GENERIC and p.attributes
         ]
+        # a likelihood and a dot product are no scores on one scale: a level with fitted
+        # prototypes classifies by those alone
+        if any(p.fitted for p in self.protos):
+            self.protos = [p for p in self.protos if p.fitted]
         names = sorted({a for p in self.protos for a in p.attributes})
         self.mu = {
             a: float(
@@ -169,6 +186,13 @@ class Classifier:
             {a: p.weights[a] * self._log(a, v) for a, v in p.attributes.items()}
             for p in self.protos
         ]
+        # a fitted class's spread per attribute is judged against the typical spread of the
+        # fitted classes (their geometric mean), so a broad class pays for its breadth
+        modes = [m for p in self.protos if p.fitted for m in _modes(p)]
+        self.log_sd_ref = {
+            a: float(np.mean([-math.log(w[a]) for _, w in modes if w.get(a, 0) > 0]))
+            for a in {a for v, _ in modes for a in v}
+        }
 
     def _log(self, a: str, v: float) -> float:
         return math.log(max(v, 0.0) + EPS.get(a, DEFAULT_EPS)) - self.mu[a]
@@ -191,6 +215,13 @@ class Classifier:
             F = np.log(np.maximum(X, 0.0) + eps) - mu  # NaN stays NaN: missing
         S = np.full((len(rows), len(self.protos)), np.nan)
         for j, (p, fp) in enumerate(zip(self.protos, self._feat, strict=True)):
+            if p.fitted:
+                scored = [self._likelihood(F + mu, names, *m) for m in _modes(p)]
+                score = np.max([sc for sc, _ in scored], axis=0)
+                use = scored[0][1]
+                ok = plausible(X, names, p.name, least_extents=False)
+                S[:, j] = np.where(use.any(axis=1), np.where(ok, score, IMPLAUSIBLE), np.nan)
+                continue
             w = np.array([p.weights.get(a, 0.0) for a in names])
             c = np.array([fp.get(a, 0.0) for a in names])
             has = np.array([a in fp for a in names])
@@ -209,6 +240,39 @@ class Classifier:
             )
             for i in range(len(rows))
         ]
+
+    def _likelihood(
+        self,
+        F: np.ndarray,
+        names: Sequence[str],
+        values: Mapping[str, float],
+        weights: Mapping[str, float],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Score (R,) of a fitted prototype (or one of its modes: ``values``, ``weights``) for
+        features ``F`` (R, A) = log(x + eps), and the attributes (R, A) it used:
+        ``exp(-mean_a(rho(z_a) + log(sd_a / sd_ref_a)))`` over the attributes both have, with
+        ``z_a`` the standardised distance from the class centre and ``rho`` Huber's loss
+        (quadratic to ``HUBER_K``, linear beyond, so one odd attribute, such as a length cut
+        short by an occluder, counts against a class but does not veto it). 1 at the centre
+        of a class of typical spread; a geometric mean of likelihood ratios, so classes
+        compare over the same attributes."""
+        has = np.array([a in values for a in names])
+        use = np.isfinite(F) & has
+        w = np.array([weights.get(a, 1.0) for a in names])
+        c = np.array(
+            [math.log(max(values.get(a, 0.0), 0.0) + EPS.get(a, DEFAULT_EPS)) for a in names]
+        )
+        log_sd = -np.log(np.maximum(w, 1e-9))
+        log_ref = np.array([self.log_sd_ref.get(a, 0.0) for a in names])
+        d = np.where(use, F, 0.0) - c
+        at_most = np.array([a in AT_MOST for a in names])
+        # an AT_MOST value is the most the class showed: stillness is no evidence against
+        # a mobile class, motion is evidence against a static one
+        z = np.where(at_most, np.maximum(d, 0.0), np.abs(d)) * w
+        rho = np.where(z <= HUBER_K, 0.5 * z**2, HUBER_K * z - 0.5 * HUBER_K**2)
+        penalty = np.where(use, rho + log_sd - log_ref, 0.0)
+        n = use.sum(axis=1)
+        return np.exp(-penalty.sum(axis=1) / np.maximum(n, 1)), use
 
     def _as_seen(
         self,
@@ -250,14 +314,27 @@ class Classifier:
         return Match(best, scores[best], generic, scores)
 
 
+def _modes(p: ClassPrototype) -> tuple[tuple[Mapping[str, float], Mapping[str, float]], ...]:
+    """A fitted prototype's (values, weights) per mode (itself when it has none)."""
+    return p.modes or ((p.attributes, p.weights),)
+
+
+EXTENTS = frozenset({"length_m", "width_m", "height_m"})  # what a partial view cuts short
+HUBER_K = 2.0  # standard deviations from a fitted class's centre where its penalty turns linear
 IMPLAUSIBLE = -2.0  # the score of a class whose PLAUSIBLE bounds an entity violates
 
 
-def plausible(X: np.ndarray, names: Sequence[str], cls: str) -> np.ndarray:
+def plausible(
+    X: np.ndarray, names: Sequence[str], cls: str, least_extents: bool = True
+) -> np.ndarray:
     """(R,) bool: rows of ``X`` (R, len(names)) within class ``cls``'s PLAUSIBLE bounds (a
-    missing value, NaN, violates nothing)."""
+    missing value, NaN, violates nothing). Without ``least_extents`` the lower bounds of the
+    extents (``EXTENTS``) are left out: a fitted class has seen how little of it a partial
+    view shows (a parked car's roof over the row in front is 0.8 m high and 2 m long)."""
     ok = np.ones(X.shape[0], dtype=bool)
     for a, (lo, hi) in PLAUSIBLE.get(cls, {}).items():
+        if not least_extents and a in EXTENTS:
+            lo = -np.inf
         if a in names:
             x = X[:, list(names).index(a)]
             ok &= ~((x < lo) | (x > hi))

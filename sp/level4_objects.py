@@ -355,16 +355,7 @@ class ObjectLevel:
         self.refresh_classes()
         tr = self.tracker.tracks
         events: list[int] = []
-        ks = np.flatnonzero(tr.id >= 0)
-        speeds = evident_speed(tr.x[ks], tr.P[ks], cfg.tracker.evident_sigmas)
-        rows = []
-        for k, speed in zip(ks, speeds.tolist(), strict=True):
-            l, w, h = (float(v) for v in tr.w[k, :3])
-            rows.append(
-                {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
-                | self.appearance_of(int(tr.id[k]))
-                | self.shape_of(int(tr.id[k]))
-            )
+        ks, rows = self.class_rows()
         for k, m in zip(ks, self.classifier.classify_many(rows), strict=True):
             tid = int(tr.id[k])
             old, _ = self.track_class.get(tid, (None, -2.0))
@@ -397,6 +388,24 @@ class ObjectLevel:
                 ctx.record(ClassFounded(tid))
                 ctx.classes_founded = True
         return events
+
+    def class_rows(self) -> tuple[np.ndarray, list[dict[str, float]]]:
+        """The attributes every framed track is classified by: its tracker slots (K,) and,
+        per slot, attribute name -> value (units in the names; an attribute never observed
+        is left out). Extents and speed are the filter's, appearance and shape the running
+        means of :meth:`appearance_of` and :meth:`shape_of`."""
+        tr = self.tracker.tracks
+        ks = np.flatnonzero(tr.id >= 0)
+        speeds = evident_speed(tr.x[ks], tr.P[ks], self.ctx.config.tracker.evident_sigmas)
+        rows = []
+        for k, speed in zip(ks, speeds.tolist(), strict=True):
+            l, w, h = (float(v) for v in tr.w[k, :3])
+            rows.append(
+                {"height_m": h, "width_m": w, "length_m": l, "speed_mps": speed}
+                | self.appearance_of(int(tr.id[k]))
+                | self.shape_of(int(tr.id[k]))
+            )
+        return ks, rows
 
     def refresh_classes(self) -> bool:
         """Take in the specific classes the world model founded from earlier observations

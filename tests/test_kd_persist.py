@@ -12,6 +12,7 @@ import pytest
 
 import kd_store
 from kd_store import Attribute, KDError, Level, RelationKind, State, Status, Value
+from kd_store.persist import SCHEMA_VERSION
 
 
 def _cov(seed: int) -> np.ndarray:
@@ -141,7 +142,8 @@ def test_newer_schema_is_refused(tmp_path: Path) -> None:
     con = duckdb.connect(str(path))
     con.execute("UPDATE kd_meta SET value = '99' WHERE key = 'schema_version'")
     con.close()
-    with pytest.raises(KDError, match=r"schema version 99 is newer than this engine's 3"):
+    newer = rf"schema version 99 is newer than this engine's {SCHEMA_VERSION}"
+    with pytest.raises(KDError, match=newer):
         kd_store.open(path)
 
 

@@ -106,8 +106,12 @@ def test_a_run_that_cannot_be_opened_is_named(
 
 
 def _as_version_2(path: Path) -> None:
-    """Make ``path`` what schema version 2 wrote: no run_rows, no run_id columns."""
+    """Make ``path`` what schema version 2 wrote: no run_rows, no run_id columns, no fitted
+    prototypes."""
     con = duckdb.connect(str(path))
+    con.execute("DROP VIEW classes")
+    con.execute("ALTER TABLE class_prototypes DROP COLUMN fitted")
+    con.execute("ALTER TABLE class_prototypes DROP COLUMN modes")
     con.execute("DROP VIEW runs")
     con.execute("DROP TABLE run_rows")
     for view in VIEWS:  # version 2's views had no run_id; the migration makes them again
@@ -134,7 +138,8 @@ def test_a_version_2_file_is_read_as_run_0_and_migrated(tmp_path: Path) -> None:
         assert kd.run_id == 1 and list(kd.entities()) == []
     with kd_store.open(path, read_only=True, run=0) as kd:
         version = kd.sql("SELECT value FROM kd_meta WHERE key = 'schema_version'")
-        assert int(version["value"][0].as_py()) == SCHEMA_VERSION == 3
+        assert int(version["value"][0].as_py()) == SCHEMA_VERSION == 4
+        assert kd.sql("SELECT count(*) AS n FROM classes WHERE fitted")["n"][0].as_py() == 0
         runs = kd.sql("SELECT run_id, source FROM runs ORDER BY run_id").to_pylist()
         assert runs == [
             {"run_id": 0, "source": "written by schema version 2"},

@@ -135,7 +135,7 @@ def test_a_version_1_file_opens_and_is_migrated(tmp_path: Path) -> None:
         kd.put_tile("l", 0, 0, {"a": np.ones(3)})
     con = duckdb.connect(str(path), read_only=True)
     version = con.execute("SELECT value FROM kd_meta WHERE key = 'schema_version'").fetchall()
-    assert int(version[0][0]) == SCHEMA_VERSION == 3
+    assert int(version[0][0]) == SCHEMA_VERSION == 4
     assert con.execute("SELECT count(*) FROM map_tiles").fetchall()[0][0] == 1
     assert con.execute("SELECT run_id FROM entities").fetchall() == [(0,)]
     con.close()

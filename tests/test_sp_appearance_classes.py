@@ -1,5 +1,6 @@
 """Appearance in classification: an observed appearance attribute (LADAR reflectance, camera
-intensity) counts; one never observed is left out, not read as zero."""
+intensity) counts; one never observed is left out, not read as zero. On the written-down
+prototypes, which carry appearance (the fitted ones leave it out: wm.fit_classes)."""
 
 from __future__ import annotations
 
@@ -30,14 +31,14 @@ SIZES = {"height_m": 1.6, "width_m": 0.4, "length_m": 0.4, "speed_mps": 0.0}
 
 
 def test_object_prototypes_carry_appearance() -> None:
-    lib = kd_store.open(":memory:").classes
+    lib = ClassLibrary.default(fitted=False)
     for name in ("building", "tree", "bush", "rock", "post", "vehicle", "person"):
         a = lib.get(name).attributes
         assert all(0.0 < a[k] < 1.0 for k in APPEARANCE)  # reflectances
 
 
 def test_missing_appearance_is_left_out_not_zero() -> None:
-    lib = kd_store.open(":memory:").classes
+    lib = ClassLibrary.default(fitted=False)
     c = Classifier(lib, Level.OBJECT)
     bare = Classifier(_without_appearance(lib), Level.OBJECT)
     m, ref = c.classify(SIZES), bare.classify(SIZES)
@@ -51,7 +52,7 @@ def test_missing_appearance_is_left_out_not_zero() -> None:
 
 
 def test_appearance_tips_a_size_ambiguous_object() -> None:
-    c = Classifier(kd_store.open(":memory:").classes, Level.OBJECT)
+    c = Classifier(ClassLibrary.default(fitted=False), Level.OBJECT)
     bright = c.classify(SIZES | {"reflectance": 0.8, "camera_intensity": 0.7})
     dark = c.classify(SIZES | {"reflectance": 0.2, "camera_intensity": 0.15})
     assert (

@@ -1,0 +1,321 @@
+"""Fit the level-4 class prototypes on training logs (reference 001, 4.4.3 prototypes;
+4.5.1 classification), so that what a class looks like to the sensor is learned from data
+rather than written down from catalogue dimensions.
+
+What a LADAR shows of an object is not its catalogue shape: a car seen from behind is short,
+a wall is seen in pieces, a bush's points are a shell of leaves. The attributes SP classifies by
+(:meth:`sp.level4_objects.ObjectLevel.class_rows`: extents, evident speed and the shape of the
+points) are therefore collected as SP computes them, per framed track and sweep, on logs with
+ground truth, labelled with the class of the true box the track's centre lies in, and each
+class's prototype becomes the centre and spread of its attributes in the classifier's feature
+space (``log(x + eps)``): the value ``exp(mean) - eps`` and the weight ``1 / std``
+(:class:`sp.classify.Classifier` scores fitted prototypes by that likelihood).
+
+The split (docs/evaluation.md): prototypes are fitted on development seeds only
+(``TRAINING_SEEDS``), never on the evaluation seeds; ``python -m wm.fit_classes`` refuses an
+evaluation seed. Appearance (LADAR reflectance, camera grey) is left out by default: it
+depends on a sensor's calibration, and a prototype fitted to one sensor's intensity scale
+would not carry over to another's.
+
+Usage::
+
+    python -m wm.fit_classes --scenarios default village open parking --seeds 40 41 ...
+        --out kd_store/classes_fitted.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from collections import defaultdict
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from core.errors import EngineError
+from logs.types import ObjectBoxes
+
+log = logging.getLogger(__name__)
+
+#: development seeds the shipped prototypes were fitted on (docs/evaluation.md, the split)
+TRAINING_SEEDS: tuple[int, ...] = (40, 41, 42, 43, 44, 45, 46, 47)
+TRAINING_SCENARIOS: tuple[str, ...] = ("default", "village", "open", "parking")
+#: attributes fitted by default: geometry, motion and the shape of the points (not appearance)
+FIT_ATTRIBUTES: tuple[str, ...] = (
+    "height_m", "width_m", "length_m", "speed_mps", "thickness_m", "curvature",
+    "verticality", "breadth_m", "clearance_m", "longest_m",
+)  # fmt: skip
+#: the simulator's true classes -> the library's level-4 classes
+TRUE_TO_LIBRARY: dict[str, str] = {"wall": "freestanding wall"}
+MIN_STD = 0.05  # floor of a fitted spread (log units): a class never seen to vary still may
+LABEL_DISTANCE_M = 0.3  # a track's centre this close to a true box's footprint takes its class
+MIN_SAMPLES = 30  # a class (or a mode) with fewer (track, sweep) samples is not fitted
+# clusters of samples a class is fitted with at most, one per SAMPLES_PER_MODE samples. On
+# development seeds 5-8, four modes named more tracks right in the parking lot and the village
+# and fewer in the default and open worlds than one (the class medians of 16 runs), so the
+# shipped prototypes have one; a sensor whose views of a class differ more may want several
+MAX_MODES = 1
+SAMPLES_PER_MODE = 1000
+
+
+class FitError(EngineError):
+    """Training logs without truth, an evaluation seed asked for, or too few samples."""
+
+
+@dataclass
+class Samples:
+    """Labelled attribute rows: ``rows[i]`` (attribute -> value) of a track whose centre lay
+    in a true box of class ``labels[i]``; ``tracks[i]`` the (log, track id) it came from."""
+
+    rows: list[dict[str, float]]
+    labels: list[str]
+    tracks: list[tuple[str, int]]
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    def extend(self, other: Samples) -> None:
+        self.rows += other.rows
+        self.labels += other.labels
+        self.tracks += other.tracks
+
+
+def label_tracks(xy: np.ndarray, boxes: ObjectBoxes) -> list[str | None]:
+    """Class of the true box (world frame) each track centre ``xy`` (K, 2) m lies in (within
+    ``LABEL_DISTANCE_M`` of its footprint; None for none, or for two boxes of other classes)."""
+    from wm.truth import CLASS_ALIASES, footprint_distance
+
+    if len(boxes) == 0 or len(xy) == 0:
+        return [None] * len(xy)
+    d = footprint_distance(xy, boxes.centers[:, :2], boxes.sizes[:, :2], boxes.yaws)  # (M, K)
+    out: list[str | None] = []
+    for k in range(len(xy)):
+        near = np.flatnonzero(d[:, k] <= LABEL_DISTANCE_M)
+        classes = {CLASS_ALIASES.get(boxes.classes[i], boxes.classes[i]) for i in near}
+        out.append(classes.pop() if len(classes) == 1 else None)
+    return out
+
+
+def collect(log_path: str | Path, seconds: float | None = None) -> Samples:
+    """Run the node over a simulated log on its true poses (labels need the true world, and
+    the attributes do not depend on where the pose came from) and label the classified
+    tracks of every cycle with the true boxes of that sweep."""
+    import kd_store
+    from logs.source import open_log
+    from wm.config import NodeConfig, PoseSource
+    from wm.node import WorldModelNode
+
+    config = NodeConfig(pose_source=PoseSource.TRUTH, odometry_process=False)
+    source = open_log(Path(log_path))
+    name = Path(log_path).name
+    out = Samples([], [], [])
+    boxes_at: dict[int, ObjectBoxes] = {}
+    first_t: int | None = None
+    n_boxes = 0
+    with kd_store.open(":memory:", run="new", source=str(log_path)) as kd:
+        node = WorldModelNode(kd, config, None)
+        with node:
+            for frame in source.frames():
+                first_t = frame.t_ns if first_t is None else first_t
+                if seconds is not None and frame.t_ns - first_t > seconds * 1e9:
+                    break
+                if isinstance(frame, ObjectBoxes):
+                    boxes_at[frame.t_ns] = frame
+                    n_boxes += 1
+                for c in node.feed(frame):
+                    _take(node, boxes_at, c.t_ns, name, out)
+            for c in node.finish():
+                _take(node, boxes_at, c.t_ns, name, out)
+    if n_boxes == 0:
+        raise FitError(f"{log_path}: no ground-truth objects ({ObjectBoxes.__name__}) to fit on")
+    return out
+
+
+def _take(node, boxes_at: dict[int, ObjectBoxes], t_ns: int, name: str, out: Samples) -> None:
+    """Label this cycle's classified tracks with the truth of the sweep it ran on."""
+    if node.sp is None or t_ns not in boxes_at:
+        return
+    boxes = boxes_at.pop(t_ns)
+    for t in [t for t in boxes_at if t < t_ns]:
+        del boxes_at[t]  # older sweeps' truth will not be asked for again
+    objects = node.sp.level4
+    ks, rows = objects.class_rows()
+    tr = objects.tracker.tracks
+    for k, row, label in zip(ks, rows, label_tracks(tr.x[ks, :2], boxes), strict=True):
+        if label is not None:
+            out.rows.append(row)
+            out.labels.append(TRUE_TO_LIBRARY.get(label, label))
+            out.tracks.append((name, int(tr.id[k])))
+
+
+@dataclass(frozen=True)
+class FittedClass:
+    """One class's fitted prototype: value and weight (1 / std of ``log(x + eps)``) per
+    attribute over all its samples, the same per mode (``modes``: a class the sensor shows in
+    several ways, such as a car seen whole while it passes and a parked car seen as its roof
+    and bonnet over the row in front, is one cluster of samples per way), with the samples
+    and tracks it came from."""
+
+    name: str
+    attributes: dict[str, float]
+    weights: dict[str, float]
+    samples: int
+    tracks: int
+    modes: tuple[tuple[dict[str, float], dict[str, float]], ...] = ()
+
+
+def fit(
+    samples: Samples,
+    attributes: Sequence[str] = FIT_ATTRIBUTES,
+    max_modes: int = MAX_MODES,
+) -> list[FittedClass]:
+    """Per class with at least ``MIN_SAMPLES`` samples: per attribute, the mean and standard
+    deviation of ``log(x + eps)`` over the samples that have it (the 1st to 99th percentile,
+    so a few broken segments do not set the spread); and the same per mode, the clusters
+    k-means finds among the samples in standardised features, one per
+    ``SAMPLES_PER_MODE`` samples up to ``max_modes``."""
+    from sp.classify import DEFAULT_EPS, EPS
+
+    eps = np.array([EPS.get(a, DEFAULT_EPS) for a in attributes])
+    by_class: dict[str, list[int]] = defaultdict(list)
+    for i, c in enumerate(samples.labels):
+        by_class[c].append(i)
+    out = []
+    for c, idx in sorted(by_class.items()):
+        if len(idx) < MIN_SAMPLES:
+            log.warning("class %r: %d samples, fewer than %d; not fitted", c, len(idx), MIN_SAMPLES)
+            continue
+        X = np.array(
+            [[samples.rows[i].get(a, math.nan) for a in attributes] for i in idx], dtype=np.float64
+        )
+        with np.errstate(invalid="ignore"):
+            F = np.log(np.maximum(X, 0.0) + eps)  # NaN stays NaN: not observed
+        values, weights = _centre_spread(F, attributes)
+        k = min(max_modes, len(idx) // SAMPLES_PER_MODE)
+        modes = tuple(_centre_spread(F[m], attributes) for m in _clusters(F, k)) if k > 1 else ()
+        tracks = len({samples.tracks[i] for i in idx})
+        out.append(FittedClass(c, values, weights, len(idx), tracks, modes))
+    return out
+
+
+def _centre_spread(
+    F: np.ndarray, attributes: Sequence[str]
+) -> tuple[dict[str, float], dict[str, float]]:
+    """Per attribute (column of ``F``, log features, NaN unobserved) with ``MIN_SAMPLES``
+    values: the prototype value ``exp(mean) - eps`` and weight ``1 / std`` (floored); for an
+    ``AT_MOST`` attribute (speed) the value is the most the class showed (its 99th
+    percentile), which the classifier penalises only exceeding."""
+    from sp.classify import AT_MOST, DEFAULT_EPS, EPS
+
+    values, weights = {}, {}
+    for j, a in enumerate(attributes):
+        f = F[:, j][np.isfinite(F[:, j])]
+        if len(f) < MIN_SAMPLES:
+            continue
+        lo, hi = np.percentile(f, [1, 99])
+        f = f[(f >= lo) & (f <= hi)]
+        centre = hi if a in AT_MOST else f.mean()
+        values[a] = round(float(math.exp(centre) - EPS.get(a, DEFAULT_EPS)), 4)
+        weights[a] = round(1.0 / max(float(f.std()), MIN_STD), 3)
+    return values, weights
+
+
+def _clusters(F: np.ndarray, k: int, iterations: int = 50) -> list[np.ndarray]:
+    """Boolean masks of ``k`` k-means clusters of the rows of ``F`` (standardised per column,
+    an unobserved value at its column's mean), seeded by k-means++ from a fixed generator so
+    a fit is repeatable; clusters with fewer than ``MIN_SAMPLES`` rows are dropped."""
+    mu, sd = np.nanmean(F, axis=0), np.nanstd(F, axis=0)
+    Z = np.nan_to_num((F - mu) / np.where(sd > 0, sd, 1.0))
+    rng = np.random.default_rng(0)
+    C = Z[[rng.integers(len(Z))]]
+    while len(C) < k:  # k-means++: far rows are likelier seeds
+        d2 = ((Z[:, None, :] - C[None]) ** 2).sum(-1).min(axis=1)
+        C = np.vstack([C, Z[rng.choice(len(Z), p=d2 / d2.sum())]])
+    for _ in range(iterations):
+        label = ((Z[:, None, :] - C[None]) ** 2).sum(-1).argmin(axis=1)
+        C_new = np.array([Z[label == j].mean(0) if (label == j).any() else C[j] for j in range(k)])
+        if np.allclose(C_new, C):
+            break
+        C = C_new
+    return [label == j for j in range(k) if (label == j).sum() >= MIN_SAMPLES]
+
+
+def to_yaml(fitted: Iterable[FittedClass], provenance: Mapping[str, object]) -> str:
+    """The fitted prototypes as a class-library overlay (``kd_store/classes_fitted.yaml``)."""
+    rows = []
+    for f in fitted:
+        row: dict[str, object] = {
+            "name": f.name,
+            "fitted": {"samples": f.samples, "tracks": f.tracks},
+            "attributes": {a: [f.attributes[a], f.weights[a]] for a in f.attributes},
+        }
+        if f.modes:
+            row["modes"] = [{a: [v[a], w[a]] for a in v} for v, w in f.modes]
+        rows.append(row)
+    head = (
+        "# Level-4 class prototypes fitted by wm/fit_classes.py (values: exp(mean log(x + eps))"
+        " - eps;\n# weights: 1 / std of log(x + eps); modes: the same per cluster of samples)."
+        " Generated; do not edit by hand.\n"
+    )
+    return head + yaml.safe_dump(
+        {"provenance": dict(provenance), "classes": rows},
+        sort_keys=False,
+        width=100,
+        default_flow_style=None,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from wm.eval_sweep import EVAL_SEEDS
+
+    ap = argparse.ArgumentParser(
+        prog="python -m wm.fit_classes", description=__doc__.split("\n")[0]
+    )
+    ap.add_argument("--scenarios", nargs="+", default=list(TRAINING_SCENARIOS))
+    ap.add_argument("--seeds", nargs="+", type=int, default=list(TRAINING_SEEDS))
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--cache", default="out/eval-logs", help="simulated logs (made when missing)")
+    ap.add_argument("--out", default="kd_store/classes_fitted.yaml")
+    ap.add_argument("--max-modes", type=int, default=MAX_MODES, help="clusters per class")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    bad = sorted(set(args.seeds) & set(EVAL_SEEDS))
+    if bad:
+        raise FitError(f"seeds {bad} are evaluation seeds (docs/evaluation.md): never fit on them")
+    samples = Samples([], [], [])
+    for scenario in args.scenarios:
+        for seed in args.seeds:
+            path = _log(scenario, seed, args.seconds, Path(args.cache))
+            s = collect(path)
+            log.info("%s: %d labelled samples", path.name, len(s))
+            samples.extend(s)
+    fitted = fit(samples, max_modes=args.max_modes)
+    provenance = {
+        "scenarios": list(args.scenarios),
+        "seeds": list(args.seeds),
+        "seconds": args.seconds,
+        "samples": len(samples),
+        "attributes": list(FIT_ATTRIBUTES),
+        "max_modes": args.max_modes,
+        "samples_per_mode": SAMPLES_PER_MODE,
+    }
+    Path(args.out).write_text(to_yaml(fitted, provenance))
+    for f in fitted:
+        log.info("%-18s %6d samples %4d tracks", f.name, f.samples, f.tracks)
+    return 0
+
+
+def _log(scenario: str, seed: int, seconds: float, cache: Path) -> Path:
+    """The simulated training log (made when the cache lacks it)."""
+    from wm.eval_sweep import simulate_cached
+
+    return simulate_cached(scenario, seed, seconds, cache, timeout_s=1800.0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
