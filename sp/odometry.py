@@ -89,6 +89,22 @@ class OdometryConfig:
                     exactly zero, or whose covariance gives them more than ``max_tilt_sigma_rad``,
                     carries no attitude (planar odometry) and levels nothing.
     max_tilt_sigma_rad: see ``tilt_sigma_rad``.
+    ground_share, ground_z_m: with wheel odometry to fuse, the registration keeps only this
+                    share of its points near the body's ground plane (body z below
+                    ``ground_z_m``). On flat ground each laser ring returns at the same place
+                    in the sensor frame sweep after sweep, and point-to-point registration
+                    pulls the motion toward standing still (a parking lot: registration alone
+                    short by 6 % of the path); the wheels then carry the motion along the
+                    ground while the remaining ground points keep height, roll and pitch.
+                    Without wheels the ground stays whole: it is then the only vertical
+                    constraint a sparse scene offers.
+    wheel_scale_sigma: prior standard deviation of the wheel odometry's speed scale (wheel
+                    radius, tyre pressure: about 1 %); the scale is estimated as a bias state
+                    from the registrations (:meth:`LadarOdometry._estimate_wheel_scale`) and
+                    divided out of the wheels' motion. 0 turns the estimate off.
+    wheel_scale_drift: standard deviation of the scale's random walk per sweep.
+    wheel_scale_after: registrations before the scale is learned from them (the first ones
+                    register to a local map of a few sweeps, which holds them back).
     gate_sigma:     per axis, a registration further than this many standard deviations from
                     the wheel odometry is not used on that axis.
     info_neighbours, info_radius_m: the neighbours (and their farthest distance) that fit the
@@ -141,6 +157,11 @@ class OdometryConfig:
     gate_sigma: float = 3.0
     tilt_sigma_rad: float = 0.01
     max_tilt_sigma_rad: float = 0.1
+    ground_share: float = 0.2
+    ground_z_m: float = 0.3
+    wheel_scale_sigma: float = 0.01
+    wheel_scale_drift: float = 1e-4
+    wheel_scale_after: int = 20
     max_points_per_voxel: int = 5
     max_threads: int = 0
     convergence: float = 3e-3
@@ -313,6 +334,12 @@ class LadarOdometry:
         # variance (rad^2) of the estimated roll and pitch: the world starts level with the
         # first wheel-odometry attitude, so it starts at zero
         self.tilt_P = 0.0
+        # the wheels' speed scale (wheel distance / true distance) and its variance, a bias
+        # state: the per-sweep fusion treats wheel errors as white, which a scale error is not
+        self.wheel_scale = 1.0
+        self.wheel_scale_P = cfg.wheel_scale_sigma**2
+        self._wheel_body_delta: np.ndarray | None = None  # the last sweep's raw wheel motion
+        self._scale_sweeps = 0  # registrations offered to the scale estimate
         # the last accepted sweep: reference time and T_world_sensor (recover() restarts there)
         self.last_good: tuple[int, np.ndarray] | None = None
 
@@ -357,7 +384,10 @@ class LadarOdometry:
         if self.last_t_ns is None:
             return np.eye(4), False
         body = self.wheel.motion(self.last_t_ns, t_ns)
+        self._wheel_body_delta = body
         if body is not None:
+            body = body.copy()
+            body[:3, 3] /= self.wheel_scale
             return self.T_sensor_body @ body @ self.T_body_sensor, True
         if self.last_interval_ns <= 0:
             return self.kiss.last_delta, False
@@ -416,6 +446,8 @@ class LadarOdometry:
         cap = cfg.max_source_points
         if cap is not None and len(source) > cap:
             source = self._down_sample(frame_down, spacing * math.sqrt(len(source) / cap))
+        if from_wheel and cfg.ground_share < 1.0:
+            source = _thin_ground(source, self.T_body_sensor, cfg)
         sigma = kiss.adaptive_threshold.get_threshold()
         guess = kiss.last_pose @ delta_pred
         pose = kiss.registration.align_points_to_map(
@@ -433,6 +465,7 @@ class LadarOdometry:
             stride = max(1, -(-len(source) // cfg.info_max_points))
             cloud = self._down_sample(frame_down, cfg.info_voxel_m)
             info = registration_information(cloud, source[::stride], pose, kiss.last_pose, cfg)
+            self._estimate_wheel_scale(delta_icp, registration_covariance(info, quality, cfg))
             pose = kiss.last_pose @ self._fuse(delta_pred, delta_icp, quality, info)
             pose = self._level(pose, t_ns)
         kiss.adaptive_threshold.update_model_deviation(se3_inverse(guess) @ pose)
@@ -509,6 +542,39 @@ class LadarOdometry:
         self.last_gain = np.diag(K).copy()
         self.last_rotation_var = float(np.mean(np.diag((np.eye(6) - K) @ P)[3:5]))
         return from_vector(x_pred + K @ innovation)
+
+    def _estimate_wheel_scale(self, delta_icp: np.ndarray, R: np.ndarray) -> None:
+        """Update the wheels' speed scale ``k`` from one registration (a scalar Kalman filter,
+        ``x = k``): along the direction ``u`` the wheels moved, they measure ``z = k (u . t)``
+        of the registration's translation ``t`` (body frame), with the registration's variance
+        along ``u`` (``R``, (6, 6), sensor axes) and the wheels' own white noise. A direction
+        the scene does not constrain has a large variance there and teaches the scale little;
+        a registration beyond ``gate_sigma`` of the estimate (a slide, a wheel slip) none."""
+        cfg, body = self.config, self._wheel_body_delta
+        self._scale_sweeps += 1
+        if (
+            cfg.wheel_scale_sigma <= 0
+            or body is None
+            or self._scale_sweeps <= cfg.wheel_scale_after
+        ):
+            return
+        moved = float(np.linalg.norm(body[:3, 3]))
+        if moved < 10 * cfg.wheel_sigma_m:  # standing or creeping: no scale to see
+            return
+        u = body[:3, 3] / moved
+        icp_body = self.T_body_sensor @ delta_icp @ self.T_sensor_body
+        H = float(u @ icp_body[:3, 3])
+        R_mount = self.T_body_sensor[:3, :3]
+        var_icp = float(u @ (R_mount @ R[:3, :3] @ R_mount.T) @ u)
+        self.wheel_scale_P += cfg.wheel_scale_drift**2
+        S = H * H * self.wheel_scale_P + self.wheel_scale**2 * var_icp + cfg.wheel_sigma_m**2
+        innovation = moved - self.wheel_scale * H
+        if abs(innovation) > cfg.gate_sigma * math.sqrt(S):
+            return
+        K = self.wheel_scale_P * H / S
+        bound = 3.0 * cfg.wheel_scale_sigma  # a scale beyond the prior's 3 sd is no tyre's
+        self.wheel_scale = float(np.clip(self.wheel_scale + K * innovation, 1 - bound, 1 + bound))
+        self.wheel_scale_P *= 1.0 - K * H
 
     def _level(self, T_map_sensor: np.ndarray, t_ns: int) -> np.ndarray:
         """Correct the roll and pitch of a fused pose toward the attitude the wheel odometry
@@ -627,6 +693,19 @@ def registration_information(
     normal = normal @ R.T
     a = np.concatenate([normal, np.cross(p, normal)], axis=1) * np.sqrt(planarity)[:, None]
     return a.T @ a / n_src
+
+
+def _thin_ground(
+    source: np.ndarray, T_body_sensor: np.ndarray, config: OdometryConfig
+) -> np.ndarray:
+    """The registration's points (n, 3, sensor frame) with those near the body's ground plane
+    (body z below ``ground_z_m``) kept at ``ground_share`` only."""
+    z = source @ T_body_sensor[2, :3] + T_body_sensor[2, 3]
+    ground = z < config.ground_z_m
+    step = max(1, round(1.0 / max(config.ground_share, 1e-6)))
+    keep = ~ground
+    keep[np.flatnonzero(ground)[::step]] = True
+    return source[keep]
 
 
 def registration_covariance(info: np.ndarray, quality: float, config: OdometryConfig) -> np.ndarray:

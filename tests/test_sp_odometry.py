@@ -314,3 +314,43 @@ def test_levelling_bounds_a_steady_pitch_error_and_ignores_planar_odometry() -> 
     planar.last_rotation_var = 1e-4
     T0 = _body_pose(planar, 0.05, 0.2)
     assert np.array_equal(planar._level(T0, 0), T0)
+
+
+def _scale_updates(odo: LadarOdometry, wheel_m: float, icp_m: float, R: np.ndarray, n: int):
+    """``n`` sweeps on which the wheels report ``wheel_m`` forward and a registration with
+    covariance ``R`` (6, 6, sensor axes) ``icp_m``."""
+    for _ in range(n):
+        odo._wheel_body_delta = from_vector(np.array([wheel_m, 0.0, 0.0, 0.0, 0.0, 0.0]))
+        icp = odo.T_sensor_body @ from_vector(np.array([icp_m, 0, 0, 0, 0, 0])) @ odo.T_body_sensor
+        odo._estimate_wheel_scale(icp, R)
+
+
+def test_the_wheels_speed_scale_is_learned_where_the_scene_constrains_the_motion() -> None:
+    """Wheels that read 2 % long (a worn tyre's radius): registrations that pin the forward
+    motion to 2 cm teach the odometry the scale within a few tenths of a percent in a few
+    dozen sweeps, and the predicted motion divides it out; along a direction the scene does
+    not constrain (bare ground: 10 m of doubt) the scale stays where it was; a registration
+    that slid far from the wheels (a slip, a moving scene) teaches nothing."""
+    cfg = OdometryConfig()
+    well = np.diag([0.02**2] * 3 + [0.002**2] * 3)
+    odo = LadarOdometry(cfg, T_body_sensor=T_BODY_SENSOR)
+    _scale_updates(odo, 1.02, 1.0, well, 60)
+    assert odo.wheel_scale == pytest.approx(1.02, abs=0.004)
+    odo.wheel.add(OdometryFrame(0, "odom", "base_link", np.eye(4)))
+    odo.wheel.add(OdometryFrame(PERIOD_NS, "odom", "base_link", se3(t=[1.02, 0.0, 0.0])))
+    odo.last_t_ns = 0
+    delta, from_wheel = odo._predicted_delta(PERIOD_NS)
+    body = odo.T_body_sensor @ delta @ odo.T_sensor_body
+    assert from_wheel and body[0, 3] == pytest.approx(1.02 / odo.wheel_scale, abs=1e-9)
+
+    blind = np.diag([10.0**2] * 3 + [0.002**2] * 3)
+    odo = LadarOdometry(cfg, T_body_sensor=T_BODY_SENSOR)
+    _scale_updates(odo, 1.02, 1.0, blind, 60)
+    assert odo.wheel_scale == pytest.approx(1.0, abs=1e-3)
+
+    odo = LadarOdometry(cfg, T_body_sensor=T_BODY_SENSOR)
+    _scale_updates(odo, 1.0, 0.5, well, 60)  # half the wheels' motion, 20 sd off
+    assert odo.wheel_scale == 1.0
+    off = LadarOdometry(OdometryConfig(wheel_scale_sigma=0.0), T_body_sensor=T_BODY_SENSOR)
+    _scale_updates(off, 1.02, 1.0, well, 60)
+    assert off.wheel_scale == 1.0
