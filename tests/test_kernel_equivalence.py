@@ -815,10 +815,16 @@ def _link_limits(link: str) -> tuple[np.float32, float, float]:
 def _distance_limit_inputs(link: str) -> Iterator[Args]:
     """A link halfway between its float32 and float64 limit, with Python float steps, then
     numpy float64 steps."""
-    di, dj, H, W = LINKS[link]
     r, lim32, lim64 = _link_limits(link)
+    yield from _both_step_types(link, 0.5 * (lim32 + lim64), r)
+
+
+def _both_step_types(link: str, d: float, r: float) -> Iterator[Args]:
+    """The link image at distance ``d`` (range ``r``), with Python float and numpy float64
+    angular steps."""
+    di, dj, H, W = LINKS[link]
     for step_type in (float, np.float64):
-        xyz, rng, mask = _link_image(di, dj, H, W, 0.5 * (lim32 + lim64), r)
+        xyz, rng, mask = _link_image(di, dj, H, W, d, r)
         yield (
             xyz,
             rng,
@@ -839,18 +845,7 @@ def _distance_limit_check(link: str, calls: list[Call]) -> None:
 
 def _join_floor_inputs(link: str) -> Iterator[Args]:
     """join_m (0.6) is float32 0.6000000238 against a float32 limit, 0.6 against a float64 one."""
-    di, dj, H, W = LINKS[link]
-    d = 0.5 * (0.6 + float(np.float32(0.6)))
-    for step_type in (float, np.float64):
-        xyz, rng, mask = _link_image(di, dj, H, W, d, 2.0)
-        yield (
-            xyz,
-            rng,
-            mask,
-            step_type(math.radians(1.0)),
-            step_type(2 * math.pi / 1024),
-            ONLY_LINKS,
-        )
+    yield from _both_step_types(link, 0.5 * (0.6 + float(np.float32(0.6))), 2.0)
 
 
 def _joined_then_not(_: Any, calls: list[Call]) -> None:
