@@ -46,7 +46,8 @@ their weights one over its spread, so they are scored by that likelihood instead
 product (:meth:`Classifier._likelihood`; a class seen in several ways has one vector per way,
 ``modes``, and matches as its best); the ``AT_MOST`` rule holds for them too (the value is the
 most the class showed), and so do the ``PLAUSIBLE`` bounds but for the lower bounds of the
-extents, which partial views undercut and the fit has seen. The two kinds of score are not
+extents, which partial views undercut and the fit has seen (a person's stay:
+``WHOLE_EXTENTS``). The two kinds of score are not
 on one scale, so a level with fitted prototypes classifies by those alone.
 
 The written-down rules and prototypes come from published typical dimensions (cars 3.5-5.5 m long,
@@ -219,7 +220,7 @@ class Classifier:
                 scored = [self._likelihood(F + mu, names, *m) for m in _modes(p)]
                 score = np.max([sc for sc, _ in scored], axis=0)
                 use = scored[0][1]
-                ok = plausible(X, names, p.name, least_extents=False)
+                ok = plausible(X, names, p.name, least_extents=p.name in WHOLE_EXTENTS)
                 S[:, j] = np.where(use.any(axis=1), np.where(ok, score, IMPLAUSIBLE), np.nan)
                 continue
             w = np.array([p.weights.get(a, 0.0) for a in names])
@@ -320,6 +321,11 @@ def _modes(p: ClassPrototype) -> tuple[tuple[Mapping[str, float], Mapping[str, f
 
 
 EXTENTS = frozenset({"length_m", "width_m", "height_m"})  # what a partial view cuts short
+# ... but not below a person's bounds: a low or thin blob called a person (a rock, a stump, a
+# post's foot) is a phantom pedestrian every planner must steer around, where a real person
+# seen in part is still an object to avoid (development seed 7 of the open world: without
+# these bounds every rock was called a person)
+WHOLE_EXTENTS = frozenset({"person"})
 HUBER_K = 2.0  # standard deviations from a fitted class's centre where its penalty turns linear
 IMPLAUSIBLE = -2.0  # the score of a class whose PLAUSIBLE bounds an entity violates
 
