@@ -249,8 +249,18 @@ class KnowledgeDatabase:
         return self._entities.ids()
 
     def update_entity(self, entity_id: int, **changes: Any) -> EntityFrame:
-        """Change fields of an entity frame (not ``id``; states go through :meth:`observe`)."""
-        return self._entities.update(entity_id, changes)
+        """Change fields of an entity frame (not ``id``; states go through :meth:`observe`).
+        A change the promotion rule admits (a confirmation) promotes at once: admission is
+        one-way, and a track confirmed and fading before the next flush was still confirmed,
+        so long-term memory holds it."""
+        frame = self._entities.update(entity_id, changes)
+        if "status" in changes and self._admits(frame):
+            self._promote()
+        return frame
+
+    def _admits(self, frame: EntityFrame) -> bool:
+        rule = self.promotion_rule
+        return frame.status.value in rule.statuses and frame.confidence >= rule.min_confidence
 
     def observe(self, entity_id: int, state: State) -> EntityFrame:
         """Add one state to an entity's history; it becomes the current state. Expectations

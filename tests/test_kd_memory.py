@@ -113,6 +113,26 @@ def test_promotion_rules(tmp_path: Path) -> None:
     assert hyp.id in kd and quiet.id in kd
 
 
+def test_a_confirmation_is_remembered_though_the_track_fades_before_the_flush(
+    tmp_path: Path,
+) -> None:
+    """A track confirmed and fading below the rule's confidence before the next flush (a car
+    that drove out of view) was confirmed: long-term memory holds it. One never confirmed
+    does not get there."""
+    path = tmp_path / "kd.duckdb"
+    kd = kd_store.open(path)
+    car = kd.add_entity("car", Level.OBJECT, confidence=0.4)
+    ghost = kd.add_entity("ghost", Level.OBJECT, confidence=0.4)
+    kd.update_entity(car.id, status=Status.CONFIRMED, confidence=0.8)
+    kd.update_entity(car.id, confidence=0.01)
+    kd.update_entity(ghost.id, confidence=0.01)
+    kd.flush()
+    kd.close()
+    with kd_store.open(path, read_only=True) as kd:
+        rows = kd.sql("SELECT name, status, confidence FROM entities").to_pylist()
+    assert rows == [{"name": "car", "status": "confirmed", "confidence": 0.01}]
+
+
 def test_only_promoted_states_reach_long_term_memory() -> None:
     kd = kd_store.open()
     a = kd.add_entity("a", Level.OBJECT, status="confirmed", confidence=0.9)
