@@ -465,8 +465,9 @@ class LadarOdometry:
             stride = max(1, -(-len(source) // cfg.info_max_points))
             cloud = self._down_sample(frame_down, cfg.info_voxel_m)
             info = registration_information(cloud, source[::stride], pose, kiss.last_pose, cfg)
-            self._estimate_wheel_scale(delta_icp, registration_covariance(info, quality, cfg))
-            pose = kiss.last_pose @ self._fuse(delta_pred, delta_icp, quality, info)
+            R = registration_covariance(info, quality, cfg)
+            self._estimate_wheel_scale(delta_icp, R)
+            pose = kiss.last_pose @ self._fuse(delta_pred, delta_icp, R)
             pose = self._level(pose, t_ns)
         kiss.adaptive_threshold.update_model_deviation(se3_inverse(guess) @ pose)
         kiss.local_map.update(frame_down, pose)
@@ -522,15 +523,12 @@ class LadarOdometry:
             )
         return quality, ""
 
-    def _fuse(
-        self, delta_pred: np.ndarray, delta_icp: np.ndarray, quality: float, info: np.ndarray
-    ) -> np.ndarray:
+    def _fuse(self, delta_pred: np.ndarray, delta_icp: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Kalman blend of the wheels (prediction, covariance P) and the registration
-        (measurement, covariance R from its information ``info`` (6, 6), sensor frame, axes
-        x y z rx ry rz), both sensor motions over one sweep (4x4)."""
+        (measurement, covariance ``R`` (6, 6), :func:`registration_covariance`, sensor frame,
+        axes x y z rx ry rz), both sensor motions over one sweep (4x4)."""
         cfg = self.config
         P = np.diag(np.array([cfg.wheel_sigma_m] * 3 + [cfg.wheel_sigma_rad] * 3) ** 2)
-        R = registration_covariance(info, quality, cfg)
         x_pred = to_vector(delta_pred)
         innovation = to_vector(delta_icp) - x_pred
         K = P @ np.linalg.inv(P + R)

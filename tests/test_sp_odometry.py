@@ -238,7 +238,13 @@ def test_registration_information_finds_the_unconstrained_directions() -> None:
 def test_fusion_keeps_the_wheels_along_a_direction_the_scene_does_not_constrain() -> None:
     """A registration that slid 0.3 m forward on bare ground is not believed along x, while
     its z (which the ground pins) is; with walls the same slide is believed."""
-    from sp.odometry import LadarOdometry, OdometryConfig, from_vector, registration_information
+    from sp.odometry import (
+        LadarOdometry,
+        OdometryConfig,
+        from_vector,
+        registration_covariance,
+        registration_information,
+    )
 
     rng = np.random.default_rng(4)
     cfg = OdometryConfig()
@@ -247,13 +253,13 @@ def test_fusion_keeps_the_wheels_along_a_direction_the_scene_does_not_constrain(
     icp = from_vector(np.array([1.3, 0.0, 0.02, 0.0, 0.0, 0.0]))
     ground = _plane_points(rng, 2, -1.6)
     H = registration_information(ground, ground[::5], np.eye(4), np.eye(4), cfg)
-    fused = odo._fuse(pred, icp, 1.0, H)
+    fused = odo._fuse(pred, icp, registration_covariance(H, 1.0, cfg))
     assert fused[0, 3] == pytest.approx(1.0, abs=0.01)
     assert fused[2, 3] > 0.01  # more than half the way to the registration
     walls = np.vstack([ground, _plane_points(rng, 0, 12.0), _plane_points(rng, 1, -8.0)])
     H = registration_information(walls, walls[::5], np.eye(4), np.eye(4), cfg)
     icp_small = from_vector(np.array([1.02, 0.0, 0.0, 0.0, 0.0, 0.0]))
-    fused = odo._fuse(pred, icp_small, 1.0, H)
+    fused = odo._fuse(pred, icp_small, registration_covariance(H, 1.0, cfg))
     assert fused[0, 3] - 1.0 > 0.25 * 0.02  # at least a quarter of the registration's say
 
 
