@@ -39,10 +39,7 @@ class ClassPrototype:
     value is the centre of the class's ``log(x + eps)`` and each weight one over its standard
     deviation, and the classifier scores it by that likelihood (``sp.classify``); otherwise
     the values are written down (catalogue dimensions) and scored by the normalised dot
-    product of reference 001, 4.5.1. ``modes``: a fitted class the sensor shows in several ways
-    (a car seen whole, a parked car seen as its roof over the row in front) has one (attributes,
-    weights) pair per way, fitted on its cluster of samples; it matches as its best mode, and
-    ``attributes`` and ``weights`` describe the class as a whole."""
+    product of reference 001, 4.5.1."""
 
     name: str
     kind: ClassKind
@@ -52,7 +49,6 @@ class ClassPrototype:
     weights: Mapping[str, float] = field(default_factory=dict)
     value: Value = field(default_factory=Value)
     fitted: bool = False
-    modes: tuple[tuple[Mapping[str, float], Mapping[str, float]], ...] = ()
 
 
 class ClassLibrary:
@@ -87,15 +83,11 @@ class ClassLibrary:
             for row in rows:
                 base = self.get(str(row["name"]))
                 attrs = row["attributes"]
-                modes = tuple(
-                    ({k: float(v[0]) for k, v in m.items()}, {k: float(v[1]) for k, v in m.items()})
-                    for m in row.get("modes") or ()
-                )
                 fitted = ClassPrototype(
                     base.name, base.kind, base.level, base.is_a,
                     attributes={k: float(v[0]) for k, v in attrs.items()},
                     weights={k: float(v[1]) for k, v in attrs.items()},
-                    value=base.value, fitted=True, modes=modes,
+                    value=base.value, fitted=True,
                 )  # fmt: skip
                 self.add(fitted)
         except (yaml.YAMLError, KeyError, TypeError, ValueError, IndexError) as e:
@@ -174,11 +166,6 @@ class ClassLibrary:
         for k, v in (*p.attributes.items(), *p.weights.items()):
             if not math.isfinite(v):
                 raise KDError(f"{where}: attribute {k!r} has a non-finite value or weight {v!r}")
-        for attributes, weights in p.modes:
-            if set(weights) != set(attributes) or not all(
-                math.isfinite(v) and v >= 0 for v in (*attributes.values(), *weights.values())
-            ):
-                raise KDError(f"{where}: a mode with bad values or weights: {dict(attributes)}")
         if any(w < 0 for w in p.weights.values()):
             raise KDError(f"{where}: negative weight in {dict(p.weights)}")
         for k in VALUE_FIELDS:

@@ -10,7 +10,6 @@ process dies mid-way (DuckDB's write-ahead log is replayed on the next open).
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import zlib
@@ -46,8 +45,8 @@ Connection = duckdb.DuckDBPyConnection
 
 #: 1: frames, states, events, relations, classes. 2: adds ``map_tile_rows``. 3: adds
 #: ``run_rows`` and a ``run_id`` on every row of the other data tables (rows of older files
-#: become run 0). 4: ``fitted`` and ``modes`` on ``class_prototypes`` (older prototypes were
-#: written down, not fitted). Older files are migrated when opened for writing; read-only,
+#: become run 0). 4: ``fitted`` on ``class_prototypes`` (older prototypes were written
+#: down, not fitted). Older files are migrated when opened for writing; read-only,
 #: they are read as they are (no tiles in version 1, every row in run 0, none fitted).
 SCHEMA_VERSION = 4
 OLDEST_VERSION = 1
@@ -140,7 +139,6 @@ def _migrate(con: duckdb.DuckDBPyConnection, version: int) -> None:
             con, "class_prototypes", "fitted"
         ):
             con.execute("ALTER TABLE class_prototypes ADD COLUMN fitted BOOLEAN DEFAULT false")
-            con.execute("ALTER TABLE class_prototypes ADD COLUMN modes VARCHAR DEFAULT '[]'")
         con.execute(resources.files("kd_store").joinpath("schema.sql").read_text())
         if version < 3:
             con.execute(
@@ -440,9 +438,6 @@ def classes_to_arrow(protos: list[ClassPrototype]) -> pa.Table:
     for k in VALUE_FIELDS:
         cols[k] = pa.array([float(getattr(p.value, k)) for p in protos], type=pa.float64())
     cols["fitted"] = pa.array([p.fitted for p in protos], type=pa.bool_())
-    cols["modes"] = pa.array(
-        [json.dumps([[dict(a), dict(w)] for a, w in p.modes]) for p in protos], type=pa.string()
-    )
     return pa.table(cols)
 
 
@@ -457,7 +452,6 @@ def classes_from_arrow(table: pa.Table) -> list[ClassPrototype]:
             weights=dict(r["weights"]),
             value=Value(**{k: r[k] for k in VALUE_FIELDS}),
             fitted=bool(r.get("fitted") or False),  # files before schema version 4: none
-            modes=tuple((a, w) for a, w in json.loads(r.get("modes") or "[]")),
         )
         for r in table.to_pylist()
     ]

@@ -106,8 +106,7 @@ CREATE TABLE IF NOT EXISTS class_prototypes (
     worth_defeat DOUBLE NOT NULL,
     cost DOUBLE NOT NULL,
     risk DOUBLE NOT NULL,
-    fitted BOOLEAN NOT NULL DEFAULT false,
-    modes VARCHAR NOT NULL DEFAULT '[]'  -- JSON: [[{attribute: value}, {attribute: weight}], ...]
+    fitted BOOLEAN NOT NULL DEFAULT false
 );
 
 -- One row per layer of a map tile (kd_store/tiles.py); a tile's rows are written together.
@@ -183,7 +182,7 @@ FROM (SELECT id, created_ns, run_id, unnest(images) AS img FROM entity_frames);
 
 CREATE OR REPLACE VIEW classes AS
 SELECT name, kind, level, is_a, attributes, weights,
-       worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk, fitted, modes
+       worth_preserve, worth_acquire, worth_defend, worth_defeat, cost, risk, fitted
 FROM class_prototypes;
 
 CREATE OR REPLACE VIEW map_tiles AS

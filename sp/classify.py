@@ -43,12 +43,11 @@ written-down ones of their level in the default library, since what a sensor sho
 (a person's head between two scan rows, a parked car's roof over the row in front) is learned
 better than written down. Their values are the centres of the classes' ``log(x + eps)`` and
 their weights one over its spread, so they are scored by that likelihood instead of the dot
-product (:meth:`Classifier._likelihood`; a class seen in several ways has one vector per way,
-``modes``, and matches as its best); the ``AT_MOST`` rule holds for them too (the value is the
-most the class showed), and so do the ``PLAUSIBLE`` bounds but for the lower bounds of the
+product (:func:`_likelihood`). The ``AT_MOST`` rule holds for them too (the value is the most
+the class usually showed), and so do the ``PLAUSIBLE`` bounds but for the lower bounds of the
 extents, which partial views undercut and the fit has seen (a person's stay:
-``WHOLE_EXTENTS``). The two kinds of score are not
-on one scale, so a level with fitted prototypes classifies by those alone.
+``WHOLE_EXTENTS``). The two kinds of score are not on one scale, so a level with fitted
+prototypes classifies by those alone.
 
 The written-down rules and prototypes come from published typical dimensions (cars 3.5-5.5 m long,
 1.5-2.1 m wide, 1.3-2.0 m high; persons 1.0-2.0 m high, 0.3-0.9 m wide; free-standing walls
@@ -187,13 +186,8 @@ class Classifier:
             {a: p.weights[a] * self._log(a, v) for a, v in p.attributes.items()}
             for p in self.protos
         ]
-        # a fitted class's spread per attribute is judged against the typical spread of the
-        # fitted classes (their geometric mean), so a broad class pays for its breadth
-        modes = [m for p in self.protos if p.fitted for m in _modes(p)]
-        self.log_sd_ref = {
-            a: float(np.mean([-math.log(w[a]) for _, w in modes if w.get(a, 0) > 0]))
-            for a in {a for v, _ in modes for a in v}
-        }
+        self.names = names
+        self._fitted = _fitted_terms([p for p in self.protos if p.fitted], names)
 
     def _log(self, a: str, v: float) -> float:
         return math.log(max(v, 0.0) + EPS.get(a, DEFAULT_EPS)) - self.mu[a]
@@ -208,7 +202,7 @@ class Classifier:
         array operations per prototype, not a Python loop per entity."""
         if not rows:
             return []
-        names = sorted(self.mu)
+        names = self.names
         X = np.array([[float(r.get(a, math.nan)) for a in names] for r in rows], dtype=np.float64)
         eps = np.array([EPS.get(a, DEFAULT_EPS) for a in names])
         mu = np.array([self.mu[a] for a in names])
@@ -217,9 +211,7 @@ class Classifier:
         S = np.full((len(rows), len(self.protos)), np.nan)
         for j, (p, fp) in enumerate(zip(self.protos, self._feat, strict=True)):
             if p.fitted:
-                scored = [self._likelihood(F + mu, names, *m) for m in _modes(p)]
-                score = np.max([sc for sc, _ in scored], axis=0)
-                use = scored[0][1]
+                score, use = _likelihood(F + mu, *self._fitted[p.name])
                 ok = plausible(X, names, p.name, least_extents=p.name in WHOLE_EXTENTS)
                 S[:, j] = np.where(use.any(axis=1), np.where(ok, score, IMPLAUSIBLE), np.nan)
                 continue
@@ -241,39 +233,6 @@ class Classifier:
             )
             for i in range(len(rows))
         ]
-
-    def _likelihood(
-        self,
-        F: np.ndarray,
-        names: Sequence[str],
-        values: Mapping[str, float],
-        weights: Mapping[str, float],
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Score (R,) of a fitted prototype (or one of its modes: ``values``, ``weights``) for
-        features ``F`` (R, A) = log(x + eps), and the attributes (R, A) it used:
-        ``exp(-mean_a(rho(z_a) + log(sd_a / sd_ref_a)))`` over the attributes both have, with
-        ``z_a`` the standardised distance from the class centre and ``rho`` Huber's loss
-        (quadratic to ``HUBER_K``, linear beyond, so one odd attribute, such as a length cut
-        short by an occluder, counts against a class but does not veto it). 1 at the centre
-        of a class of typical spread; a geometric mean of likelihood ratios, so classes
-        compare over the same attributes."""
-        has = np.array([a in values for a in names])
-        use = np.isfinite(F) & has
-        w = np.array([weights.get(a, 1.0) for a in names])
-        c = np.array(
-            [math.log(max(values.get(a, 0.0), 0.0) + EPS.get(a, DEFAULT_EPS)) for a in names]
-        )
-        log_sd = -np.log(np.maximum(w, 1e-9))
-        log_ref = np.array([self.log_sd_ref.get(a, 0.0) for a in names])
-        d = np.where(use, F, 0.0) - c
-        at_most = np.array([a in AT_MOST for a in names])
-        # an AT_MOST value is the most the class showed: stillness is no evidence against
-        # a mobile class, motion is evidence against a static one
-        z = np.where(at_most, np.maximum(d, 0.0), np.abs(d)) * w
-        rho = np.where(z <= HUBER_K, 0.5 * z**2, HUBER_K * z - 0.5 * HUBER_K**2)
-        penalty = np.where(use, rho + log_sd - log_ref, 0.0)
-        n = use.sum(axis=1)
-        return np.exp(-penalty.sum(axis=1) / np.maximum(n, 1)), use
 
     def _as_seen(
         self,
@@ -315,9 +274,54 @@ class Classifier:
         return Match(best, scores[best], generic, scores)
 
 
-def _modes(p: ClassPrototype) -> tuple[tuple[Mapping[str, float], Mapping[str, float]], ...]:
-    """A fitted prototype's (values, weights) per mode (itself when it has none)."""
-    return p.modes or ((p.attributes, p.weights),)
+def _fitted_terms(
+    protos: Sequence[ClassPrototype], names: Sequence[str]
+) -> dict[str, tuple[np.ndarray, ...]]:
+    """Per fitted prototype, over the attributes ``names``: which it has (A,) bool, which are
+    ``AT_MOST`` (A,) bool, its centre ``log(value + eps)`` (A,), its weight ``1 / sd`` (A,)
+    and ``log(sd / sd_ref)`` (A,), the spread judged against the typical spread of the fitted
+    classes (their geometric mean), so a broad class pays for its breadth."""
+    log_sd = {p.name: {a: -math.log(max(w, 1e-9)) for a, w in p.weights.items()} for p in protos}
+    ref = {
+        a: float(np.mean([sd[a] for sd in log_sd.values() if a in sd]))
+        for a in {a for sd in log_sd.values() for a in sd}
+    }
+    at_most = np.array([a in AT_MOST for a in names])
+    out = {}
+    for p in protos:
+        has = np.array([a in p.attributes for a in names])
+        c = np.array(
+            [math.log(max(p.attributes.get(a, 0.0), 0.0) + EPS.get(a, DEFAULT_EPS)) for a in names]
+        )
+        w = np.array([p.weights.get(a, 1.0) for a in names])
+        spread = np.array([log_sd[p.name].get(a, 0.0) - ref.get(a, 0.0) for a in names])
+        out[p.name] = (has, at_most, c, w, spread)
+    return out
+
+
+def _likelihood(
+    F: np.ndarray,
+    has: np.ndarray,
+    at_most: np.ndarray,
+    c: np.ndarray,
+    w: np.ndarray,
+    spread: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Score (R,) of a fitted prototype (its :func:`_fitted_terms`) for features ``F`` (R, A)
+    = log(x + eps), and the attributes (R, A) it used:
+    ``exp(-mean_a(rho(z_a) + log(sd_a / sd_ref_a)))`` over the attributes both have, with
+    ``z_a`` the standardised distance from the class centre and ``rho`` Huber's loss
+    (quadratic to ``HUBER_K``, linear beyond, so one odd attribute, such as a length cut
+    short by an occluder, counts against a class but does not veto it). 1 at the centre of a
+    class of typical spread; a geometric mean of likelihood ratios, so classes compare over
+    the same attributes. An ``AT_MOST`` attribute counts only above the centre: stillness is
+    no evidence against a mobile class, motion is evidence against a static one."""
+    use = np.isfinite(F) & has
+    d = np.where(use, F, 0.0) - c
+    z = np.where(at_most, np.maximum(d, 0.0), np.abs(d)) * w
+    rho = np.where(z <= HUBER_K, 0.5 * z**2, HUBER_K * z - 0.5 * HUBER_K**2)
+    penalty = np.where(use, rho + spread, 0.0)
+    return np.exp(-penalty.sum(axis=1) / np.maximum(use.sum(axis=1), 1)), use
 
 
 EXTENTS = frozenset({"length_m", "width_m", "height_m"})  # what a partial view cuts short

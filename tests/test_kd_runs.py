@@ -111,7 +111,6 @@ def _as_version_2(path: Path) -> None:
     con = duckdb.connect(str(path))
     con.execute("DROP VIEW classes")
     con.execute("ALTER TABLE class_prototypes DROP COLUMN fitted")
-    con.execute("ALTER TABLE class_prototypes DROP COLUMN modes")
     con.execute("DROP VIEW runs")
     con.execute("DROP TABLE run_rows")
     for view in VIEWS:  # version 2's views had no run_id; the migration makes them again

@@ -55,12 +55,6 @@ TRUE_TO_LIBRARY: dict[str, str] = {"wall": "freestanding wall"}
 MIN_STD = 0.05  # floor of a fitted spread (log units): a class never seen to vary still may
 LABEL_DISTANCE_M = 0.3  # a track's centre this close to a true box's footprint takes its class
 MIN_SAMPLES = 30  # a class (or a mode) with fewer (track, sweep) samples is not fitted
-# clusters of samples a class is fitted with at most, one per SAMPLES_PER_MODE samples. On
-# development seeds 5-8, four modes named more tracks right in the parking lot and the village
-# and fewer in the default and open worlds than one (the class medians of 16 runs), so the
-# shipped prototypes have one; a sensor whose views of a class differ more may want several
-MAX_MODES = 1
-SAMPLES_PER_MODE = 1000
 USUAL_MOST = 90  # percentile an AT_MOST attribute's prototype value is taken at
 
 
@@ -157,29 +151,19 @@ def _take(node, boxes_at: dict[int, ObjectBoxes], t_ns: int, name: str, out: Sam
 @dataclass(frozen=True)
 class FittedClass:
     """One class's fitted prototype: value and weight (1 / std of ``log(x + eps)``) per
-    attribute over all its samples, the same per mode (``modes``: a class the sensor shows in
-    several ways, such as a car seen whole while it passes and a parked car seen as its roof
-    and bonnet over the row in front, is one cluster of samples per way), with the samples
-    and tracks it came from."""
+    attribute, with the samples and tracks it came from."""
 
     name: str
     attributes: dict[str, float]
     weights: dict[str, float]
     samples: int
     tracks: int
-    modes: tuple[tuple[dict[str, float], dict[str, float]], ...] = ()
 
 
-def fit(
-    samples: Samples,
-    attributes: Sequence[str] = FIT_ATTRIBUTES,
-    max_modes: int = MAX_MODES,
-) -> list[FittedClass]:
+def fit(samples: Samples, attributes: Sequence[str] = FIT_ATTRIBUTES) -> list[FittedClass]:
     """Per class with at least ``MIN_SAMPLES`` samples: per attribute, the mean and standard
     deviation of ``log(x + eps)`` over the samples that have it (the 1st to 99th percentile,
-    so a few broken segments do not set the spread); and the same per mode, the clusters
-    k-means finds among the samples in standardised features, one per
-    ``SAMPLES_PER_MODE`` samples up to ``max_modes``."""
+    so a few broken segments do not set the spread)."""
     from sp.classify import DEFAULT_EPS, EPS
 
     eps = np.array([EPS.get(a, DEFAULT_EPS) for a in attributes])
@@ -197,10 +181,8 @@ def fit(
         with np.errstate(invalid="ignore"):
             F = np.log(np.maximum(X, 0.0) + eps)  # NaN stays NaN: not observed
         values, weights = _centre_spread(F, attributes)
-        k = min(max_modes, len(idx) // SAMPLES_PER_MODE)
-        modes = tuple(_centre_spread(F[m], attributes) for m in _clusters(F, k)) if k > 1 else ()
         tracks = len({samples.tracks[i] for i in idx})
-        out.append(FittedClass(c, values, weights, len(idx), tracks, modes))
+        out.append(FittedClass(c, values, weights, len(idx), tracks))
     return out
 
 
@@ -229,42 +211,19 @@ def _centre_spread(
     return values, weights
 
 
-def _clusters(F: np.ndarray, k: int, iterations: int = 50) -> list[np.ndarray]:
-    """Boolean masks of ``k`` k-means clusters of the rows of ``F`` (standardised per column,
-    an unobserved value at its column's mean), seeded by k-means++ from a fixed generator so
-    a fit is repeatable; clusters with fewer than ``MIN_SAMPLES`` rows are dropped."""
-    mu, sd = np.nanmean(F, axis=0), np.nanstd(F, axis=0)
-    Z = np.nan_to_num((F - mu) / np.where(sd > 0, sd, 1.0))
-    rng = np.random.default_rng(0)
-    C = Z[[rng.integers(len(Z))]]
-    while len(C) < k:  # k-means++: far rows are likelier seeds
-        d2 = ((Z[:, None, :] - C[None]) ** 2).sum(-1).min(axis=1)
-        C = np.vstack([C, Z[rng.choice(len(Z), p=d2 / d2.sum())]])
-    for _ in range(iterations):
-        label = ((Z[:, None, :] - C[None]) ** 2).sum(-1).argmin(axis=1)
-        C_new = np.array([Z[label == j].mean(0) if (label == j).any() else C[j] for j in range(k)])
-        if np.allclose(C_new, C):
-            break
-        C = C_new
-    return [label == j for j in range(k) if (label == j).sum() >= MIN_SAMPLES]
-
-
 def to_yaml(fitted: Iterable[FittedClass], provenance: Mapping[str, object]) -> str:
     """The fitted prototypes as a class-library overlay (``kd_store/classes_fitted.yaml``)."""
-    rows = []
-    for f in fitted:
-        row: dict[str, object] = {
+    rows = [
+        {
             "name": f.name,
             "fitted": {"samples": f.samples, "tracks": f.tracks},
             "attributes": {a: [f.attributes[a], f.weights[a]] for a in f.attributes},
         }
-        if f.modes:
-            row["modes"] = [{a: [v[a], w[a]] for a in v} for v, w in f.modes]
-        rows.append(row)
+        for f in fitted
+    ]
     head = (
         "# Level-4 class prototypes fitted by wm/fit_classes.py (values: exp(mean log(x + eps))"
-        " - eps;\n# weights: 1 / std of log(x + eps); modes: the same per cluster of samples)."
-        " Generated; do not edit by hand.\n"
+        " - eps;\n# weights: 1 / std of log(x + eps)). Generated; do not edit by hand.\n"
     )
     return head + yaml.safe_dump(
         {"provenance": dict(provenance), "classes": rows},
@@ -285,7 +244,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--cache", default="out/eval-logs", help="simulated logs (made when missing)")
     ap.add_argument("--out", default="kd_store/classes_fitted.yaml")
-    ap.add_argument("--max-modes", type=int, default=MAX_MODES, help="clusters per class")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     bad = sorted(set(args.seeds) & set(EVAL_SEEDS))
@@ -298,16 +256,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             s = collect(path)
             log.info("%s: %d labelled samples", path.name, len(s))
             samples.extend(s)
-    fitted = fit(samples, max_modes=args.max_modes)
+    fitted = fit(samples)
     provenance = {
         "scenarios": list(args.scenarios),
         "seeds": list(args.seeds),
         "seconds": args.seconds,
         "samples": len(samples),
         "attributes": list(FIT_ATTRIBUTES),
-        "max_modes": args.max_modes,
         "usual_most_percentile": USUAL_MOST,
-        "samples_per_mode": SAMPLES_PER_MODE,
     }
     Path(args.out).write_text(to_yaml(fitted, provenance))
     for f in fitted:
