@@ -97,6 +97,44 @@ def test_curb_is_stepped_over() -> None:
     assert np.count_nonzero(ground) >= 0.97 * np.count_nonzero(valid)
 
 
+def _columns(profile: list[tuple[float, float]], n_cols: int = 90) -> tuple[np.ndarray, np.ndarray]:
+    """An image whose every column holds the returns ``profile`` ((range m, height m) from the
+    sensor, in order of rising elevation, bottom row first), at azimuths around the sensor."""
+    rows = len(profile)
+    az = np.linspace(-np.pi, np.pi, n_cols, endpoint=False)
+    r = np.array([p[0] for p in profile])[::-1, None]  # row 0 is the highest
+    z = np.array([p[1] for p in profile])[::-1, None]
+    xyz = np.stack(np.broadcast_arrays(r * np.cos(az), r * np.sin(az), z), axis=-1)
+    return np.ascontiguousarray(xyz, dtype=np.float64), np.ones((rows, n_cols), dtype=bool)
+
+
+NEAR_GROUND = [(2.0 + 0.5 * k, -SENSOR_H) for k in range(6)]  # 2 .. 4.5 m
+CAR_FACE = [(5.0, z) for z in (-1.6, -1.3, -1.0, -0.7, -0.4)]  # a parked car's side, 1.4 m
+
+
+def test_roof_of_a_car_behind_a_car_is_not_ground() -> None:
+    # a sweep sees over the first parked car only the roof of the one behind it: a flat run
+    # 1.3 m above the ground 13-15 m out, rising 5.5 degrees from the ground before the first
+    roof = [(13.0 + 0.5 * k, -0.5) for k in range(5)]
+    xyz, valid = _columns(NEAR_GROUND + CAR_FACE + roof)
+    on_roof = np.zeros(valid.shape, dtype=bool)
+    on_roof[: len(roof)] = True
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert ground[-len(NEAR_GROUND) :].all()
+    assert not ground[on_roof].any()
+    # the earlier, steeper resume rule took the roof for ground
+    steep, _ = ground_mask(xyz, valid, GroundConfig(resume_slope_deg=15.0))
+    assert steep[on_roof].all()
+
+
+def test_gentle_hill_behind_a_car_is_ground() -> None:
+    hill = [(r, -SENSOR_H + (r - 6.0) * math.tan(math.radians(3.0))) for r in range(8, 21, 2)]
+    xyz, valid = _columns(NEAR_GROUND + CAR_FACE + hill)
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    face = slice(len(hill), len(hill) + len(CAR_FACE) - 1)  # the face above its foot
+    assert ground[: len(hill)].all() and not ground[face].any()
+
+
 def test_contiguity_groups_the_box_and_separates_two() -> None:
     xyz, _, box = flat_scene(box_xy=(10.0, 0.0))
     xyz2, _, box2 = flat_scene(box_xy=(10.0, 5.0))
