@@ -22,8 +22,9 @@ from fixtures.simulate import simulate_to_log
 from kd_store import Level, State, Status
 from logs import open_log
 from maps.level import LevelConfig, MapLevel
-from wm.cli import main
+from wm.cli import _parse_waypoints, main, whatif_lines
 from wm.config import NodeConfig, PoseSource
+from wm.engine_config import EngineConfig
 from wm.node import WorldModelNode
 from wm.render import render_maps
 from wm.tiles import KDTileStore, TileError, stored_maps
@@ -44,12 +45,8 @@ class Live:
         }
 
 
-@pytest.fixture(scope="module")
-def ran(tmp_path_factory) -> tuple[Path, Path, Live]:
-    """A 1.5 s simulated log through `wm run --kd` (in this process, so the node is seen)."""
-    d = tmp_path_factory.mktemp("stored")
-    log = simulate_to_log("default", d / "s.mcap", seconds=1.5, seed=3, progress=False)
-    kd = d / "kd.duckdb"
+def _run_seen(log: Path, kd: Path, *flags: str) -> Live:
+    """`wm run LOG --kd KD` with ``flags``, in this process, so the node is seen."""
     nodes: list[WorldModelNode] = []
 
     class Recorded(WorldModelNode):
@@ -59,10 +56,19 @@ def ran(tmp_path_factory) -> tuple[Path, Path, Live]:
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(wm.run, "WorldModelNode", Recorded)
-        rc = main(["run", str(log), "--kd", str(kd), *ODOMETRY, "--no-progress",
+        rc = main(["run", str(log), "--kd", str(kd), *flags, "--no-progress",
                    "--decode-in-process"])  # fmt: skip
     assert rc == 0 and len(nodes) == 1
-    return log, kd, Live(nodes[0])
+    return Live(nodes[0])
+
+
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory) -> tuple[Path, Path, Live]:
+    """A 1.5 s simulated log through `wm run --kd` (in this process, so the node is seen)."""
+    d = tmp_path_factory.mktemp("stored")
+    log = simulate_to_log("default", d / "s.mcap", seconds=1.5, seed=3, progress=False)
+    kd = d / "kd.duckdb"
+    return log, kd, _run_seen(log, kd, *ODOMETRY)
 
 
 def test_the_stored_maps_are_the_live_windows(ran) -> None:
@@ -245,3 +251,119 @@ def test_a_kd_written_before_the_layer_rename_still_loads(tmp_path: Path) -> Non
         stored = kd.get_tile("t", 0, 0)
     assert "z_m2" not in stored
     np.testing.assert_array_equal(stored["z_sq_dev_sum"], m2)
+
+
+# the run's map stack differs from the default in geometry: a coarser and smaller subsystem
+# level (0.5 m, 192 cells, not 0.4 m, 256) and a fifth level the default has not
+OTHER_MAPS = """maps:
+  levels:
+    - {name: primitive, resolution_m: 0.04, keep_tiles: false}
+    - {name: subsystem, resolution_m: 0.5, size: 192}
+    - {name: vehicle, resolution_m: 4.0}
+    - {name: section, resolution_m: 30.0}
+    - {name: region, resolution_m: 120.0, size: 16, tile_cells: 16}
+"""
+
+
+def test_the_kd_forms_read_the_maps_with_the_runs_configuration(
+    ran, tmp_path: Path, capsys
+) -> None:
+    """A run with another map configuration: `wm render --kd` and `wm whatif --kd` rebuild its
+    maps with the K.config.yaml it recorded (or --config), not the default geometry."""
+    log = ran[0]
+    cfg = tmp_path / "maps.yaml"
+    cfg.write_text(OTHER_MAPS)
+    kd_path = tmp_path / "other.duckdb"
+    live = _run_seen(log, kd_path, "--config", str(cfg))
+    assert [(lvl.name, lvl.resolution_m, lvl.size) for lvl in live.stack.levels][1:] == [
+        ("subsystem", 0.5, 192), ("vehicle", 4.0, 256), ("section", 30.0, 256),
+        ("region", 120.0, 16),
+    ]  # fmt: skip
+    recorded = Path(f"{kd_path}.config.yaml")
+    assert EngineConfig.from_yaml(recorded) == EngineConfig.from_yaml(cfg)
+    capsys.readouterr()
+
+    # pictures: every level of the run, drawn as the live maps are (the default would draw
+    # 8, the subsystem level's 256 cells of 0.4 m)
+    assert main(["render", "--kd", str(kd_path), str(tmp_path / "kd")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    stored = sorted((tmp_path / "kd").glob("*.png"))
+    assert len(stored) == 10 and "level6_region_elevation.png" in {p.name for p in stored}
+    assert f"note: configuration {recorded} (recorded with KD {kd_path})" in out
+    with kd_store.open(kd_path, read_only=True) as kd:
+        maps = stored_maps(kd, EngineConfig.from_yaml(recorded).maps)
+        for lvl in maps.stack.levels:
+            for name, arr in live.windows[lvl.name].items():
+                assert np.array_equal(lvl.window(name), arr, equal_nan=True), (lvl.name, name)
+        assert stored_maps(kd).stack.level("subsystem").size == 256  # what the default reads
+        render_maps(kd, live.stack, maps.self_id, tmp_path / "live")
+        for p in stored:
+            a, b = cv2.imread(str(p)), cv2.imread(str(tmp_path / "live" / p.name))
+            assert a.shape == b.shape and np.array_equal(a, b), p.name
+        plan = "0,0,0;2,10,0;4,20,0"
+        t_s, xy_body = _parse_waypoints(plan)
+        want = whatif_lines(
+            kd, live.stack, maps.self_id, live.T_world_body, t_s, xy_body, "subsystem"
+        )
+
+    # What If over the run's subsystem level says what it says over the live maps
+    assert main(["whatif", "--kd", str(kd_path), "--waypoints", plan]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("note: configuration") and out[-4:] == want
+    # --config wins over the recorded file: with the default geometry the cells are misread
+    default = tmp_path / "default.yaml"
+    default.write_text("{}\n")
+    argv = ["whatif", "--kd", str(kd_path), "--config", str(default), "--waypoints", plan]
+    assert main(argv) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == f"note: configuration {default} (from --config)"
+    assert out[-4:] != want  # the risk along the plan
+
+
+def test_commands_writing_a_kd_record_its_configuration_and_continue_with_it(
+    ran, tmp_path: Path, capsys
+) -> None:
+    """`wm whatif LOG --kd K --config FILE` records K.config.yaml as `wm run` does, and a run
+    added to K (`--append`, no --config) takes that configuration: its maps continue K's."""
+    log = ran[0]
+    cfg = tmp_path / "maps.yaml"
+    cfg.write_text(OTHER_MAPS)
+    kd_path = tmp_path / "k.duckdb"
+    argv = ["whatif", str(log), "--kd", str(kd_path), "--config", str(cfg), "--seconds", "0.5"]
+    assert main([*argv, "--waypoints", "0,0,0;2,10,0"]) == 0
+    recorded = Path(f"{kd_path}.config.yaml")
+    assert EngineConfig.from_yaml(recorded) == EngineConfig.from_yaml(cfg)
+    capsys.readouterr()
+    argv = ["run", str(log), "--kd", str(kd_path), "--append", "--seconds", "0.3"]
+    assert main([*argv, "--no-progress", "--decode-in-process"]) == 0
+    with kd_store.open(kd_path, read_only=True) as kd:
+        assert kd.run_id == 1
+        levels = kd.sql("SELECT DISTINCT level FROM map_tiles WHERE run_id = 1").columns[0]
+        assert "region" in levels.to_pylist()  # the appended run's own tiles: its maps had it
+    assert EngineConfig.from_yaml(recorded) == EngineConfig.from_yaml(cfg)
+    assert f"note: configuration {recorded} (recorded with KD {kd_path})" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", ["render", "whatif"])
+def test_a_configuration_that_does_not_parse_is_one_line_naming_it(
+    tmp_path: Path, capsys, command: str
+) -> None:
+    path = tmp_path / "bare.duckdb"
+    _kd_without_tiles(path)
+    args = [str(tmp_path / "out")] if command == "render" else ["--waypoints", "0,0,0;1,1,0"]
+    recorded = Path(f"{path}.config.yaml")
+    recorded.write_text("maps: {levels: [\n")  # cut short: not YAML
+    assert main([command, "--kd", str(path), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{recorded}: not a YAML document: expected" in err[0], err
+    assert "at line 2, column 1" in err[0]
+    assert "give --config FILE" in err[0]
+    recorded.write_text("maps: {levls: []}\n")  # a misspelt key
+    assert main([command, "--kd", str(path), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{recorded}: maps.levls: unknown key" in err[0], err
+    missing = tmp_path / "none.yaml"
+    assert main([command, "--kd", str(path), "--config", str(missing), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"wm {command}: error: --config {missing}: the file does not exist"]
+    assert not (tmp_path / "out").exists()

@@ -6,7 +6,8 @@
     wm run LOG --kd KD.duckdb [--overwrite | --append] [--report report.json] [--render DIR]
            [--poses odometry|truth] [--skip-corrupt]  (an existing KD only with one of them)
            [--snapshot S.duckdb [--snapshot-every 5]]  (a read-only copy others may open)
-           [--config FILE.yaml]  (also serve, whatif, render; KD.config.yaml records the run's)
+           [--config FILE.yaml]  (also serve, whatif, render; KD.config.yaml records the run's,
+           which a command over an existing KD reads when --config is not given)
     wm config --default | FILE.yaml                    (the whole configuration as YAML)
     wm check KD.duckdb                                 (integrity: rows point at frames)
     wm whatis KD.duckdb [--entity ID] [--t-ns T]
@@ -176,16 +177,40 @@ def _parquet_target(value: str, kd: Path, overwrite: bool = False) -> Path:
     return out
 
 
-def _engine_config(args: argparse.Namespace):
-    """The run's configuration: ``--config FILE`` over the defaults, then the flags given
-    (--poses, --snapshot, --snapshot-every) over that."""
+def _recorded_config_path(kd: str | Path) -> Path:
+    """Where ``wm run --kd K`` records the configuration it ran with: ``K.config.yaml``."""
+    return Path(f"{kd}.config.yaml")
+
+
+def _config_file(args: argparse.Namespace, kd: str | None = None) -> tuple[Path | None, bool]:
+    """The configuration file a command reads, and whether it is the one recorded next to the
+    KD: ``--config FILE`` if given, else ``K.config.yaml`` beside an existing KD file ``kd``
+    (its map tiles have the geometry of the run that wrote them), else None (the defaults)."""
+    given = getattr(args, "config", None)
+    if given is not None:
+        return Path(given), False
+    if kd is None or kd == ":memory:" or not Path(kd).is_file():
+        return None, False
+    recorded = _recorded_config_path(kd)
+    return (recorded, True) if recorded.is_file() else (None, False)
+
+
+def _engine_config(args: argparse.Namespace, kd: str | None = None):
+    """The run's configuration: ``--config FILE`` over the defaults (without it, the
+    ``K.config.yaml`` recorded next to an existing KD file ``kd``), then the flags given
+    (--poses, --snapshot, --snapshot-every) over that. A file read is named in a note line."""
     from dataclasses import replace
 
     from wm.config import PoseSource
     from wm.engine_config import EngineConfig
 
-    path = getattr(args, "config", None)
-    engine = EngineConfig.from_yaml(path) if path is not None else EngineConfig()
+    path, recorded = _config_file(args, kd)
+    if path is None:
+        engine = EngineConfig()
+    else:
+        engine = _read_config(path, kd if recorded else None)
+        whose = f"recorded with KD {kd}" if recorded else "from --config"
+        print(f"note: configuration {path} ({whose})")
     flags = {
         "pose_source": PoseSource(args.poses) if getattr(args, "poses", None) else None,
         "snapshot_path": getattr(args, "snapshot", None),
@@ -196,6 +221,35 @@ def _engine_config(args: argparse.Namespace):
     except ValueError as e:  # a bad --snapshot-every
         raise UserError(str(e)) from None
     return replace(engine, node=node)
+
+
+def _read_config(path: Path, kd: str | None = None):
+    """The configuration file ``path`` (``kd``: the KD it was recorded with, if it was), or
+    one :class:`UserError` naming the file when it cannot be read or taken."""
+    from wm.engine_config import ConfigError, EngineConfig
+
+    flag = f"KD {kd}: its recorded configuration" if kd is not None else "--config"
+    try:
+        return EngineConfig.from_yaml(path)
+    except FileNotFoundError:
+        raise UserError(f"{flag} {path}: the file does not exist") from None
+    except (OSError, UnicodeDecodeError) as e:  # a folder, unreadable, not text
+        raise UserError(f"{flag} {path}: cannot be read ({e})") from None
+    except ConfigError as e:  # names the file and the dotted key already
+        if kd is None:
+            raise
+        raise UserError(f"{e} (give --config FILE to read KD {kd} with another)") from None
+
+
+def _record_config(kd: str, config) -> Path | None:
+    """Write ``config`` next to the KD file ``kd`` as ``K.config.yaml``, for the commands that
+    read the KD later without the log (None for an in-memory KD)."""
+    if kd == ":memory:":
+        return None
+    path = _recorded_config_path(kd)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    config.to_yaml(path)
+    return path
 
 
 def _check_log(path: str) -> Path:
@@ -268,15 +322,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     from wm.run import run_log
 
     log = _check_log(args.log)
-    config = _engine_config(args)
+    append = getattr(args, "append", False)
+    # a run added to a KD continues its maps: their geometry is the recorded configuration's
+    config = _engine_config(args, args.kd if append else None)
     if config.node.snapshot_path is not None:  # refused before --overwrite removes anything
         snapshot_target(args.kd, config.node.snapshot_path)
-    kd = _kd_target(args.kd, getattr(args, "overwrite", False), log, getattr(args, "append", False))
-    config_path = None
-    if kd != ":memory:":  # the configuration the run ran with, next to its results
-        config_path = Path(f"{kd}.config.yaml")
-        config_path.parent.mkdir(parents=True, exist_ok=True)
-        config.to_yaml(config_path)
+    kd = _kd_target(args.kd, getattr(args, "overwrite", False), log, append)
+    config_path = _record_config(kd, config)  # the configuration it ran with, by its results
     report = run_log(
         log,
         kd,
@@ -342,14 +394,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.host not in ("127.0.0.1", "localhost", "::1") and not token:
         print(f"warning: serving on {args.host} without a token", file=sys.stderr)
     limits = _serve_limits(args)
+    # a KD file that exists gets one more run, which continues its maps (their geometry is
+    # the recorded configuration's)
+    config = _engine_config(args, args.kd)
     if args.ingest:
         from wm.ingest import IngestNode
 
-        live = IngestNode(args.kd, _engine_config(args), args.queue).start()
+        live = IngestNode(args.kd, config, args.queue).start()
         what = f"ROS 2 messages posted to /v1/ingest (queue {args.queue} frames)"
     else:
-        live = LiveNode(_check_log(args.replay), args.kd, _engine_config(args), args.rate).start()
+        live = LiveNode(_check_log(args.replay), args.kd, config, args.rate).start()
         what = f"{args.replay} at {args.rate:g}x"
+    _record_config(args.kd, config)  # once the KD opened: never beside a file that is no KD
     print(f"serving {what} on http://{args.host}:{args.port}/v1 "
           f"(schema: /openapi.json); KD {args.kd}; Ctrl-C stops")  # fmt: skip
     # SIGTERM (a service manager's stop) ends the server like Ctrl-C: the web server shuts
@@ -478,8 +534,11 @@ def cmd_whatif(args: argparse.Namespace) -> int:
     if args.log is not None:
         from wm.run import run_node
 
-        node = run_node(_check_log(args.log), args.kd, _engine_config(args), seconds=args.seconds)
+        log = _check_log(args.log)
+        config = _engine_config(args, args.kd)  # a KD file that exists: its recorded one
+        node = run_node(log, args.kd, config, seconds=args.seconds)
         try:
+            _record_config(args.kd, config)  # for `wm whatif --kd` and `wm render --kd` later
             lines = whatif_lines(
                 node.kd, node.stack, node.self_id, node.stack.T_world_body, t_s, xy_body,
                 args.level,
@@ -493,7 +552,8 @@ def cmd_whatif(args: argparse.Namespace) -> int:
             raise UserError("whatif needs a LOG, or --kd KD.duckdb written by `wm run`")
         _no_log_options(args, "whatif")
         with _open_stored_kd(args.kd) as kd:
-            maps = stored_maps(kd)
+            # the maps' geometry (levels, resolutions, sizes) must be the run's
+            maps = stored_maps(kd, _engine_config(args, args.kd).maps)
             known = [lvl.name for lvl in maps.stack.levels]
             if args.level in known and args.level not in maps.levels:
                 raise TileError(
@@ -548,7 +608,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
         out = Path(args.out or paths_in[0])
         with _open_stored_kd(args.kd) as kd:
-            maps = stored_maps(kd)
+            # the maps' geometry (levels, resolutions, sizes) must be the run's
+            maps = stored_maps(kd, _engine_config(args, args.kd).maps)
             paths = render_maps(kd, maps.stack, maps.self_id, out, maps.levels)
         for lvl in maps.stack.levels:
             if lvl.name not in maps.levels:

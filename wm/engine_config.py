@@ -70,8 +70,12 @@ class EngineConfig:
         text = Path(path).read_text(encoding="utf-8")
         try:
             doc = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not a YAML document: {e}") from None
+        except yaml.YAMLError as e:  # one line: the problem and where (PyYAML's text spans
+            # several, with the line quoted)
+            mark = getattr(e, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            what = getattr(e, "problem", None) or str(e).splitlines()[0]
+            raise ConfigError(f"{path}: not a YAML document: {what}{where}") from None
         return cls.from_dict(doc, str(path))
 
     def to_dict(self) -> dict[str, Any]:
