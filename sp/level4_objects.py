@@ -242,7 +242,7 @@ class ObjectLevel:
         a = seg.attributes
         self._sensor_xy = T_world_ladar[:2, 3].copy()  # partial views lie on its side
         what = np.stack([a.length_m, a.width_m, a.height_m, a.yaw_rad], axis=1)
-        meas = Measurements(a.center_xyz, t_ns + a.t_offset_ns, what, a.range_m)
+        meas = Measurements(a.center_xyz, t_ns + a.t_offset_ns, what, a.range_m, a.n_pixels)
 
         def provisional_ids(n: int) -> np.ndarray:
             # a new hypothesis has no KD frame until it has been seen ``birth_hits`` times

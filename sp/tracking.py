@@ -80,6 +80,12 @@ class TrackerConfig:
                     extent: it allows for the error of an extent seen in part, which is small
                     on a small body (two people walking 0.8 m apart are two objects).
     alpha:          confidence gain per cycle; confirm / deny thresholds; min_hits to confirm.
+    min_hits_small, small_points: a track never measured with more than ``small_points``
+                    returns needs ``min_hits_small`` hits to be confirmed: a few returns
+                    standing out of the terrain for three sweeps are as often clutter (a
+                    bump, grass, a fold the ground missed) as an object, and clutter fades
+                    within half a second; a car of hundreds of returns is confirmed at
+                    ``min_hits``.
     q_static_m:     random walk (m per sqrt(s)) of the stationary model's position.
     llr0:           log-likelihood ratio (moving vs stationary) of a new track: a prior for
                     rest, as most things a vehicle passes do not move; llr_moving is the
@@ -111,6 +117,8 @@ class TrackerConfig:
     confirm: float = 0.7
     deny: float = 0.15
     min_hits: int = 3
+    min_hits_small: int = 5
+    small_points: int = 30
     max_misses: int = 8
     max_misses_per_m: float = 0.2
     part_margin_m: float = 0.5
@@ -128,16 +136,20 @@ class TrackerConfig:
 @dataclass
 class Measurements:
     """M observed entities: position (M, 3) world m, time (M,) int64 ns, what (M, 4):
-    length, width, height (m), yaw (rad); range (M,) m from the sensor (zeros if unknown)."""
+    length, width, height (m), yaw (rad); range (M,) m from the sensor (zeros if unknown);
+    n_points (M,) returns in each (unknown: many)."""
 
     position_xyz: np.ndarray
     t_ns: np.ndarray
     what: np.ndarray
     range_m: np.ndarray | None = None
+    n_points: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.range_m is None:
             self.range_m = np.zeros(self.position_xyz.shape[0])
+        if self.n_points is None:  # unknown: as many as an object needs
+            self.n_points = np.full(self.position_xyz.shape[0], np.iinfo(np.int64).max // 2)
 
     def __len__(self) -> int:
         return int(self.position_xyz.shape[0])
@@ -162,6 +174,7 @@ class Tracks:
     xs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # stationary position
     Ps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))  # and its covariance
     llr: np.ndarray = field(default_factory=lambda: np.zeros(0))  # moving vs stationary
+    points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # most returns
 
     def __len__(self) -> int:
         return int(self.id.shape[0])
@@ -480,6 +493,7 @@ class Tracker:
             tr.hits[ti] += 1
             tr.misses[ti] = 0
             tr.range_m[ti] = meas.range_m[mi]
+            tr.points[ti] = np.maximum(tr.points[ti], meas.n_points[mi])
         missed = np.ones(T, dtype=bool)
         missed[ti] = False
         tr.confidence[missed] *= 1.0 - cfg.alpha
@@ -570,9 +584,8 @@ class Tracker:
         tr = self.tracks
         hyp = tr.status == TrackStatus.HYPOTHESIZED
         conf = tr.status == TrackStatus.CONFIRMED
-        tr.status[hyp & (tr.confidence >= cfg.confirm) & (tr.hits >= cfg.min_hits)] = (
-            TrackStatus.CONFIRMED
-        )
+        need = np.where(tr.points > cfg.small_points, cfg.min_hits, cfg.min_hits_small)
+        tr.status[hyp & (tr.confidence >= cfg.confirm) & (tr.hits >= need)] = TrackStatus.CONFIRMED
         tr.status[hyp & ((tr.confidence < cfg.deny) | (tr.misses > cfg.max_misses_hyp))] = (
             TrackStatus.DENIED
         )
@@ -608,6 +621,7 @@ class Tracker:
             xs=meas.position_xyz[fm].copy(),
             Ps=P[:, :3, :3].copy(),
             llr=np.full(n, cfg.llr0),
+            points=np.asarray(meas.n_points)[fm].astype(np.int64),
         )
 
     def drop_finished(self) -> Tracks:

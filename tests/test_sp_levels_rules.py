@@ -155,6 +155,34 @@ def test_piece_inside_a_footprint_is_a_part_and_a_duplicate_goes() -> None:
     assert len(tr.tracks) == 1 and track_of.tolist() == [0, 0]
 
 
+def _status_after_hits(n_points: int | None, hits: int) -> TrackStatus:
+    tr = Tracker()
+    for k in range(hits):
+        t = k * SWEEP_NS
+        pts = None if n_points is None else np.array([n_points])
+        tr.step(Measurements(np.zeros((1, 3)), np.array([t]), _what(0.6, 0.5), None, pts), t)
+    return TrackStatus(int(tr.tracks.status[0]))
+
+
+def test_a_few_returns_need_more_sweeps_to_be_confirmed() -> None:
+    cfg = TrackerConfig()
+    assert cfg.min_hits < cfg.min_hits_small
+    # clutter of a few returns: still a hypothesis when a large object would be confirmed
+    assert _status_after_hits(cfg.small_points, cfg.min_hits) == TrackStatus.HYPOTHESIZED
+    assert _status_after_hits(cfg.small_points, cfg.min_hits_small) == TrackStatus.CONFIRMED
+    assert _status_after_hits(cfg.small_points + 1, cfg.min_hits) == TrackStatus.CONFIRMED
+    # measurements that do not say how many returns they hold are taken as objects
+    assert _status_after_hits(None, cfg.min_hits) == TrackStatus.CONFIRMED
+
+
+def test_a_track_once_seen_large_is_not_held_back_by_a_partial_view() -> None:
+    tr = Tracker()
+    for k, n in enumerate([200, 4, 4]):  # a car, then only a corner of it in view
+        t = k * SWEEP_NS
+        tr.step(Measurements(np.zeros((1, 3)), np.array([t]), _what(4.5), None, np.array([n])), t)
+    assert tr.tracks.points[0] == 200 and tr.tracks.status[0] == TrackStatus.CONFIRMED
+
+
 def test_a_young_track_on_a_confirmed_footprint_is_a_piece_of_it() -> None:
     # a building face confirmed; a sliver of its side, seen edge-on, started its own track
     # beyond the part margin, then the face's footprint grew over it
