@@ -63,6 +63,13 @@ class SPConfig:
     # its returns, at least split_min_apart_m apart) is cut between them
     split_near_m: float = 0.4
     split_min_apart_m: float = 0.5
+    # a narrow upright segment (at most gap_split_max_length_m x gap_split_max_width_m, at
+    # least gap_split_min_height_m tall) whose returns leave a gap of gap_split_m along its
+    # long axis is two objects (people side by side before either is tracked)
+    gap_split_m: float = 0.25
+    gap_split_max_length_m: float = 2.6
+    gap_split_max_width_m: float = 0.9
+    gap_split_min_height_m: float = 1.0
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 list entities (edges, vertices, patches)

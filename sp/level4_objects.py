@@ -40,6 +40,7 @@ from sp.segments import (
     label_objects,
     merge_collinear,
     merge_grazing,
+    split_at_gap,
     split_by_predictions,
 )
 from sp.tracking import Measurements, Tracker, TrackStatus, evident_speed
@@ -215,6 +216,15 @@ class ObjectLevel:
             labels, xyz_w, self.predicted_people_xy(t_ns), attrs.center_xyz[:, :2],
             0.5 * np.hypot(attrs.length_m, attrs.width_m), cfg.split_near_m,
             cfg.split_min_apart_m, seg_cfg.min_pixels,
+        )  # fmt: skip
+        if split is not labels:
+            labels = split
+            attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
+        # ... and before either is tracked, where a gap between their returns shows two
+        split = split_at_gap(
+            labels, xyz_w, attrs.yaw_rad, attrs.length_m, attrs.width_m, attrs.height_m,
+            cfg.gap_split_m, cfg.gap_split_max_length_m, cfg.gap_split_max_width_m,
+            cfg.gap_split_min_height_m, 2 * seg_cfg.min_pixels,
         )  # fmt: skip
         if split is not labels:
             labels = split

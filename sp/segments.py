@@ -32,6 +32,7 @@ union-find); :func:`label_objects_reference` is the numpy and scipy form it is t
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numba
@@ -642,6 +643,56 @@ def split_by_predictions(
         for j in range(1, len(cs)):
             out[rows[part == j], cols[part == j]] = next_label
             next_label += 1
+    return out
+
+
+def split_at_gap(
+    labels: np.ndarray,
+    points_world: np.ndarray,
+    yaw_rad: np.ndarray,
+    length_m: np.ndarray,
+    width_m: np.ndarray,
+    height_m: np.ndarray,
+    gap_m: float,
+    max_length_m: float,
+    max_width_m: float,
+    min_height_m: float,
+    min_pixels: int,
+) -> np.ndarray:
+    """Cut a narrow upright segment in two where its returns, projected on its long axis,
+    leave a gap of at least ``gap_m``: two people side by side, whom proximity joined before
+    either was tracked (a gap of a third of a metre between their shoulders; one person's
+    returns lie a few centimetres apart). This is the grouping hypothesis of proximity
+    (reference 001, 4.5.1) tested on the segment's own returns: a body is continuous, a
+    pair is not. Only segments at most ``max_length_m`` long, ``max_width_m`` wide and
+    ``min_height_m`` tall are looked at (a car or a wall is longer or wider), and a cut
+    leaving a side of fewer than ``min_pixels`` returns is not made.
+
+    labels (H, W) int64 (-1 none, 0..K-1); points_world (H, W, 3) m; yaw_rad, length_m,
+    width_m, height_m (K,) each segment's footprint axis and extents. Returns new labels, the
+    cut-off parts numbered from K on, or ``labels`` itself when nothing was cut.
+    """
+    look = np.flatnonzero(
+        (length_m <= max_length_m) & (width_m <= max_width_m) & (height_m >= min_height_m)
+        & (length_m >= gap_m + 0.2)
+    )  # fmt: skip
+    out, next_label = labels, int(labels.max(initial=-1)) + 1
+    for k in look:
+        rows, cols = np.nonzero(labels == k)
+        if rows.size < 2 * min_pixels:
+            continue
+        axis = np.array([math.cos(yaw_rad[k]), math.sin(yaw_rad[k])])
+        u = points_world[rows, cols, :2] @ axis
+        order = np.argsort(u)
+        gaps = np.diff(u[order])
+        j = int(np.argmax(gaps))
+        if gaps[j] < gap_m or min(j + 1, u.size - j - 1) < min_pixels:
+            continue
+        if out is labels:
+            out = labels.copy()
+        far = order[j + 1 :]
+        out[rows[far], cols[far]] = next_label
+        next_label += 1
     return out
 
 

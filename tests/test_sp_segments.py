@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from sp.segments import (
     label_objects_reference,
     merge_collinear,
     merge_grazing,
+    split_at_gap,
 )
 
 H, W = 64, 1024
@@ -430,3 +432,36 @@ def test_scenes_exercise_every_rule():
             other = label_objects_reference(xyz, rng, mask, row_step, col_step, cfg)
             changed[name] += int(not np.array_equal(ref, other))
     assert all(n > 0 for n in changed.values()), changed
+
+
+def _side_by_side(gap_m: float, x_m: float = 10.0):
+    """Two bodies (0.3 x 0.5 x 1.8 m) abreast across the line of sight, ``gap_m`` apart."""
+    a = ((x_m, -0.5 - gap_m / 2, -SENSOR_H), (x_m + 0.3, -gap_m / 2, 0.0))
+    b = ((x_m, gap_m / 2, -SENSOR_H), (x_m + 0.3, 0.5 + gap_m / 2, 0.0))
+    return [a, b]
+
+
+def _gap_split(labels: np.ndarray, xyz: np.ndarray, length_m: float) -> np.ndarray:
+    K = int(labels.max()) + 1
+    ones = np.ones(K)
+    return split_at_gap(
+        labels, xyz, ones * math.pi / 2, ones * length_m, ones * 0.3, ones * 1.8,
+        0.25, 2.6, 0.9, 1.0, 8,
+    )  # fmt: skip
+
+
+def test_two_people_joined_by_proximity_are_cut_at_the_gap_between_them() -> None:
+    xyz, _, hit = cast(_side_by_side(0.35))
+    labels = np.where(hit >= 0, 0, -1)  # one segment, as proximity may join them
+    out = _gap_split(labels, xyz, 1.35)
+    assert apart(out, hit == 0, hit == 1)
+    assert np.unique(out[hit == 0]).size == 1 and np.unique(out[hit == 1]).size == 1
+
+
+def test_one_body_or_a_long_object_is_not_cut() -> None:
+    xyz, _, hit = cast(_side_by_side(0.0))  # one body a metre wide: no gap
+    labels = np.where(hit >= 0, 0, -1)
+    assert _gap_split(labels, xyz, 1.0) is labels
+    xyz, _, hit = cast(_side_by_side(0.35))  # the same returns on a car-length segment
+    labels = np.where(hit >= 0, 0, -1)
+    assert _gap_split(labels, xyz, 4.5) is labels
