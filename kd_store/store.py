@@ -10,7 +10,7 @@ frames the promotion rule admits, written as Arrow batches in one transaction.
 entity frames and their state columns (:mod:`kd_store.entities`), event frames
 (:mod:`kd_store.events`), pointers between frames (:mod:`kd_store.relations`), map tiles
 (:mod:`kd_store.tiles`), read-only SQL (:mod:`kd_store.query`) and the DuckDB file
-(:mod:`kd_store.persist`, the only module that speaks to DuckDB). The facade hands out ids
+(:mod:`kd_store.persist`, the only package that speaks to DuckDB). The facade hands out ids
 (entities and events share one id space), dispatches what applies to either kind of frame,
 and orders promotion, forgetting and flushes across the parts.
 """

@@ -1,9 +1,12 @@
 """The one engine configuration (wm.engine_config.EngineConfig): YAML round trip, partial files,
-errors naming the file and the dotted key, the node's use of every section, and `wm run`
-recording the configuration it ran with next to its KD."""
+errors naming the file and the dotted key, the node's use of every section, `wm run`
+recording the configuration it ran with next to its KD, and the sections read outside the
+node: the KD's (`wm run` opens the KD with it), What If's (`wm serve` rolls out with it) and
+the planner's (`wm bg` plans with it)."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,11 +16,12 @@ import pytest
 
 import kd_store
 from core.errors import EngineError
+from kd_store.config import KDConfig
 from maps.stack import StackConfig
 from sp.context import SPConfig
 from sp.odometry import LadarOdometry, OdometryConfig
-from wm.cli import main
-from wm.config import NodeConfig, PoseSource
+from wm.cli import BG_BUDGET_S, _planner_config, build_parser, main
+from wm.config import NodeConfig, PlannerConfig, PoseSource, WhatIfConfig
 from wm.engine_config import ConfigError, EngineConfig
 from wm.node import WorldModelNode
 
@@ -37,6 +41,14 @@ def test_the_default_round_trips_through_yaml(tmp_path: Path) -> None:
     # the sections are the subsystems' own classes, with their own defaults
     assert (default.node, default.sp) == (NodeConfig(), SPConfig())
     assert (default.odometry, default.maps) == (OdometryConfig(), StackConfig())
+    assert (default.kd, default.planner, default.whatif) == (
+        KDConfig(),
+        PlannerConfig(),
+        WhatIfConfig(),
+    )
+    # YAML has no set: the promotion rule's statuses are written as a list, read back a set
+    assert "statuses: [confirmed]" in text and "min_worth: .inf" in text
+    assert loaded.kd.promotion.statuses == frozenset({"confirmed"})
 
 
 def test_a_partial_file_changes_exactly_the_fields_it_names(tmp_path: Path) -> None:
@@ -80,6 +92,13 @@ def test_a_partial_file_changes_exactly_the_fields_it_names(tmp_path: Path) -> N
         ),
         ("sp:\n  tracker: 3\n", "sp.tracker", "expected a mapping"),
         ("odometry:\n  min_range_m: 200\n", "odometry", "min_range_m"),  # the class's check
+        ("kd:\n  memory:\n    horizon_s: {}\n", "kd.memory.horizon_s", "did you mean horizons_s"),
+        ("kd:\n  promotion: {statuses: confirmed}\n", "kd.promotion.statuses", "expected a list"),
+        ("kd:\n  tile_cache: many\n", "kd.tile_cache", "expected int"),
+        ("planner:\n  budget: 1\n", "planner.budget", "did you mean budget_s"),
+        ("planner:\n  budget_s: 0\n", "planner", "budget_s"),  # the class's check
+        ("whatif:\n  vehicle: {lenght_m: 5}\n", "whatif.vehicle.lenght_m", "did you mean length_m"),
+        ("whatif:\n  steps_s: {vehicle: fast}\n", "whatif.steps_s.vehicle", "expected float"),
     ],
 )
 def test_errors_name_the_file_and_the_dotted_key(
@@ -91,6 +110,30 @@ def test_errors_name_the_file_and_the_dotted_key(
     assert isinstance(e.value, EngineError)
     msg = str(e.value)
     assert msg.startswith(f"{path}: ") and f" {key}" in msg and what in msg, msg
+    assert "\n" not in msg  # one line
+
+
+@pytest.mark.parametrize(
+    ("command", "text", "key"),
+    [
+        (["config"], "kd:\n  grid_cell: 4\n", "kd.grid_cell"),
+        (["config"], "whatif:\n  horizon_s: {}\n", "whatif.horizon_s"),
+        (["bg", "--url", "http://127.0.0.1:9", "--goal", "0,0"], "planner:\n  lvl: x\n",
+         "planner.lvl"),
+        (["bg", "--url", "http://127.0.0.1:9", "--goal", "0,0"],
+         "planner:\n  replan_period_s: -1\n", "planner.replan_period_s"),
+    ],
+)  # fmt: skip
+def test_a_bad_key_of_a_new_section_is_one_line_naming_file_and_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str], text: str, key: str
+) -> None:
+    """`wm config FILE` and `wm bg --config FILE` (before it reaches for the server) refuse a
+    bad key or value of the kd, planner and whatif sections in one line on stderr."""
+    bad = _write(tmp_path / "bad.yaml", text)
+    argv = [*command, str(bad)] if command == ["config"] else [*command, "--config", str(bad)]
+    assert main(argv) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if not ln.startswith("note:")]
+    assert len(err) == 1 and str(bad) in err[0] and key in err[0], err
 
 
 def test_wm_config_prints_the_defaults_and_refuses_a_bad_file(
@@ -168,3 +211,84 @@ def test_wm_run_uses_the_config_file_records_it_and_flags_override_it(
     assert EngineConfig.from_yaml(f"{kd}.config.yaml") == want  # the effective configuration
     lists = [n for n in _level2_names(base) if n.startswith(("vertex", "range_edge"))]
     assert lists and not [n for n in _level2_names(kd) if n.startswith(("vertex", "range_edge"))]
+
+
+def test_wm_run_opens_the_kd_with_the_kd_section(
+    short_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A promotion rule of no status (``kd.promotion.statuses: []``) reaches the KD `wm run`
+    opens: entities are confirmed in memory, yet long-term memory (the file) receives only
+    the noteworthy ones (the vehicle itself)."""
+    cfg = _write(tmp_path / "c.yaml", "kd:\n  promotion: {statuses: []}\n")
+    kd = tmp_path / "k.kd"
+    assert (
+        main(["run", str(short_log), "--kd", str(kd), "--config", str(cfg), "--no-progress"]) == 0
+    )
+    out = capsys.readouterr().out
+    assert "confirmed=" in out  # the summary counts the KD in memory
+    with duckdb.connect(str(kd), read_only=True) as c:
+        rows = dict(
+            c.execute("SELECT noteworthy, count(*) FROM entity_frames GROUP BY 1").fetchall()
+        )
+    assert rows.keys() == {True} and rows[True] >= 1, rows
+    assert EngineConfig.from_yaml(f"{kd}.config.yaml").kd.promotion.statuses == frozenset()
+
+
+def test_bg_takes_the_planner_section_and_its_flags_override_it(tmp_path: Path) -> None:
+    """`wm bg`'s planner: the file's planner section over the defaults with wm bg's own
+    budget (BG_BUDGET_S when neither the file nor --budget-s gives one), the flags given
+    over both."""
+    cfg = _write(tmp_path / "p.yaml", "planner:\n  curvatures_1pm: [0.0]\n  level: vehicle\n")
+    bg = ["bg", "--url", "http://127.0.0.1:9", "--goal", "0,0"]
+    default = _planner_config(build_parser().parse_args(bg))
+    assert default == replace(PlannerConfig(), budget_s=BG_BUDGET_S)
+    got = _planner_config(
+        build_parser().parse_args([*bg, "--config", str(cfg), "--level", "primitive"])
+    )
+    want = replace(default, curvatures_1pm=(0.0,), level="primitive")
+    assert got == want
+    cfg.write_text("planner:\n  budget_s: 0.3\n")
+    assert _planner_config(build_parser().parse_args([*bg, "--config", str(cfg)])).budget_s == 0.3
+    flag = build_parser().parse_args([*bg, "--config", str(cfg), "--budget-s", "2"])
+    assert _planner_config(flag).budget_s == 2.0
+
+
+def test_serve_rolls_out_with_the_whatif_section_and_bg_plans_with_the_planner_section(
+    short_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    """`wm serve --config` with ``whatif.steps_s: {subsystem: 0.25}``: the server copies only
+    that level for What If and rolls out at 0.25 s steps; `wm bg --config` with
+    ``planner.curvatures_1pm: [0.0]`` against it hypothesizes one curvature per speed. Both
+    are seen over HTTP, in the plan `wm bg --json` prints: its path is timed at 0.25 s steps
+    and it weighed 6 candidates (6 speeds x 1 curvature; the default is 6 x 9)."""
+    pytest.importorskip("uvicorn")
+    from serving import served
+
+    import wm.serve
+    from wm.serve import create_app, what_if_over
+
+    served_cfg = _write(tmp_path / "s.yaml", "whatif:\n  steps_s: {subsystem: 0.25}\n")
+    bg_cfg = _write(tmp_path / "b.yaml", "planner:\n  curvatures_1pm: [0.0]\n")
+    seen: dict = {}
+
+    def serve_then_plan(live, host, port, token, limits) -> None:
+        """Instead of serving until Ctrl-C: serve until one `wm bg` plan is made."""
+        assert live.wait(300), live.status.error
+        wi = what_if_over(live.snapshot)
+        seen["config"], seen["levels"] = wi.config, [lv.name for lv in wi.stack.levels]
+        with served(create_app(live, token, limits)) as base:
+            argv = ["bg", "--url", base, "--goal", "20,0", "--cycles", "1", "--json"]
+            seen["bg"] = main([*argv, "--no-tell", "--config", str(bg_cfg)])
+
+    monkeypatch.setattr(wm.serve, "serve", serve_then_plan)
+    kd = tmp_path / "live.kd"
+    argv = ["serve", "--replay", str(short_log), "--rate", "0", "--kd", str(kd)]
+    assert main([*argv, "--config", str(served_cfg)]) == 0
+    assert seen["bg"] == 0, capsys.readouterr().err
+    assert seen["config"].steps_s == {"subsystem": 0.25}
+    assert seen["levels"] == ["subsystem"]  # the copy holds the levels What If serves
+    plans = [json.loads(ln) for ln in capsys.readouterr().out.splitlines() if ln.startswith("{")]
+    assert len(plans) == 1
+    assert plans[0]["candidates"] == 6
+    assert np.allclose(np.diff(plans[0]["t_s"]), 0.25)

@@ -22,7 +22,7 @@
            [--rate-limit R [--burst N]]  (per client: N requests at once, then R a second)
     wm bg --url http://127.0.0.1:8765 --goal X,Y [--token-env VAR] [--period-s 0.5]
           [--cycles N] [--budget-s 1] [--min-clearance-m 0.5] [--level subsystem] [--json]
-          [--no-tell]
+          [--no-tell] [--config FILE.yaml]  (its planner section; the flags given override it)
           (a planner in its own process over a live node's API; also python -m wm.bg ...)
     wm demo [--out DIR]
 
@@ -38,12 +38,22 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from core.errors import EngineError
 
+if TYPE_CHECKING:  # the command line imports the engine's modules only for the commands run
+    from kd_store.config import KDConfig
+    from wm.config import PlannerConfig
+    from wm.engine_config import EngineConfig
+
 EXIT_USER_ERROR = 2
+#: ``wm bg``'s planning budget (s, wall clock) unless ``--budget-s`` or the configuration file's
+#: ``planner.budget_s`` gives one: over HTTP each batch of plans is a request that waits for
+#: the node's cycle in progress, so the in-process planner's 0.2 s would often allow one batch
+BG_BUDGET_S = 1.0
 
 
 class UserError(EngineError):
@@ -223,14 +233,17 @@ def _engine_config(args: argparse.Namespace, kd: str | None = None):
     return replace(engine, node=node)
 
 
-def _read_config(path: Path, kd: str | None = None):
-    """The configuration file ``path`` (``kd``: the KD it was recorded with, if it was), or
-    one :class:`UserError` naming the file when it cannot be read or taken."""
+def _read_config(
+    path: Path, kd: str | None = None, base: EngineConfig | None = None
+) -> EngineConfig:
+    """The configuration file ``path`` over ``base`` (None: the defaults; ``kd``: the KD it
+    was recorded with, if it was), or one :class:`UserError` naming the file when it cannot
+    be read or taken."""
     from wm.engine_config import ConfigError, EngineConfig
 
     flag = f"KD {kd}: its recorded configuration" if kd is not None else "--config"
     try:
-        return EngineConfig.from_yaml(path)
+        return EngineConfig.from_yaml(path, base)
     except FileNotFoundError:
         raise UserError(f"{flag} {path}: the file does not exist") from None
     except (OSError, UnicodeDecodeError) as e:  # a folder, unreadable, not text
@@ -433,30 +446,68 @@ def cmd_bg(args: argparse.Namespace) -> int:
     import os
 
     from wm.client import Client
-    from wm.config import PlannerConfig
     from wm.remote import check_url, parse_goal, run_bg
 
     url, goal = check_url(args.url), parse_goal(args.goal)
-    for name in ("period_s", "budget_s"):
-        v = getattr(args, name)
-        if not (np.isfinite(v) and v > 0):
-            raise UserError(f"--{name.replace('_', '-')} {v}: need a finite number of seconds > 0")
-    if not (np.isfinite(args.min_clearance_m) and args.min_clearance_m >= 0):
-        raise UserError(f"--min-clearance-m {args.min_clearance_m}: need a finite distance >= 0 m")
+    for flag, attr, field in _BG_FLAGS:
+        v = getattr(args, attr)
+        if v is not None and field in _BG_NEEDS and not _bg_value_ok(field, v):
+            raise UserError(f"{flag} {v}: need {_BG_NEEDS[field]}")
     if args.cycles is not None and args.cycles < 1:
         raise UserError(f"--cycles {args.cycles}: need at least 1 plan")
     token = os.environ.get(args.token_env) if args.token_env else None
     if args.token_env and not token:
         raise UserError(f"--token-env {args.token_env}: that environment variable is empty")
-    config = PlannerConfig(
-        level=args.level, replan_period_s=args.period_s, budget_s=args.budget_s,
-        min_clearance_m=args.min_clearance_m,
-    )  # fmt: skip
+    config = _planner_config(args)
     made = run_bg(Client(url, token), goal, config, args.cycles, args.json, not args.no_tell)
     ended = args.cycles is None or made < args.cycles  # stopped by the end of the node's log
     print(f"wm bg: {made} plans" + ("; the node's log has ended" if ended else ""),
           file=sys.stderr)  # fmt: skip
     return 0
+
+
+#: ``wm bg``'s flags over the ``planner`` section: (flag, argparse attribute, PlannerConfig field)
+_BG_FLAGS = (
+    ("--period-s", "period_s", "replan_period_s"),
+    ("--budget-s", "budget_s", "budget_s"),
+    ("--min-clearance-m", "min_clearance_m", "min_clearance_m"),
+    ("--level", "level", "level"),
+)
+#: What each checked planner field needs (s, m), as the error says it.
+_BG_NEEDS = {
+    "replan_period_s": "a finite number of seconds > 0",
+    "budget_s": "a finite number of seconds > 0",
+    "min_clearance_m": "a finite distance >= 0 m",
+}
+
+
+def _bg_value_ok(field: str, v: float) -> bool:
+    """Whether ``v`` is a usable value of the planner field ``field`` (one of _BG_NEEDS)."""
+    if field == "min_clearance_m":
+        return bool(np.isfinite(v) and v >= 0)
+    return bool(np.isfinite(v) and v > 0)
+
+
+def _planner_config(args: argparse.Namespace) -> PlannerConfig:
+    """``wm bg``'s planner: the ``planner`` section of ``--config FILE`` (if given) over the
+    defaults with ``budget_s`` :data:`BG_BUDGET_S`, then the flags given over that. A file
+    read is named in a note line on stderr (stdout carries the plans)."""
+    from dataclasses import replace
+
+    from wm.config import PlannerConfig
+    from wm.engine_config import EngineConfig
+
+    base = EngineConfig(planner=replace(PlannerConfig(), budget_s=BG_BUDGET_S))
+    path = None if getattr(args, "config", None) is None else Path(args.config)
+    engine = base if path is None else _read_config(path, base=base)
+    if path is not None:
+        print(f"note: configuration {path} (from --config)", file=sys.stderr)
+        for field in ("replan_period_s", "min_clearance_m"):  # budget_s: the class checks it
+            v = getattr(engine.planner, field)
+            if not _bg_value_ok(field, v):
+                raise UserError(f"{path}: planner.{field} {v}: need {_BG_NEEDS[field]}")
+    given = {f: getattr(args, a) for _, a, f in _BG_FLAGS if getattr(args, a) is not None}
+    return replace(engine.planner, **given)
 
 
 def _serve_limits(args: argparse.Namespace):
@@ -510,14 +561,20 @@ def _parse_waypoints(text: str) -> tuple[np.ndarray, np.ndarray]:
     return arr[:, 0], arr[:, 1:]
 
 
-def _open_stored_kd(path_text: str):
-    """A KD file an earlier ``wm run`` wrote, opened read-only (one clear error if missing)."""
-    import kd_store
-
+def _check_stored_kd(path_text: str) -> Path:
+    """The KD file an earlier ``wm run`` wrote, or one clear error if it is missing."""
     path = Path(path_text)
     if path_text == ":memory:" or not path.exists():
         raise FileNotFoundError(f"KD file {path} does not exist")
-    return kd_store.open(path, read_only=True)
+    return path
+
+
+def _open_stored_kd(path_text: str, config: KDConfig | None = None):
+    """A KD file an earlier ``wm run`` wrote, opened read-only with ``config`` (the ``kd``
+    section of the run's configuration; None: the defaults)."""
+    import kd_store
+
+    return kd_store.open(_check_stored_kd(path_text), config, read_only=True)
 
 
 def _no_log_options(args: argparse.Namespace, command: str) -> None:
@@ -541,7 +598,7 @@ def cmd_whatif(args: argparse.Namespace) -> int:
             _record_config(args.kd, config)  # for `wm whatif --kd` and `wm render --kd` later
             lines = whatif_lines(
                 node.kd, node.stack, node.self_id, node.stack.T_world_body, t_s, xy_body,
-                args.level,
+                args.level, config,
             )  # fmt: skip
         finally:
             node.kd.close()
@@ -551,9 +608,11 @@ def cmd_whatif(args: argparse.Namespace) -> int:
         if args.kd == ":memory:":
             raise UserError("whatif needs a LOG, or --kd KD.duckdb written by `wm run`")
         _no_log_options(args, "whatif")
-        with _open_stored_kd(args.kd) as kd:
+        _check_stored_kd(args.kd)  # a missing KD is the error, before its configuration's
+        config = _engine_config(args, args.kd)
+        with _open_stored_kd(args.kd, config.kd) as kd:
             # the maps' geometry (levels, resolutions, sizes) must be the run's
-            maps = stored_maps(kd, _engine_config(args, args.kd).maps)
+            maps = stored_maps(kd, config.maps)
             known = [lvl.name for lvl in maps.stack.levels]
             if args.level in known and args.level not in maps.levels:
                 raise TileError(
@@ -561,7 +620,7 @@ def cmd_whatif(args: argparse.Namespace) -> int:
                     f"levels with tiles: {maps.levels}"
                 )
             lines = whatif_lines(
-                kd, maps.stack, maps.self_id, maps.T_world_body, t_s, xy_body, args.level
+                kd, maps.stack, maps.self_id, maps.T_world_body, t_s, xy_body, args.level, config
             )
     print("\n".join(lines))
     return 0
@@ -569,19 +628,22 @@ def cmd_whatif(args: argparse.Namespace) -> int:
 
 def whatif_lines(
     kd, stack, self_id: int, T_world_body: np.ndarray, t_s: np.ndarray, xy_body: np.ndarray,
-    level: str,
+    level: str, config: EngineConfig | None = None,
 ) -> list[str]:  # fmt: skip
     """Simulate the plan ``t_s`` (K,) s, ``xy_body`` (K, 2) m in the body frame of
-    ``T_world_body`` over ``stack`` and ``kd`` at ``level``; the lines a user reads."""
+    ``T_world_body`` over ``stack`` and ``kd`` at ``level``, with the ``whatif`` section of
+    ``config`` (an EngineConfig; None: the defaults) and judged with its ``node.vj``; the
+    lines a user reads."""
     from core.geometry import transform_points
     from wm import vj
-    from wm.config import VJConfig
+    from wm.engine_config import EngineConfig
     from wm.whatif import WaypointPlan, WhatIf
 
+    engine = config if config is not None else EngineConfig()
     xy = transform_points(T_world_body, np.column_stack([xy_body, np.zeros(len(xy_body))]))[:, :2]
-    wi = WhatIf(kd, stack, self_id=self_id)
+    wi = WhatIf(kd, stack, engine.whatif, self_id=self_id)
     res = wi.simulate([WaypointPlan(t_s, xy, "cli")], level=level)
-    ev = vj.evaluate(res, xy[-1], VJConfig())
+    ev = vj.evaluate(res, xy[-1], engine.node.vj)
     hit = int(res.collision_entity[0])
     when = f"entity {hit} at {res.collision_t_s[0]:.1f} s" if hit >= 0 else "none"
     return [
@@ -607,9 +669,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         from wm.tiles import stored_maps
 
         out = Path(args.out or paths_in[0])
-        with _open_stored_kd(args.kd) as kd:
+        _check_stored_kd(args.kd)  # a missing KD is the error, before its configuration's
+        config = _engine_config(args, args.kd)
+        with _open_stored_kd(args.kd, config.kd) as kd:
             # the maps' geometry (levels, resolutions, sizes) must be the run's
-            maps = stored_maps(kd, _engine_config(args, args.kd).maps)
+            maps = stored_maps(kd, config.maps)
             paths = render_maps(kd, maps.stack, maps.self_id, out, maps.levels)
         for lvl in maps.stack.levels:
             if lvl.name not in maps.levels:
@@ -857,22 +921,33 @@ def build_parser() -> argparse.ArgumentParser:
         help="name of an environment variable holding the server's bearer token",
     )  # fmt: skip
     b.add_argument(
-        "--period-s", type=float, default=0.5,
-        help="replan every S seconds of log time, at the first new cycle after (default 0.5)",
+        "--period-s", type=float, default=None,
+        help="replan every S seconds of log time, at the first new cycle after (default: "
+        "the configuration's planner.replan_period_s, 0.5)",
     )  # fmt: skip
     b.add_argument("--cycles", type=int, default=None, help="stop after N plans (default: "
                    "when the node's log has ended)")  # fmt: skip
     b.add_argument(
-        "--budget-s", type=float, default=1.0,
+        "--budget-s", type=float, default=None,
         help="wall seconds a planning cycle may take before no further batch of plans is sent "
-        "(default 1: each batch is a request that waits for the node's cycle in progress)",
+        "(default: planner.budget_s if the --config file gives it, else 1: each batch is a "
+        "request that waits for the node's cycle in progress)",
     )  # fmt: skip
     b.add_argument(
-        "--min-clearance-m", type=float, default=0.5,
-        help="plans passing closer than this (m) to a perceived object are unsafe (default "
-        "0.5); more leaves room for objects perception sees smaller than they are",
+        "--min-clearance-m", type=float, default=None,
+        help="plans passing closer than this (m) to a perceived object are unsafe (default: "
+        "the configuration's planner.min_clearance_m, 0.5); more leaves room for objects "
+        "perception sees smaller than they are",
     )  # fmt: skip
-    b.add_argument("--level", default="subsystem", help="map level (default subsystem)")
+    b.add_argument(
+        "--level", default=None,
+        help="map level (default: the configuration's planner.level, subsystem)",
+    )  # fmt: skip
+    b.add_argument(
+        "--config", default=None, metavar="FILE.yaml",
+        help="engine configuration: its planner section (wm config --default prints it); "
+        "flags given override it",
+    )  # fmt: skip
     b.add_argument("--json", action="store_true", help="one JSON object a plan, path included")
     b.add_argument("--no-tell", action="store_true", help="do not tell the node the plan")
     b.set_defaults(func=cmd_bg)

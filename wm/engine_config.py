@@ -1,6 +1,8 @@
-"""The root configuration of a run: the node's (:class:`wm.config.NodeConfig`) and those of
-the subsystems it builds (SP, the odometry, the map stack), read from and written to YAML
-(:meth:`EngineConfig.from_yaml`, :meth:`EngineConfig.to_yaml`; ``wm config --default``).
+"""The root configuration of a run: the node's (:class:`wm.config.NodeConfig`), those of the
+subsystems it builds (SP, the odometry, the map stack), the KD's (how it is opened, flushed
+and what its memories keep), the planner's (``wm bg``) and What If's (served by ``wm serve``,
+asked by ``wm whatif``), read from and written to YAML (:meth:`EngineConfig.from_yaml`,
+:meth:`EngineConfig.to_yaml`; ``wm config --default``).
 
 A module of its own so that what only needs the node's settings (the planner, the client)
 does not import SP, the odometry and the maps to read them.
@@ -21,10 +23,11 @@ from typing import Any
 import yaml
 
 from core.errors import EngineError
+from kd_store.config import KDConfig
 from maps.stack import StackConfig
 from sp.context import SPConfig
 from sp.odometry import OdometryConfig
-from wm.config import NodeConfig
+from wm.config import NodeConfig, PlannerConfig, WhatIfConfig
 
 
 class ConfigError(EngineError, ValueError):
@@ -41,6 +44,16 @@ class EngineConfig:
               process (``node.odometry_process``) ``max_threads: 0`` means one thread, since
               that process has the one core the node's process leaves.
     maps:     the map stack: levels, fusion, terrain (:class:`maps.stack.StackConfig`).
+    kd:       the knowledge database the run writes: spatial index cell (m), tolerances, map
+              tiles batched and cached, short-term memory horizons (s), the promotion rule to
+              long-term memory (:class:`kd_store.config.KDConfig`); ``promotion.statuses`` is
+              a set, written as a sorted list.
+    planner:  behavior generation, ``wm bg`` (:class:`wm.config.PlannerConfig`); ``wm bg``
+              plans over HTTP, so unless the file or ``--budget-s`` gives ``budget_s`` it
+              takes 1 s a cycle, not the in-process planner's 0.2 s (wm.cli.BG_BUDGET_S).
+    whatif:   What If rollouts: the vehicle model, each level's step and horizon (s)
+              (:class:`wm.config.WhatIfConfig`); ``wm serve``'s What If and IsPathValid, and
+              ``wm whatif``.
 
     A YAML document gives only the fields it changes, nested sections by name: mappings
     (sections) merge into the defaults, lists and dicts replace the default whole.
@@ -50,6 +63,9 @@ class EngineConfig:
     sp: SPConfig = field(default_factory=SPConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     maps: StackConfig = field(default_factory=StackConfig)
+    kd: KDConfig = field(default_factory=KDConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    whatif: WhatIfConfig = field(default_factory=WhatIfConfig)
 
     @classmethod
     def of(cls, config: EngineConfig | NodeConfig | None) -> EngineConfig:
@@ -59,14 +75,19 @@ class EngineConfig:
         return config if isinstance(config, EngineConfig) else cls(node=config)
 
     @classmethod
-    def from_dict(cls, doc: Any, source: str = "<dict>") -> EngineConfig:
-        """The defaults changed by ``doc`` (parsed YAML; None: nothing changed)."""
-        return from_document(cls, {} if doc is None else doc, cls(), source)
+    def from_dict(
+        cls, doc: Any, source: str = "<dict>", base: EngineConfig | None = None
+    ) -> EngineConfig:
+        """``base`` (None: the defaults) changed by ``doc`` (parsed YAML; None: nothing
+        changed)."""
+        return from_document(cls, {} if doc is None else doc, base or cls(), source)
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> EngineConfig:
-        """The defaults changed by the YAML file ``path`` (:class:`ConfigError` names the
-        file and the dotted key of an unknown key or a value of the wrong type)."""
+    def from_yaml(cls, path: str | Path, base: EngineConfig | None = None) -> EngineConfig:
+        """``base`` (None: the defaults) changed by the YAML file ``path`` (:class:`ConfigError`
+        names the file and the dotted key of an unknown key or a value of the wrong type). A
+        command whose own defaults differ from the classes' passes them as ``base``, so that
+        a field the file does not give keeps the command's default."""
         text = Path(path).read_text(encoding="utf-8")
         try:
             doc = yaml.safe_load(text)
@@ -76,10 +97,11 @@ class EngineConfig:
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
             what = getattr(e, "problem", None) or str(e).splitlines()[0]
             raise ConfigError(f"{path}: not a YAML document: {what}{where}") from None
-        return cls.from_dict(doc, str(path))
+        return cls.from_dict(doc, str(path), base)
 
     def to_dict(self) -> dict[str, Any]:
-        """Every field, as plain YAML values (enums by value, tuples as lists)."""
+        """Every field, as plain YAML values (enums by value, tuples as lists, sets as sorted
+        lists)."""
         return to_document(self)
 
     def to_yaml(self, path: str | Path | None = None) -> str:
@@ -128,6 +150,8 @@ def to_document(value: Any) -> Any:
         return value.value
     if isinstance(value, tuple | list):
         return [to_document(v) for v in value]
+    if isinstance(value, frozenset | set):  # YAML has no set; sorted, so the text is stable
+        return sorted(to_document(v) for v in value)
     if isinstance(value, dict):
         return {to_document(k): to_document(v) for k, v in value.items()}
     return value
@@ -136,8 +160,9 @@ def to_document(value: Any) -> Any:
 def from_document(tp: Any, value: Any, default: Any, source: str, key: str = "") -> Any:
     """``value`` (parsed YAML) as type ``tp``: a dataclass from a mapping of (some of) its
     fields, merged into ``default`` (or the class's defaults when ``default`` is not one);
-    tuples from lists, dicts, enums by value, Optional, bool, int, float (an int or a
-    number's text too), str. ``key`` is the dotted key so far, for :class:`ConfigError`."""
+    tuples and (frozen) sets from lists, dicts, enums by value, Optional, bool, int, float (an
+    int or a number's text too), str. ``key`` is the dotted key so far, for
+    :class:`ConfigError`."""
 
     def bad(what: str) -> ConfigError:
         return ConfigError(f"{source}: {key or '(top level)'}: {what}")
@@ -183,6 +208,12 @@ def from_document(tp: Any, value: Any, default: Any, source: str, key: str = "")
         return tuple(
             from_document(t, v, None, source, f"{key}[{i}]")
             for i, (t, v) in enumerate(zip(each, value, strict=True))
+        )
+    if origin in (frozenset, set):
+        if not isinstance(value, list | tuple):
+            raise bad(f"expected a list, got {value!r}")
+        return origin(
+            from_document(args[0], v, None, source, f"{key}[{i}]") for i, v in enumerate(value)
         )
     if origin is dict:
         if not isinstance(value, dict):

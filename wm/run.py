@@ -202,7 +202,7 @@ def run_log(
     with (
         compute_threads(config.compute_threads),
         _reader(source, decode_process) as (frames_in, reader),
-        kd_store.open(kd_path, run="new", source=str(log_path)) as kd,
+        kd_store.open(kd_path, engine.kd, run="new", source=str(log_path)) as kd,
     ):
         # map tiles in the KD (in memory: the node's own stack)
         stack = map_stack_over_kd(kd, engine.maps) if str(kd_path) != ":memory:" else None
@@ -495,7 +495,7 @@ def run_node(
     source = open_log(Path(log_path))
     engine = EngineConfig.of(config)
     config = engine.node
-    kd = kd_store.open(kd_path, run="new", source=str(log_path))
+    kd = kd_store.open(kd_path, engine.kd, run="new", source=str(log_path))
     # map tiles in the KD (in memory: the node's own stack)
     stack = map_stack_over_kd(kd, engine.maps) if str(kd_path) != ":memory:" else None
     node = WorldModelNode(kd, engine, stack)

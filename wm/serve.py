@@ -82,12 +82,13 @@ class ServeError(EngineError, ValueError):
     """A live node or server that cannot start or answer (names the value)."""
 
 
-def served_whatif_config() -> Any:
+def served_whatif_config(config: Any | None = None) -> Any:
     """The :class:`~wm.config.WhatIfConfig` the server's What If and IsPathValid roll out
-    with (its defaults: a client's plans mean the same on every server)."""
-    from wm.config import WhatIfConfig
+    with: the ``whatif`` section of the server's configuration ``config`` (an
+    :class:`~wm.engine_config.EngineConfig`; a NodeConfig or None: the defaults)."""
+    from wm.engine_config import EngineConfig
 
-    return WhatIfConfig()
+    return EngineConfig.of(config).whatif
 
 
 @dataclass
@@ -118,22 +119,31 @@ class CycleSnapshot:
     cols: dict[str, np.ndarray]
     row: dict[int, int]
     whatif: Any | None = None
+    # the WhatIfConfig answers from ``whatif`` roll out with (None: the defaults)
+    whatif_config: Any | None = None
 
     @classmethod
     def of(
-        cls, kd: Any, self_id: int | None, cycle_t_ns: int, stack: Any | None = None
+        cls,
+        kd: Any,
+        self_id: int | None,
+        cycle_t_ns: int,
+        stack: Any | None = None,
+        whatif_config: Any | None = None,
     ) -> CycleSnapshot:
         """Copy ``kd``'s entities and, with ``stack``, what What If reads of both (the levels
-        What If serves: :func:`served_whatif_config`); call it under the node's lock."""
+        of ``whatif_config``, the server's :func:`served_whatif_config`; None: the defaults);
+        call it under the node's lock."""
         cols = kd.current_columns()
         wi = None
+        whatif_config = whatif_config or served_whatif_config()
         if stack is not None:
             from wm.whatif import WhatIfCopy
 
-            levels = served_whatif_config().steps_s
+            levels = whatif_config.steps_s
             wi = WhatIfCopy.of(kd, stack, self_id, levels, cols=cols)
         row = {int(i): k for k, i in enumerate(cols["id"])}
-        return cls(cycle_t_ns, self_id, cols, row, wi)
+        return cls(cycle_t_ns, self_id, cols, row, wi, whatif_config)
 
     def entity(self, k: int) -> dict:
         c = self.cols
@@ -215,10 +225,11 @@ class LiveNode:
             if self.kd_path != ":memory:":
                 Path(self.kd_path).parent.mkdir(parents=True, exist_ok=True)
             source_name = str(self.log_path) if self.log_path is not None else "ingest"
-            self.kd = kd_store.open(  # a KD file that exists gets one more run
-                self.kd_path, settings=served_settings(), run="new", source=source_name
-            )
             engine = EngineConfig.of(self.config)  # a NodeConfig, an EngineConfig or None
+            self.kd = kd_store.open(  # a KD file that exists gets one more run
+                self.kd_path, engine.kd, settings=served_settings(), run="new",
+                source=source_name,
+            )  # fmt: skip
             stack = map_stack_over_kd(self.kd, engine.maps) if self.kd_path != ":memory:" else None
             self.node = WorldModelNode(self.kd, engine, stack)
         except Exception as e:  # reported by start()
@@ -277,8 +288,9 @@ class LiveNode:
                 t = time.perf_counter()
                 node = self.node
                 self.snapshot = CycleSnapshot.of(
-                    self.kd, node.self_id, int(cycles[-1].t_ns), node.stack
-                )
+                    self.kd, node.self_id, int(cycles[-1].t_ns), node.stack,
+                    served_whatif_config(node.engine_config),
+                )  # fmt: skip
                 self.status.snapshot_ms = 1e3 * (time.perf_counter() - t)
         return cycles
 
@@ -503,10 +515,11 @@ def published(live: LiveNode) -> CycleSnapshot:
 
 
 def what_if_over(snap: CycleSnapshot) -> Any:
-    """:class:`~wm.whatif.WhatIf` over the copy ``snap`` holds, with the server's config."""
+    """:class:`~wm.whatif.WhatIf` over the copy ``snap`` holds, with the server's config
+    (the ``whatif`` section the copy was taken for)."""
     from wm.whatif import WhatIf
 
-    return WhatIf.over(snap.whatif, served_whatif_config())
+    return WhatIf.over(snap.whatif, snap.whatif_config)
 
 
 def create_app(

@@ -631,7 +631,8 @@ def _entity_boxes(node: Any, polys: list[np.ndarray], cycle_t_ns: int) -> Any:
     from wm.shapes import boxes_of
     from wm.whatif import WhatIf
 
-    wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
+    # the server's What If configuration (wm.serve.served_whatif_config): its search margin
+    wi = WhatIf(node.kd, node.stack, node.engine_config.whatif, self_id=node.self_id)
     if cycle_t_ns < 0 or not polys:  # no cycle yet: the KD holds no entity
         return boxes_of([])
     pts = np.concatenate(polys)
