@@ -190,13 +190,13 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
            target="0 (the labels have no persons)", command=cmd)  # fmt: skip
     assert s["cars"] == 10
     assert s["recall"] >= 0.9, s
-    # targets missed, recorded above: 7 of 10 cars classified vehicle (0.8 wanted; partly seen
-    # cars called rock, wall or person), and 6 objects called person where the labels have
-    # none (1 with the written-down prototypes: the ones fitted on the simulator's sensors
-    # take real clutter of person size, such as trunks and poles thicker than the simulated
-    # posts, for persons); no crowd or convoy. These bounds guard against worse
-    assert s["vehicle_of_found"] >= 0.6, s
-    assert s["person"] <= 6 and s["crowd"] == 0 and s["convoy"] == 0, s
+    # targets missed, recorded above: 7 of the 9 cars found classified vehicle (0.78; 0.8
+    # wanted; partly seen cars called rock or wall), and 2 objects called person where the
+    # labels have none (the prototypes fitted on the simulator's sensors take real clutter
+    # of person size, such as trunks and poles thicker than the simulated posts, for
+    # persons); no crowd or convoy. These bounds guard against worse
+    assert s["vehicle_of_found"] >= 0.7, s
+    assert s["person"] <= 2 and s["crowd"] == 0 and s["convoy"] == 0, s
 
 
 @pytest.mark.real_data
