@@ -57,6 +57,9 @@ class ClassLibrary:
     def __init__(self, prototypes: list[ClassPrototype] | None = None) -> None:
         self._by_name: dict[str, ClassPrototype] = {}
         self.dirty: set[str] = set()
+        # counts the changes (:meth:`add`), so that a copy of the taxonomy taken in one cycle
+        # can be kept for the next when nothing changed (wm.serve_copy.Taxonomy)
+        self.version = 0
         for p in prototypes or []:
             self.add(p)
         self.dirty.clear()
@@ -173,6 +176,7 @@ class ClassLibrary:
                 raise KDError(f"{where}: value {k} is not finite")
         self._by_name[p.name] = p
         self.dirty.add(p.name)
+        self.version += 1
 
     def found_specific(self, entity: EntityFrame) -> ClassPrototype:
         """Found a specific class for a confirmed entity (4.4.3, specific entity classes): its

@@ -20,6 +20,21 @@ from kd_store.errors import KDError
 from kd_store.frames import EventFrame, check_event
 
 
+def overlapping(
+    events: Iterable[EventFrame], t_from_ns: int | None, t_to_ns: int | None, class_name: str | None
+) -> list[EventFrame]:
+    """The ``events`` overlapping [t_from_ns, t_to_ns] (int64 ns; None: unbounded) of
+    ``class_name`` (None: any), in start-time order (then id)."""
+    lo = NO_TIME if t_from_ns is None else t_from_ns
+    hi = np.iinfo(np.int64).max if t_to_ns is None else t_to_ns
+    out = [
+        e
+        for e in events
+        if e.overlaps(lo, hi) and (class_name is None or e.class_name == class_name)
+    ]
+    return sorted(out, key=lambda e: (e.t_start_ns, e.id))
+
+
 class EventTable:
     """Every event frame in RAM, which of them are in long-term memory and which changed
     since the last flush."""
@@ -91,14 +106,14 @@ class EventTable:
     ) -> list[EventFrame]:
         """Events overlapping [t_from_ns, t_to_ns] (None: unbounded) of ``class_name``, among
         the ids ``pool`` (None: all); in start-time order."""
-        lo = NO_TIME if t_from_ns is None else t_from_ns
-        hi = np.iinfo(np.int64).max if t_to_ns is None else t_to_ns
-        out = [
-            e
-            for e in (self._events[i] for i in (self._events if pool is None else pool))
-            if e.overlaps(lo, hi) and (class_name is None or e.class_name == class_name)
-        ]
-        return sorted(out, key=lambda e: (e.t_start_ns, e.id))
+        events = (self._events[i] for i in (self._events if pool is None else pool))
+        return overlapping(events, t_from_ns, t_to_ns, class_name)
+
+    def frames(self) -> tuple[EventFrame, ...]:
+        """Every event frame in RAM. The frames are frozen (a change replaces one), so the
+        tuple stays as it is now while the table goes on: a reader in another thread may keep
+        it (wm.serve's per-cycle copy). O(events): references, not copies."""
+        return tuple(self._events.values())
 
     def forget(self, t_now_ns: int, keep: set[int], horizon_ns: Callable[[int], int]) -> list[int]:
         """Forget the short-term events that ended (ongoing ones: end now) longer ago than

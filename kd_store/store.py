@@ -325,6 +325,13 @@ class KnowledgeDatabase:
         pool = None if participant is None else self._pointers.involving(participant)
         return self._events.query(t_from_ns, t_to_ns, class_name, pool)
 
+    def event_frames(self) -> tuple[EventFrame, ...]:
+        """Every event frame in RAM (short-term memory and what long-term memory recalled), in
+        no particular order; frozen frames, so a reader in another thread may keep the tuple
+        (:func:`kd_store.events.overlapping` queries it as :meth:`events` does). Call it from
+        the writer's thread (between two of its changes)."""
+        return self._events.frames()
+
     def events_at(self, t_ns: int) -> list[EventFrame]:
         """Events going on at ``t_ns``."""
         return self.events(t_ns, t_ns)

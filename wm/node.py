@@ -555,7 +555,9 @@ class WorldModelNode:
         None when there is none. Until the next call, each level's attention step ranks
         entities near it higher (4.3: relevance to the current plan; ``VJConfig.w_relevance``
         within ``relevance_radius_m``). ``wm.bg.Planner(on_select=node.set_plan)`` keeps it
-        current."""
+        current. Another thread may call it while a cycle runs: the path is checked first and
+        then replaces ``plan_xy`` whole, and a cycle reads ``plan_xy`` once, so each cycle ranks
+        every level against one plan."""
         if xy_world is None:
             self.plan_xy = None
             return
@@ -838,6 +840,9 @@ class WorldModelNode:
     def _levels(self, t_ns: int) -> None:
         """Step 5: each level's terrain and cost layer, at the level's own period."""
         periods = self.config.level_periods_s
+        # one plan for every level of the cycle: set_plan may replace it from another thread
+        # meanwhile (wm serve's POST /v1/plan, which does not wait for the cycle)
+        plan_xy = self.plan_xy
         for lvl in self.stack.levels:
             period_ns = round(periods.get(lvl.name, 1.0) * 1e9)
             if t_ns < self.level_due_ns[lvl.name]:
@@ -845,16 +850,16 @@ class WorldModelNode:
             self.level_due_ns[lvl.name] = t_ns + period_ns
             update_terrain(lvl, self.stack.config.terrain)
             vj.write_cost_layer(lvl, self.kd, self.config.vj)
-            self._attention(lvl)
+            self._attention(lvl, plan_xy)
 
-    def _attention(self, lvl) -> None:
+    def _attention(self, lvl, plan_xy: np.ndarray | None) -> None:
         """The level's entities of attention, proximity judged on the level's own scale,
-        relevance against the current plan (:meth:`set_plan`)."""
+        relevance against the plan ``plan_xy`` (the current one, :meth:`set_plan`)."""
         if self.stack.T_world_body is None:
             return
         cfg = dataclasses.replace(self.config.vj, proximity_scale_m=25.0 * lvl.resolution_m)
         xy = self.stack.T_world_body[:2, 3]
-        att = vj.attention(self.kd, xy, cfg, plan_xy=self.plan_xy, skip=self.self_id)
+        att = vj.attention(self.kd, xy, cfg, plan_xy=plan_xy, skip=self.self_id)
         try:
             self.kd.set_attention(lvl.name, att.ids.tolist())
         except kd_store.KDError:

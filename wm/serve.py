@@ -10,13 +10,21 @@ own, paced by their stamps (``rate`` times real time; 0: as fast as it can), and
 as ``wm run`` does. A query sees the KD between two cycles, never in the middle of one: an
 answer is at most one cycle behind the newest fused sweep, and says which (``cycle_t_ns``).
 At the end of each cycle, under the node's lock, the node's thread copies what the frequent
-queries read (:class:`CycleSnapshot`): the KD's entity columns, and what What If reads of the
-KD and the maps (the self state, the boxes and risks of the entities it checks plans against,
-and the four layers it samples of each level: :class:`wm.whatif.WhatIfCopy`). Lookups of the
-present in the world frame (self, an entity, a region without a class filter), What If and
-Nav2's IsPathValid are answered from that copy without taking the lock, so they neither wait
-for the cycle in progress nor hold it up; other queries take the lock. SQL reads the KD file
-as of the node's last flush (each second of log time).
+queries read (:class:`CycleSnapshot`; what and at what cost: :mod:`wm.serve_copy`): the KD's
+entity columns and class taxonomy; what What If reads of the KD and the maps (the self state,
+the boxes and risks of the entities it checks plans against, and the four layers it samples
+of each level: :class:`wm.whatif.WhatIfCopy`); and the map layers, events and entities of
+attention clients asked for in the last 30 s. Answered from that copy, without the lock, so
+that they neither wait for the cycle in progress nor hold it up: lookups of the present in
+the world frame (self, an entity), regions (class filters too), events, map windows
+(``/v1/maps``, GetGridMap) and CheckSafety of the layers the copy holds, the entities of
+attention of a level asked for lately, What If and Nav2's IsPathValid; ``POST /v1/plan`` takes
+no lock either (the node reads the plan once per cycle). Under the lock, between two cycles:
+lookups at another time or in another frame (they read state and pose histories); the first
+request for a map layer, the events or a level's attention (and a layer beyond the copy's
+byte limit), which also asks the cycles after to copy it; anything before the first cycle;
+a stream client's subscription (once per client: the node's listener list). SQL reads the
+KD file as of the node's last flush (each second of log time), under the KD's own lock only.
 
 :func:`create_app` is the HTTP API (FastAPI; OpenAPI schema at ``/openapi.json``), versioned
 under ``/v1``. Every answer carries the time of the cycle it comes from (``cycle_t_ns``, int64
@@ -40,7 +48,8 @@ tells the node the plan chosen (``WorldModelNode.set_plan``).
 (``/v1/maps/{level}``, JSON, ``.npy`` or Arrow), the entities of attention per level with why
 (``/v1/attention``) and a push stream of what each cycle changed (``/v1/stream``, server-sent
 events, a bounded queue per client that drops its oldest cycles rather than slow the node;
-its counts in ``/v1/status`` under ``stream``). :mod:`wm.serve_ros` answers map and What If
+its counts in ``/v1/status`` under ``stream``; a layer's earlier name, ``z_m2``, is taken for
+``z_sq_dev_sum`` and named in the answer). :mod:`wm.serve_ros` answers map and What If
 queries in the shapes of three ROS 2 services: grid_map's GetGridMap
 (``/v1/grid_map/get_grid_map``), elevation_mapping's CheckSafety
 (``/v1/elevation_mapping/check_safety``) and Nav2's IsPathValid (``/v1/nav2/is_path_valid``).
@@ -53,7 +62,8 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Hashable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -64,7 +74,16 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from core.errors import EngineError
-from wm.serve_views import STREAM_QUEUE_CYCLES, add_view_routes
+from wm.serve_copy import (
+    EVENTS,
+    MAX_ASKED_LAYER_BYTES,
+    ServedDemand,
+    Taxonomy,
+    copy_levels,
+    layers_to_copy,
+    map_bytes,
+)
+from wm.serve_views import STREAM_QUEUE_CYCLES, add_view_routes, attention_copies
 
 NS_PER_S = 1_000_000_000
 MAX_SQL_CHARS = 10_000
@@ -100,6 +119,7 @@ class LiveStatus:
     newest_frame_t_ns: int = -1  # the newest frame read from the log
     cycle_ms: float = math.nan  # wall time of the newest cycle
     snapshot_ms: float = math.nan  # wall time of the newest cycle's copy (CycleSnapshot)
+    snapshot_map_bytes: int = 0  # bytes of map layers in the newest cycle's copy
     feed_s: float = 0.0  # wall time spent feeding the node (all cycles), s
     frames: int = 0
     skipped: int = 0
@@ -110,9 +130,16 @@ class LiveStatus:
 @dataclass(frozen=True)
 class CycleSnapshot:
     """What one cycle left, copied at its end under the node's lock, so that lookups, region
-    queries, What If and IsPathValid are answered without waiting for the cycle in progress:
-    the KD's entities (:meth:`KnowledgeDatabase.current_columns`) and what What If reads of
-    the KD and the maps (:class:`wm.whatif.WhatIfCopy`; None for a node without maps)."""
+    queries (class filters too), events, map windows, GetGridMap, CheckSafety, What If,
+    IsPathValid and the entities of attention are answered without waiting for the cycle in
+    progress: the KD's entities (:meth:`KnowledgeDatabase.current_columns`), what What If
+    reads of the KD and the maps (:class:`wm.whatif.WhatIfCopy`; None for a node without
+    maps), and what :mod:`wm.serve_copy` chooses: ``maps``, every map level
+    (:class:`wm.whatif.StackCopy`, world frame) holding What If's layers and those clients
+    asked for lately (None without maps); ``taxonomy``, the class library's ``is_a`` links;
+    ``events``, the KD's event frames (None when no client asked for events lately);
+    ``attention``, SP level -> (node level, entities of attention as ``/v1/attention`` gives
+    them) for the levels asked for lately. Nothing in it is written after the cycle."""
 
     cycle_t_ns: int
     self_id: int | None
@@ -121,6 +148,10 @@ class CycleSnapshot:
     whatif: Any | None = None
     # the WhatIfConfig answers from ``whatif`` roll out with (None: the defaults)
     whatif_config: Any | None = None
+    maps: Any | None = None
+    taxonomy: Taxonomy | None = None
+    events: tuple | None = None
+    attention: dict[int, tuple[str, list[dict]]] = field(default_factory=dict)
 
     @classmethod
     def of(
@@ -130,20 +161,28 @@ class CycleSnapshot:
         cycle_t_ns: int,
         stack: Any | None = None,
         whatif_config: Any | None = None,
+        wanted: Sequence[Hashable] = (),
+        previous: CycleSnapshot | None = None,
+        node: Any | None = None,
     ) -> CycleSnapshot:
         """Copy ``kd``'s entities and, with ``stack``, what What If reads of both (the levels
-        of ``whatif_config``, the server's :func:`served_whatif_config`; None: the defaults);
-        call it under the node's lock."""
+        of ``whatif_config``, the server's :func:`served_whatif_config`; None: the defaults)
+        and the views ``wanted`` (demand keys, most recently asked first:
+        :meth:`wm.serve_copy.ServedDemand.wanted`); ``previous``: the cycle before's copy
+        (its taxonomy is kept when the class library did not change); ``node``: the
+        :class:`~wm.node.WorldModelNode`, for the entities of attention. Call it under the
+        node's lock."""
         cols = kd.current_columns()
-        wi = None
+        wi = maps = None
         whatif_config = whatif_config or served_whatif_config()
         if stack is not None:
-            from wm.whatif import WhatIfCopy
-
-            levels = whatif_config.steps_s
-            wi = WhatIfCopy.of(kd, stack, self_id, levels, cols=cols)
+            maps, wi = _copy_maps(kd, stack, self_id, whatif_config.steps_s, wanted, cols)
+        taxonomy = Taxonomy.of(kd.classes, previous.taxonomy if previous is not None else None)
+        events = kd.event_frames() if EVENTS in wanted else None
+        attention = attention_copies(node, wanted, cycle_t_ns) if node is not None else {}
         row = {int(i): k for k, i in enumerate(cols["id"])}
-        return cls(cycle_t_ns, self_id, cols, row, wi, whatif_config)
+        return cls(cycle_t_ns, self_id, cols, row, wi, whatif_config, maps, taxonomy, events,
+                   attention)  # fmt: skip
 
     def entity(self, k: int) -> dict:
         c = self.cols
@@ -154,6 +193,24 @@ class CycleSnapshot:
             "status": c["status"][k], "confidence": float(c["confidence"][k]),
             "class_name": c["class_name"][k], "source": "current", "note": "",
         }  # fmt: skip
+
+
+def _copy_maps(
+    kd: Any,
+    stack: Any,
+    self_id: int | None,
+    levels: Any,
+    wanted: Sequence[Hashable],
+    cols: dict[str, np.ndarray],
+) -> tuple[Any, Any]:
+    """(every level of ``stack`` as the cycle's copy holds it, What If's copy): the layers
+    What If samples of ``levels`` (names) and those ``wanted`` within
+    :data:`~wm.serve_copy.MAX_ASKED_LAYER_BYTES`; What If shares its levels' arrays."""
+    from wm.whatif import WhatIfCopy
+
+    maps = copy_levels(stack, layers_to_copy(stack, levels, wanted, MAX_ASKED_LAYER_BYTES))
+    copies = {lvl.name: lvl for lvl in maps.levels if lvl.name in levels}
+    return maps, WhatIfCopy.of(kd, stack, self_id, levels, cols=cols, copies=copies)
 
 
 class LiveNode:
@@ -183,6 +240,8 @@ class LiveNode:
         self.node: Any | None = None
         self.kd: Any | None = None
         self.snapshot: CycleSnapshot | None = None
+        # the views clients asked for lately: the end of each cycle copies them (wm.serve_copy)
+        self.demand = ServedDemand()
         self.closed = False
         self._ready = threading.Event()
         self._stop = threading.Event()
@@ -289,9 +348,11 @@ class LiveNode:
                 node = self.node
                 self.snapshot = CycleSnapshot.of(
                     self.kd, node.self_id, int(cycles[-1].t_ns), node.stack,
-                    served_whatif_config(node.engine_config),
+                    served_whatif_config(node.engine_config), self.demand.wanted(),
+                    self.snapshot, node,
                 )  # fmt: skip
                 self.status.snapshot_ms = 1e3 * (time.perf_counter() - t)
+                self.status.snapshot_map_bytes = map_bytes(self.snapshot.maps)
         return cycles
 
     def _account(self, cycles: list, wall_s: float) -> None:
@@ -560,10 +621,13 @@ def create_app(
         return HTTPException(code, str(e))
 
     def ask(fn: Any) -> Any:
-        """Run ``fn(what_is)`` between two cycles; What Is errors become a 4xx."""
+        """Run ``fn(what_is)`` under the node's lock, between two cycles, with the newest
+        cycle's time (its copy's, set under the lock with the cycle); What Is errors become a
+        4xx."""
         with live.lock:
             try:
-                return fn(live.what_is()), live.status.cycle_t_ns
+                snap = live.snapshot
+                return fn(live.what_is()), (snap.cycle_t_ns if snap is not None else -1)
             except ServeError as e:
                 raise bad(e, 503) from None
             except (WhatIsError, KDError) as e:
@@ -573,7 +637,8 @@ def create_app(
     def status() -> dict:
         """Cycles run, the newest cycle's sweep time, the lag of the answers behind the newest
         frame read, the newest cycle's wall time and that of its copy for the lock-free answers
-        (``snapshot_ms``, part of the cycle's), frames read and skipped."""
+        (``snapshot_ms``, part of the cycle's) with the bytes of map layers it holds
+        (``snapshot_map_bytes``), frames read and skipped."""
         s = live.status
         lag = s.newest_frame_t_ns - s.cycle_t_ns if s.cycle_t_ns >= 0 else None
         return {
@@ -583,6 +648,7 @@ def create_app(
             "lag_ns": lag,
             "cycle_ms": None if math.isnan(s.cycle_ms) else s.cycle_ms,
             "snapshot_ms": None if math.isnan(s.snapshot_ms) else s.snapshot_ms,
+            "snapshot_map_bytes": s.snapshot_map_bytes,
             "mean_cycle_ms": 1e3 * s.feed_s / s.cycles if s.cycles else None,
             "frames": s.frames,
             "skipped": s.skipped,
@@ -666,31 +732,39 @@ def create_app(
             ) from None
 
         snap = live.snapshot
-        if not cls and snap is not None:  # class filters need the class library: the lock
-            c = snap.cols
-            keep = (c["frame"] == "world") & (c["confidence"] >= min_confidence)
-            keep &= shape.contains(c["position"])
-            if statuses:
-                keep &= np.isin(c["status"], [s.value for s in statuses])
-            if level:
-                keep &= np.isin(c["level"], level)
-            rows = np.flatnonzero(keep)
-            rows = rows[np.argsort(c["id"][rows])]
+        if snap is not None and snap.taxonomy is not None:  # the cycle's copy: no lock
+            try:
+                rows = _region_rows(snap, shape, cls, statuses, min_confidence, level)
+            except KDError as e:  # an unknown class, in the KD's words
+                raise bad(e) from None
             return {"cycle_t_ns": snap.cycle_t_ns, "frame": "world",
                     "entities": [snap.entity(int(k)) for k in rows]}  # fmt: skip
 
-        def go(w: Any) -> list[dict]:
+        def go(w: Any) -> list[Any]:  # before the first cycle: What Is under the lock
             ans = w.region(shape, cls, statuses, min_confidence, level)
-            return [_entity_json(w.entity(int(i)), live.status.cycle_t_ns) for i in ans.ids]
+            return [w.entity(int(i)) for i in ans.ids]
 
-        ents, cycle = ask(go)
+        found, cycle = ask(go)
+        ents = [_entity_json(a, cycle) for a in found]
         return {"cycle_t_ns": cycle, "frame": "world", "entities": ents}
 
     @app.get("/v1/events")
     def events(t_from_ns: int, t_to_ns: int, class_name: str | None = None) -> dict:
         """Events overlapping [t_from_ns, t_to_ns], in start-time order."""
+        from kd_store.events import overlapping
+        from wm.whatis import check_interval
 
-        def go(w: Any) -> list[dict]:
+        live.demand.ask([EVENTS])  # the cycles from now on copy the event frames
+        snap = live.snapshot
+        if snap is not None and snap.events is not None:  # the cycle's copy: no lock
+            try:
+                check_interval(t_from_ns, t_to_ns)
+            except WhatIsError as e:
+                raise bad(e) from None
+            found = overlapping(snap.events, t_from_ns, t_to_ns, class_name)
+            return {"cycle_t_ns": snap.cycle_t_ns, "events": [_event_json(e) for e in found]}
+
+        def go(w: Any) -> list[dict]:  # not asked for lately: What Is under the lock, once
             return [_event_json(e) for e in w.events(t_from_ns, t_to_ns, class_name)]
 
         evs, cycle = ask(go)
@@ -746,15 +820,17 @@ def create_app(
     def plan(req: PlanPathRequest) -> dict:
         """Tell the node the controller's current plan (``WorldModelNode.set_plan``): until the
         next call, attention ranks entities near the path higher (4.3, relevance to the plan).
-        ``xy`` null: no plan."""
-        with live.lock:
-            if live.node is None or live.closed:
-                raise HTTPException(503, "the live node is not running (not started, or stopped)")
-            try:
-                live.node.set_plan(None if req.xy is None else np.asarray(req.xy, np.float64))
-            except EngineError as e:
-                raise bad(e) from None
-            cycle = live.status.cycle_t_ns
+        ``xy`` null: no plan. It does not wait for the cycle in progress: the path replaces the
+        node's whole, and each cycle reads it once (``WorldModelNode.set_plan``); the cycles
+        after ``cycle_t_ns`` (the newest when it was told) rank against it."""
+        node, snap = live.node, live.snapshot
+        if node is None or live.closed:
+            raise HTTPException(503, "the live node is not running (not started, or stopped)")
+        try:
+            node.set_plan(None if req.xy is None else np.asarray(req.xy, np.float64))
+        except EngineError as e:
+            raise bad(e) from None
+        cycle = snap.cycle_t_ns if snap is not None else -1
         return {"cycle_t_ns": cycle, "frame": "world", "points": len(req.xy or ())}
 
     @app.post("/v1/whatif")
@@ -815,6 +891,32 @@ def create_app(
     add_ros_routes(app, live)  # GetGridMap, CheckSafety and IsPathValid shapes
     app.add_middleware(LimitsMiddleware, limits=limits or ServeLimits())
     return app
+
+
+def _region_rows(
+    snap: CycleSnapshot,
+    shape: Any,
+    classes: list[str] | None,
+    statuses: list[Any] | None,
+    min_confidence: float,
+    levels: list[int] | None,
+) -> np.ndarray:
+    """Rows of ``snap.cols`` whose current world position lies in ``shape`` and which pass
+    the filters, in id order: ``KnowledgeDatabase.region`` over the cycle's copy (a class
+    includes its ``is_a`` descendants, by the copied taxonomy; KDError for an unknown one)."""
+    c = snap.cols
+    keep = (c["frame"] == "world") & (c["confidence"] >= min_confidence)
+    keep &= shape.contains(c["position"])
+    if statuses:
+        keep &= np.isin(c["status"], [s.value for s in statuses])
+    if levels:
+        keep &= np.isin(c["level"], levels)
+    if classes:
+        names = set().union(*(snap.taxonomy.descendants(k) for k in classes))
+        # class_name holds None for an entity of no class: no np.isin over mixed objects
+        keep &= np.fromiter((n in names for n in c["class_name"]), bool, len(keep))
+    rows = np.flatnonzero(keep)
+    return rows[np.argsort(c["id"][rows])]
 
 
 def _finite_or_none(v: float) -> float | None:

@@ -24,7 +24,10 @@ the ``.srv`` says) of one map level (``level``, extension, default ``subsystem``
 map_window`, here rectangular: ``2 ceil(length_x / (2 res)) + 1`` cells along x, likewise
 along y, centred on the cell holding the position), so the answered ``info.length_x``,
 ``length_y`` and ``pose`` are the cells', not the request's (grid_map's own ``getSubmap`` also
-answers the cells covering the request). Cells beyond the level's scrolling window hold the
+answers the cells covering the request). A layer's earlier name (``z_m2``) is taken for its
+current one, which the answer uses, naming the rename in ``renamed_layers`` (extension,
+{earlier: current}) and the ``X-Map-Renamed-Layers`` header. Cells beyond the level's scrolling
+window hold the
 layer's empty value; NaN is JSON null, as in ``/v1/maps``. Values are the layer's own, as
 JSON numbers: a bridge filling ``Float32MultiArray`` rounds the int64 layers (``entity_id``,
 ``last_seen_ns``) beyond 2^24. At most :data:`wm.serve_views.MAX_JSON_VALUES` values.
@@ -56,9 +59,15 @@ overlapping entities' boxes, else (or with nothing untraversable) no points. Ext
 ``why`` and ``known_fraction`` (of its cells) per polygon. Polygons need 3 to
 :data:`MAX_POLYGON_POINTS` points and an area; at most :data:`MAX_POLYGONS`, and at most
 :data:`wm.serve_views.MAX_BINARY_VALUES` cells in their bounding boxes together (413). The
-node's lock is held only to copy each polygon's cells (:func:`polygon_window`) and the
-entities' boxes; the verdicts are worked out from the copies after it is released, so a
-large request holds up neither the node's cycle nor other requests.
+traversability and the entities' boxes come from the newest cycle's copy
+(:class:`wm.serve.CycleSnapshot`: What If copies both each cycle), so CheckSafety takes no
+lock and a large request holds up neither the node's cycle nor other requests; only for a
+level What If does not serve (not in ``whatif.steps_s``) is each polygon's cells copied under
+the node's lock (:func:`polygon_window`), until the cycles after copy its traversability.
+
+GetGridMap and CheckSafety read the level as ``/v1/maps`` does
+(:func:`wm.serve_views.read_level`): from the cycle's copy when it holds the layers, else
+under the node's lock, copying only the window's cells.
 
 **IsPathValid** (:func:`judge_path`): What If rolls the path out as a waypoint plan from the
 vehicle's present state; the answer gives that ``plan`` with ``horizon_s`` and ``level``, and
@@ -97,7 +106,7 @@ import math
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import FastAPI, HTTPException
+from fastapi import FastAPI, HTTPException, Response
 from pydantic import BaseModel, Field
 
 from wm.config import PlannerConfig, VehicleConfig
@@ -106,9 +115,13 @@ from wm.serve_views import (
     MAX_BINARY_VALUES,
     MAX_COORD_M,
     MAX_JSON_VALUES,
+    LevelRead,
     MapWindow,
-    find_level,
+    level_layers,
     map_window,
+    read_level,
+    renamed_headers,
+    resolve_layers,
     window_span,
 )
 
@@ -260,12 +273,15 @@ class GetGridMapRequest(BaseModel):
 
 
 class GetGridMapAnswer(BaseModel):
-    """GetGridMap's response (``map``) and where it is from (extensions)."""
+    """GetGridMap's response (``map``) and where it is from (extensions); ``renamed_layers``
+    (extension): the layers asked by an earlier name, {earlier: current}, answered under the
+    current one."""
 
     map: GridMap
     cycle_t_ns: int
     frame: str
     level: str
+    renamed_layers: dict[str, str] = Field(default_factory=dict)
 
 
 class CheckSafetyRequest(BaseModel):
@@ -390,14 +406,10 @@ def grid_map_of(w: MapWindow, cycle_t_ns: int) -> dict:
     }  # fmt: skip
 
 
-def _grid_layers(level: Any, names: list[str]) -> list[str]:
-    """The layers asked (all of the level's when none), each once; 400 naming unknown ones."""
-    unknown = [s for s in names if s not in level.specs]
-    if unknown:
-        raise HTTPException(
-            400, f"layers {unknown}: unknown on level {level.name!r}; known: {level.layer_names}"
-        )
-    return list(dict.fromkeys(names)) if names else list(level.layer_names)
+def _grid_layers(level: Any, names: list[str]) -> tuple[list[str], dict[str, str]]:
+    """The layers asked (all of the level's when none), each once, an earlier name standing
+    for its current one (:func:`wm.serve_views.resolve_layers`: 400 naming unknown ones)."""
+    return resolve_layers(level, names) if names else (level_layers(level), {})
 
 
 def _check_grid_window(level: Any, req: GetGridMapRequest, layers: list[str]) -> None:
@@ -504,8 +516,8 @@ def convex_hull(pts: np.ndarray) -> np.ndarray:
 
 def polygon_window(level: Any, poly: np.ndarray) -> MapWindow:
     """The traversability of the level's cells in the bounding box of ``poly`` (K, 2) world
-    m: a copy (:func:`wm.serve_views.map_window`), taken under the node's lock so that the
-    verdict can be worked out after it is released."""
+    m: a copy (:func:`wm.serve_views.map_window`), so that the verdict can be worked out
+    without the level (from the cycle's copy, or after the node's lock is released)."""
     lo, hi = poly.min(axis=0), poly.max(axis=0)
     c, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     return map_window(level, c[0], c[1], half[0], ["traversability"], half_y_m=half[1])
@@ -625,14 +637,28 @@ def _check_polygon_cells(level: Any, polys: list[np.ndarray]) -> None:
             )
 
 
-def _entity_boxes(node: Any, polys: list[np.ndarray], cycle_t_ns: int) -> Any:
-    """The boxes of the entities What If would collide with, near the polygons, as of the
-    cycle (world frame)."""
-    from wm.shapes import boxes_of
+def node_what_if(node: Any) -> Any:
+    """What If over the node's own KD and maps with the server's configuration
+    (:func:`wm.serve.served_whatif_config`); use it under the node's lock."""
     from wm.whatif import WhatIf
 
-    # the server's What If configuration (wm.serve.served_whatif_config): its search margin
-    wi = WhatIf(node.kd, node.stack, node.engine_config.whatif, self_id=node.self_id)
+    return WhatIf(node.kd, node.stack, node.engine_config.whatif, self_id=node.self_id)
+
+
+def source_what_if(src: LevelRead) -> Any:
+    """What If over what ``src`` reads: the cycle's copy, or the node under its lock."""
+    if src.snapshot is not None:
+        from wm.serve import what_if_over
+
+        return what_if_over(src.snapshot)
+    return node_what_if(src.node)
+
+
+def _entity_boxes(wi: Any, polys: list[np.ndarray], cycle_t_ns: int) -> Any:
+    """The boxes of the entities What If ``wi`` would collide with, near the polygons, as of
+    the cycle (world frame); its configuration's search margin."""
+    from wm.shapes import boxes_of
+
     if cycle_t_ns < 0 or not polys:  # no cycle yet: the KD holds no entity
         return boxes_of([])
     pts = np.concatenate(polys)
@@ -779,29 +805,32 @@ def add_ros_routes(app: FastAPI, live: Any) -> None:
     """Add the three ROS-shaped endpoints (module docstring) over ``live`` (a
     :class:`wm.serve.LiveNode`) to ``app``."""
 
-    def running() -> tuple[Any, int]:
-        """The node and its newest cycle's time; call under ``live.lock``."""
-        if live.node is None or live.closed:
-            raise HTTPException(503, "the live node is not running (not started, or stopped)")
-        snap = live.snapshot  # set under the lock with the cycle
-        return live.node, (snap.cycle_t_ns if snap is not None else -1)
-
     @app.post("/v1/grid_map/get_grid_map")
-    def get_grid_map(req: GetGridMapRequest) -> GetGridMapAnswer:
+    def get_grid_map(req: GetGridMapRequest, response: Response) -> GetGridMapAnswer:
         """grid_map_msgs/srv/GetGridMap: the submap of ``length_x`` x ``length_y`` m around
         (``position_x``, ``position_y``) world m of map ``level`` (extension), the ``layers``
-        asked (all when empty), column-major with index (0, 0) at the largest x and y
-        (module docstring of wm.serve_ros)."""
+        asked (all when empty; an earlier name such as ``z_m2`` stands for the current one,
+        named in ``renamed_layers``), column-major with index (0, 0) at the largest x and y
+        (module docstring of wm.serve_ros). From the cycle's copy when it holds the layers
+        (:func:`wm.serve_views.read_level`)."""
         check_frame(req.frame_id, "request")
-        with live.lock:
-            node, cycle = running()
-            lvl = find_level(node.stack, req.level)
-            layers = _grid_layers(lvl, req.layers)
+        renamed: dict[str, str] = {}
+
+        def layers_of(lvl: Any) -> list[str]:
+            layers, got = _grid_layers(lvl, req.layers)
+            renamed.update(got)
             _check_grid_window(lvl, req, layers)
-            w = map_window(lvl, req.position_x, req.position_y, 0.5 * req.length_x, layers,
-                           half_y_m=0.5 * req.length_y)  # fmt: skip
+            return layers
+
+        def window(src: LevelRead) -> tuple[MapWindow, int]:
+            w = map_window(src.level, req.position_x, req.position_y, 0.5 * req.length_x,
+                           src.layers, half_y_m=0.5 * req.length_y)  # fmt: skip
+            return w, src.cycle_t_ns
+
+        w, cycle = read_level(live, req.level, layers_of, window)
+        response.headers.update(renamed_headers(renamed))
         return {"map": grid_map_of(w, cycle), "cycle_t_ns": cycle, "frame": WORLD,
-                "level": lvl.name}  # fmt: skip
+                "level": w.level, "renamed_layers": renamed}  # fmt: skip
 
     @app.post("/v1/elevation_mapping/check_safety")
     def check_safety(req: CheckSafetyRequest) -> CheckSafetyAnswer:
@@ -809,15 +838,20 @@ def add_ros_routes(app: FastAPI, live: Any) -> None:
         on, its mean traversability, and (``compute_untraversable_polygon``) the hull of what
         is not; ``why`` per polygon (module docstring of wm.serve_ros)."""
         polys = [_polygon_xy(p, k) for k, p in enumerate(req.polygons)]
-        # under the lock only what reads the node: the entities' boxes and a copy of each
-        # polygon's cells (at most MAX_BINARY_VALUES in all); the verdicts, which test every
-        # cell, come after, so a large request holds neither the cycle nor other requests up
-        with live.lock:
-            node, cycle = running()
-            lvl = find_level(node.stack, req.level)
+
+        def layers_of(lvl: Any) -> list[str]:
             _check_polygon_cells(lvl, polys)
-            boxes = _entity_boxes(node, polys, cycle)
-            windows = [polygon_window(lvl, poly) for poly in polys]
+            return ["traversability"]
+
+        # the entities' boxes and a copy of each polygon's cells (at most MAX_BINARY_VALUES in
+        # all), from the cycle's copy (or, for a level whose traversability it does not hold,
+        # under the node's lock); the verdicts, which test every cell, come after either way
+        def inputs(src: LevelRead) -> tuple[str, int, Any, list[MapWindow]]:
+            boxes = _entity_boxes(source_what_if(src), polys, src.cycle_t_ns)
+            windows = [polygon_window(src.level, poly) for poly in polys]
+            return src.level.name, src.cycle_t_ns, boxes, windows
+
+        level, cycle, boxes, windows = read_level(live, req.level, layers_of, inputs)
         out = [
             polygon_safety(w, boxes, poly, p.polygon.points[0].z,
                            req.compute_untraversable_polygon, cycle)
@@ -828,7 +862,7 @@ def add_ros_routes(app: FastAPI, live: Any) -> None:
             "traversability": [o["traversability"] for o in out],
             "untraversable_polygons": [o["untraversable_polygon"] for o in out],
             "why": [o["why"] for o in out], "known_fraction": [o["known_fraction"] for o in out],
-            "cycle_t_ns": cycle, "frame": WORLD, "level": lvl.name,
+            "cycle_t_ns": cycle, "frame": WORLD, "level": level,
         }  # fmt: skip
 
     @app.post("/v1/nav2/is_path_valid")

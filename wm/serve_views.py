@@ -7,21 +7,28 @@ attention per level, and a push stream of what each cycle changed.
 
 Map windows (:func:`map_window`): the cells of one map level (``primitive``, ``subsystem``,
 ``vehicle``, ``section``, or their reference-model numbers 2..5) around a world point, as the
-node's maps hold them between two cycles. The window is the ``(2k+1) x (2k+1)`` cells centred on
-the cell holding (x, y), ``k = ceil(half_m / resolution_m)``; row 0 is the southern edge, column
-0 the western one (as :class:`maps.level.MapLevel`), ``origin`` is the world (x, y) in metres of
-the south-west corner of cell [0, 0]. Cells outside the level's current window (it scrolls with
-the vehicle) hold the layer's empty value (NaN, -1 or 0, as ``maps.layers`` says): the server
-does not read the KD's stored tiles. JSON answers (lists, NaN as null) are for small windows
-(:data:`MAX_JSON_VALUES`); ``Accept: application/x-npy`` gives one ``.npy`` array (layers,
-rows, cols) float64 with the metadata in ``X-Map-*`` headers, ``Accept:
-application/vnd.apache.arrow.stream`` an Arrow IPC stream with one row per cell (``row``,
-``col``, cell-centre ``x``, ``y`` world m, then one column per layer in its own dtype) and the
-metadata in the schema's; both up to :data:`MAX_BINARY_VALUES` values (cells x layers).
+node's maps hold them between two cycles: read from the newest cycle's copy when it holds the
+layers (What If's four, and those asked for in the last 30 s), else under the node's lock
+(:func:`read_level`; :mod:`wm.serve_copy`). A layer's earlier name (``z_m2``,
+:data:`maps.layers.RENAMED_LAYERS`) is taken for its current one (``z_sq_dev_sum``): the answer
+names the layer by the current name and says so in ``renamed_layers`` ({earlier: current}; in
+every format's metadata) and the header :data:`RENAMED_HEADER`. The window is the ``(2k+1) x
+(2k+1)`` cells centred on the cell holding (x, y), ``k = ceil(half_m / resolution_m)``; row 0 is
+the southern edge, column 0 the western one (as :class:`maps.level.MapLevel`), ``origin`` is the
+world (x, y) in metres of the south-west corner of cell [0, 0]. Cells outside the level's
+current window (it scrolls with the vehicle) hold the layer's empty value (NaN, -1 or 0, as
+``maps.layers`` says): the server does not read the KD's stored tiles. JSON answers (lists, NaN
+as null) are for small windows (:data:`MAX_JSON_VALUES`); ``Accept: application/x-npy`` gives
+one ``.npy`` array (layers, rows, cols) float64 with the metadata in ``X-Map-*`` headers,
+``Accept: application/vnd.apache.arrow.stream`` an Arrow IPC stream with one row per cell
+(``row``, ``col``, cell-centre ``x``, ``y`` world m, then one column per layer in its own dtype)
+and the metadata in the schema's; both up to :data:`MAX_BINARY_VALUES` values (cells x layers).
 
 Entities of attention (:func:`attention_entities`) of SP level L (1..5, or a map level's name,
 which stands for the SP level of the same number): the entities of level L, neither denied nor
-gone, that the node attends to, each with the reasons why:
+gone, that the node attends to, each with the reasons why (worked out at the end of every
+cycle for the levels asked for in the last 30 s, so answered from the cycle's copy; the first
+request for a level works it out under the node's lock):
 
 * ``"attention list"``: on the entities-of-attention list value judgment keeps for the node
   level of L (``kd.attention``, written by the node's step 5 from proximity, danger, novelty
@@ -53,15 +60,19 @@ import logging
 import math
 import threading
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Hashable, Sequence
 from dataclasses import dataclass
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
 from fastapi import FastAPI, HTTPException, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
+from maps.layers import RENAMED_LAYERS
+from wm.serve_copy import attention_key, layer_key
+
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 MAX_JSON_VALUES = 10_000  # cells x layers of one JSON map window
 MAX_BINARY_VALUES = 1_000_000  # ... of one .npy or Arrow map window (8 MB as float64)
@@ -74,6 +85,7 @@ ARROW_STREAM = "application/vnd.apache.arrow.stream"
 # reference-model numbers of the default map levels (wm/render.py names its pictures so)
 MAP_LEVEL_NUMBERS = {2: "primitive", 3: "subsystem", 4: "vehicle", 5: "section"}
 ENDED = ("denied", "gone")
+RENAMED_HEADER = "X-Map-Renamed-Layers"  # "old=new,...": layers asked by an earlier name
 
 
 # --- map windows -------------------------------------------------------------------------------
@@ -122,6 +134,84 @@ def window_cells(resolution_m: float, x: float, y: float, half_m: float) -> tupl
     return ix0, iy0, n
 
 
+def level_layers(level: Any) -> list[str]:
+    """Every layer of ``level`` (a :class:`maps.level.MapLevel`, or a copy of some of its
+    layers, :class:`wm.whatif.LevelCopy`): the level's configuration names them."""
+    return [spec.name for spec in level.config.layers]
+
+
+def resolve_layers(level: Any, names: Sequence[str]) -> tuple[list[str], dict[str, str]]:
+    """``names`` as layers of ``level``, each once in the order asked, an earlier name
+    (:data:`maps.layers.RENAMED_LAYERS`, e.g. ``z_m2``) standing for its current one; and
+    {earlier: current} for those so asked. HTTP 400 naming the unknown ones."""
+    have = level_layers(level)
+    renamed = {n: RENAMED_LAYERS[n] for n in names
+               if n not in have and RENAMED_LAYERS.get(n) in have}  # fmt: skip
+    unknown = [n for n in names if n not in have and n not in renamed]
+    if unknown:
+        earlier = ", ".join(f"{old} (now {new})" for old, new in RENAMED_LAYERS.items())
+        raise HTTPException(
+            400,
+            f"layers {unknown}: unknown on level {level.name!r}; known: {have}; earlier names "
+            f"taken: {earlier}",
+        )
+    return list(dict.fromkeys(renamed.get(n, n) for n in names)), renamed
+
+
+@dataclass(frozen=True)
+class LevelRead:
+    """A map level to answer from, with the layers asked and the cycle it is as of
+    (``cycle_t_ns``, int64 ns of log time; -1 before the first cycle): a level of the cycle's
+    copy (``snapshot``, a :class:`wm.serve.CycleSnapshot`; ``node`` None), or the node's own
+    level under its lock (``node``, the :class:`~wm.node.WorldModelNode`; ``snapshot``
+    None), to read only while the lock is held."""
+
+    level: Any
+    layers: list[str]
+    cycle_t_ns: int
+    snapshot: Any | None
+    node: Any | None
+
+
+def running_node(live: Any) -> Any:
+    """The live node; HTTP 503 when it is not running (not started, or stopped)."""
+    node = live.node
+    if node is None or live.closed:
+        raise HTTPException(503, "the live node is not running (not started, or stopped)")
+    return node
+
+
+def read_level(
+    live: Any, key: str, layers_of: Callable[[Any], list[str]], read: Callable[[LevelRead], T]
+) -> T:
+    """``read`` over map level ``key`` (:func:`find_level`) of the newest cycle, with the
+    layers ``layers_of(level)`` names (it checks the request too; its HTTP errors pass).
+
+    From the cycle's copy (:class:`wm.serve.CycleSnapshot`) when it holds every layer named:
+    no lock, so the request neither waits for the cycle in progress nor holds it up. Else
+    (the first request for a layer, or one beyond the copy's byte limit: :mod:`wm.serve_copy`)
+    under the node's lock from the node's own level. Either way the layers are asked for
+    (:class:`wm.serve_copy.ServedDemand`), so the cycles after copy them."""
+    snap = live.snapshot  # one read: a cycle ending now replaces it whole
+    running_node(live)
+    if snap is not None and snap.maps is not None:
+        lvl = find_level(snap.maps, key)
+        names = layers_of(lvl)
+        live.demand.ask(layer_key(lvl.name, n) for n in names)
+        if all(n in lvl.specs for n in names):
+            return read(LevelRead(lvl, names, snap.cycle_t_ns, snap, None))
+    with live.lock:
+        node = running_node(live)
+        if node.stack is None:
+            raise HTTPException(503, "the live node keeps no maps (its KD is in memory)")
+        snap = live.snapshot  # set under the lock with the cycle, unlike ``live.status``
+        lvl = find_level(node.stack, key)
+        names = layers_of(lvl)
+        live.demand.ask(layer_key(lvl.name, n) for n in names)
+        cycle = snap.cycle_t_ns if snap is not None else -1
+        return read(LevelRead(lvl, names, cycle, None, node))
+
+
 def map_window(
     level: Any, x: float, y: float, half_m: float, layers: list[str], half_y_m: float | None = None
 ) -> MapWindow:
@@ -129,7 +219,7 @@ def map_window(
     (x, y) m of half-width ``half_m`` m (module docstring); ``half_y_m``, if given, is the
     half-height (along y) of a rectangular window, ``half_m`` then the half-width along x.
     Cells outside the level's current window hold the layer's empty value. Call it between two
-    of the node's cycles."""
+    of the node's cycles, or on a level of the cycle's copy (:func:`read_level`)."""
     res = level.resolution_m
     ix0, nx = window_span(res, x, half_m)
     iy0, ny = window_span(res, y, half_m if half_y_m is None else half_y_m)
@@ -163,7 +253,7 @@ def _layer_json(a: np.ndarray) -> list:
     return obj.tolist()
 
 
-def _window_meta(w: MapWindow, cycle_t_ns: int) -> dict:
+def _window_meta(w: MapWindow, cycle_t_ns: int, renamed: dict[str, str]) -> dict:
     return {
         "level": w.level,
         "frame": "world",
@@ -173,15 +263,24 @@ def _window_meta(w: MapWindow, cycle_t_ns: int) -> dict:
         "shape": list(w.shape),
         "layers": list(w.values),
         "level_bounds": [list(w.level_bounds[0]), list(w.level_bounds[1])],
+        # layers asked by an earlier name, answered under the current one: {earlier: current}
+        "renamed_layers": dict(renamed),
     }
 
 
-def _npy_response(w: MapWindow, cycle_t_ns: int) -> Response:
+def renamed_headers(renamed: dict[str, str]) -> dict[str, str]:
+    """:data:`RENAMED_HEADER` (``old=new,...``) when layers were asked by an earlier name."""
+    if not renamed:
+        return {}
+    return {RENAMED_HEADER: ",".join(f"{old}={new}" for old, new in renamed.items())}
+
+
+def _npy_response(w: MapWindow, cycle_t_ns: int, renamed: dict[str, str]) -> Response:
     """The layers stacked (L, rows, cols) float64 as one .npy; metadata in headers."""
     buf = io.BytesIO()
     np.save(buf, np.stack([v.astype(np.float64) for v in w.values.values()]))
-    meta = _window_meta(w, cycle_t_ns)
-    headers = {
+    meta = _window_meta(w, cycle_t_ns, renamed)
+    headers = renamed_headers(renamed) | {
         "X-Map-Level": w.level,
         "X-Map-Layers": ",".join(w.values),
         "X-Map-Origin": f"{w.origin_xy[0]!r},{w.origin_xy[1]!r}",
@@ -194,7 +293,7 @@ def _npy_response(w: MapWindow, cycle_t_ns: int) -> Response:
     return Response(buf.getvalue(), media_type=NPY, headers=headers)
 
 
-def _arrow_response(w: MapWindow, cycle_t_ns: int) -> Response:
+def _arrow_response(w: MapWindow, cycle_t_ns: int, renamed: dict[str, str]) -> Response:
     """One row per cell: row, col, cell-centre x, y (world m), one column per layer."""
     import pyarrow as pa
 
@@ -206,24 +305,21 @@ def _arrow_response(w: MapWindow, cycle_t_ns: int) -> Response:
         "x": w.origin_xy[0] + (col.reshape(-1) + 0.5) * w.resolution_m,
         "y": w.origin_xy[1] + (row.reshape(-1) + 0.5) * w.resolution_m,
     } | {name: v.reshape(-1) for name, v in w.values.items()}
-    meta = {k: json.dumps(v) for k, v in _window_meta(w, cycle_t_ns).items()}
+    meta = {k: json.dumps(v) for k, v in _window_meta(w, cycle_t_ns, renamed).items()}
     table = pa.table(cols).replace_schema_metadata(meta)
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, table.schema) as writer:
         writer.write_table(table)
-    return Response(sink.getvalue().to_pybytes(), media_type=ARROW_STREAM)
+    headers = renamed_headers(renamed)
+    return Response(sink.getvalue().to_pybytes(), media_type=ARROW_STREAM, headers=headers)
 
 
-def _wanted_layers(level: Any, layers: str) -> list[str]:
+def _wanted_layers(level: Any, layers: str) -> tuple[list[str], dict[str, str]]:
+    """The layers a comma-separated ``layers`` names (:func:`resolve_layers`); 400 for none."""
     names = [s.strip() for s in layers.split(",") if s.strip()]
     if not names:
-        raise HTTPException(400, f"layers {layers!r}: name at least one of {level.layer_names}")
-    unknown = [s for s in names if s not in level.specs]
-    if unknown:
-        raise HTTPException(
-            400, f"layers {unknown}: unknown on level {level.name!r}; known: {level.layer_names}"
-        )
-    return list(dict.fromkeys(names))  # in the order asked, each once
+        raise HTTPException(400, f"layers {layers!r}: name at least one of {level_layers(level)}")
+    return resolve_layers(level, names)
 
 
 def _check_window(
@@ -315,6 +411,27 @@ def attention_entities(node: Any, sp_level: int, t_ns: int) -> list[dict]:
         if why:
             out.append(_attended(f, why, ranked.get(f.id)))
     return sorted(out, key=lambda e: (e["rank"] is None, e["rank"] or 0, e["entity_id"]))
+
+
+def attention_copies(
+    node: Any, wanted: Sequence[Hashable], cycle_t_ns: int
+) -> dict[int, tuple[str, list[dict]]]:
+    """SP level -> (its node level, :func:`attention_entities` as of ``cycle_t_ns``) for the
+    levels among ``wanted`` (demand keys, :func:`wm.serve_copy.attention_key`), for the
+    cycle's copy; call it under the node's lock, at the end of a cycle. A level that fails is
+    logged and left out (its requests then read under the lock): the copy never stops the
+    node."""
+    out = {}
+    for key in wanted:
+        if not (isinstance(key, tuple) and key[0] == "attention"):
+            continue
+        sp_level = int(key[1])
+        try:
+            node_level = node.kd.config.memory.node_of_sp_level[sp_level]
+            out[sp_level] = (node_level, attention_entities(node, sp_level, cycle_t_ns))
+        except Exception:
+            log.exception("attention of SP level %s at t_ns=%s: not copied", sp_level, cycle_t_ns)
+    return out
 
 
 def _half_size_m(f: Any) -> float:
@@ -542,13 +659,6 @@ def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CY
     feed = CycleFeed(live, stream_queue)
     app.state.stream_feed = feed  # for a caller in the same process (and the tests)
 
-    def running() -> tuple[Any, int]:
-        """The node and its newest cycle's time; call under ``live.lock``."""
-        if live.node is None or live.closed:
-            raise HTTPException(503, "the live node is not running (not started, or stopped)")
-        snap = live.snapshot  # set under the lock with the cycle, unlike ``live.status``
-        return live.node, (snap.cycle_t_ns if snap is not None else -1)
-
     @app.get("/v1/maps/{level}")
     def map_view(
         request: Request,
@@ -558,34 +668,57 @@ def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CY
         half_m: Annotated[float, Query(description="half-width of the window, m")] = 10.0,
         layers: str = "elevation",
     ) -> Response:
-        """The named layers (comma-separated) of map level ``level`` (name or 2..5) in the
+        """The named layers (comma-separated; an earlier name such as ``z_m2`` stands for the
+        current one, named in ``renamed_layers``) of map level ``level`` (name or 2..5) in the
         window of half-width ``half_m`` m around world (x, y) m: JSON, or ``.npy`` / Arrow by
-        the Accept header (module docstring of wm.serve_views)."""
+        the Accept header (module docstring of wm.serve_views). From the cycle's copy when it
+        holds the layers (:func:`read_level`)."""
         accept = request.headers.get("accept", "")
         binary = NPY if NPY in accept else ARROW_STREAM if ARROW_STREAM in accept else None
-        with live.lock:
-            node, cycle = running()
-            lvl = find_level(node.stack, level)
-            names = _wanted_layers(lvl, layers)
-            limit = MAX_BINARY_VALUES if binary else MAX_JSON_VALUES
+        renamed: dict[str, str] = {}
+
+        limit = MAX_BINARY_VALUES if binary else MAX_JSON_VALUES
+
+        def layers_of(lvl: Any) -> list[str]:
+            names, got = _wanted_layers(lvl, layers)
+            renamed.update(got)
             _check_window(lvl, x, y, half_m, names, limit)
-            w = map_window(lvl, x, y, half_m, names)
+            return names
+
+        def window(src: LevelRead) -> tuple[MapWindow, int]:
+            return map_window(src.level, x, y, half_m, src.layers), src.cycle_t_ns
+
+        w, cycle = read_level(live, level, layers_of, window)
         if binary == NPY:
-            return _npy_response(w, cycle)
+            return _npy_response(w, cycle, renamed)
         if binary == ARROW_STREAM:
-            return _arrow_response(w, cycle)
-        body = _window_meta(w, cycle) | {"values": {k: _layer_json(v) for k, v in w.values.items()}}
-        return Response(json.dumps(body), media_type="application/json")
+            return _arrow_response(w, cycle, renamed)
+        body = _window_meta(w, cycle, renamed) | {
+            "values": {k: _layer_json(v) for k, v in w.values.items()}
+        }
+        return Response(json.dumps(body), media_type="application/json",
+                        headers=renamed_headers(renamed))  # fmt: skip
 
     @app.get("/v1/attention")
     def attention(level: str = "4") -> dict:
         """Entities of SP level ``level`` (1..5 or a map level's name) the node attends to,
-        each with ``why`` (module docstring of wm.serve_views), world frame."""
+        each with ``why`` (module docstring of wm.serve_views), world frame. From the cycle's
+        copy once the level was asked for (the cycles after copy it while it is asked); the
+        first request works it out under the node's lock."""
         sp_level = sp_level_of(level)
-        with live.lock:
-            node, cycle = running()
-            ents = attention_entities(node, sp_level, cycle)
-            node_level = node.kd.config.memory.node_of_sp_level[sp_level]
+        live.demand.ask([attention_key(sp_level)])
+        snap = live.snapshot  # one read: a cycle ending now replaces it whole
+        running_node(live)
+        if snap is not None and sp_level in snap.attention:
+            node_level, ents = snap.attention[sp_level]
+            cycle = snap.cycle_t_ns
+        else:
+            with live.lock:
+                node = running_node(live)
+                snap = live.snapshot  # set under the lock with the cycle
+                cycle = snap.cycle_t_ns if snap is not None else -1
+                ents = attention_entities(node, sp_level, cycle)
+                node_level = node.kd.config.memory.node_of_sp_level[sp_level]
         return {"cycle_t_ns": cycle, "frame": "world", "level": sp_level,
                 "node_level": node_level, "entities": ents}  # fmt: skip
 

@@ -21,7 +21,7 @@ Frames and units: world frame, metres, radians, seconds after ``t0_ns``; yaw abo
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -253,8 +253,9 @@ def _wanted(plans: list[Plan], times: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 class LevelCopy(MapLevel):
-    """The :data:`SAMPLED_LAYERS` of one map level, copied as they are now (storage order, with
-    the window's origin), read as the level reads them.
+    """The :data:`SAMPLED_LAYERS` (or the ``layers`` named) of one map level, copied as they are
+    now (storage order, with the window's origin), read as the level reads them. ``config``
+    is the level's: it names every layer of the level, held here or not.
 
     A :class:`~maps.level.MapLevel` so that every index transform What If uses is the level's
     own code, not a second copy of it; built without ``MapLevel.__init__``, which would
@@ -316,12 +317,18 @@ class WhatIfCopy:
         self_id: int | None,
         levels: Iterable[str],
         cols: dict[str, np.ndarray] | None = None,
+        copies: Mapping[str, LevelCopy] | None = None,
     ) -> WhatIfCopy:
         """Copy what What If reads of ``kd`` and of ``stack``'s ``levels`` (names; others
-        left out); ``cols``: ``kd.current_columns()`` if the caller has taken it already.
-        Call it where nothing writes the KD or the stack (the node's thread, or its lock)."""
-        want = set(levels)
-        stack_copy = StackCopy([LevelCopy(lvl) for lvl in stack.levels if lvl.name in want])
+        left out); ``cols``: ``kd.current_columns()`` if the caller has taken it already;
+        ``copies``: levels copied already, by name, each holding at least
+        :data:`SAMPLED_LAYERS` (shared, not copied again). Call it where nothing writes the
+        KD or the stack (the node's thread, or its lock)."""
+        want, copies = set(levels), copies or {}
+        stack_copy = StackCopy([
+            copies[lvl.name] if lvl.name in copies else LevelCopy(lvl)
+            for lvl in stack.levels if lvl.name in want
+        ])  # fmt: skip
         self_state = kd.get(self_id).state if self_id is not None else None
         c = kd.current_columns() if cols is None else cols
         keep = (c["frame"] == "world") & (c["level"] == int(Level.OBJECT))

@@ -284,8 +284,7 @@ class WhatIs:
 
     def events(self, t_from_ns: int, t_to_ns: int, class_name: str | None = None) -> list:
         """Event frames overlapping ``[t_from_ns, t_to_ns]`` (start-time order)."""
-        if t_to_ns < t_from_ns:
-            raise WhatIsError(f"events: interval [{t_from_ns}, {t_to_ns}] ns ends before it starts")
+        check_interval(t_from_ns, t_to_ns)
         return self.kd.events(t_from_ns, t_to_ns, class_name=class_name)
 
     def sql(self, query: str) -> pa.Table:
@@ -299,6 +298,12 @@ class WhatIs:
         if name not in names:
             raise WhatIsError(f"map level {name!r} does not exist; levels: {names}")
         return self.stack.level(name)
+
+
+def check_interval(t_from_ns: int, t_to_ns: int) -> None:
+    """WhatIsError naming an events interval (int64 ns) that ends before it starts."""
+    if t_to_ns < t_from_ns:
+        raise WhatIsError(f"events: interval [{t_from_ns}, {t_to_ns}] ns ends before it starts")
 
 
 def _pose_of(s: State) -> np.ndarray:
