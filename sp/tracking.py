@@ -462,7 +462,8 @@ class Tracker:
         if M and not (np.all(np.isfinite(meas.position_xyz)) and np.all(np.isfinite(meas.what))):
             raise TrackingError(f"non-finite measurement at t_ref_ns={t_ref_ns}")
         x_pred, P_pred = self.predicted(t_ref_ns)
-        ti, mi = associate(x_pred, P_pred, meas, cfg, tr.status == TrackStatus.CONFIRMED)
+        ti, mi = associate(*self._gated_states(x_pred, P_pred, t_ref_ns), meas, cfg,
+                           tr.status == TrackStatus.CONFIRMED)  # fmt: skip
         ti, mi, part_pairs = self._parts_of_confirmed(ti, mi, meas)
         prev = tr.status.copy()
         # update the assigned tracks at each measurement's own time
@@ -534,6 +535,31 @@ class Tracker:
         track_of[part_of >= 0] = part_of[part_of >= 0]
         prev_all = np.concatenate([prev, np.full(fm.size, -1, np.int8)])
         return track_of, prev_all
+
+    def _gated_states(
+        self, x_pred: np.ndarray, P_pred: np.ndarray, t_ns: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The states association gates on: the constant-velocity prediction, but for a
+        confirmed track the stationarity test holds at rest with more evidence than the prior
+        (``llr0``) a new track starts from, the stationary model's position (a random walk of
+        ``q_static_m``): a parked car's velocity filter follows the wander of its visible
+        centre as the view changes, and a track gated on it slides onto the car beside it. A
+        mover confirmed before the test has its evidence, or whose velocity filter has it
+        faster than ``evident_mps`` (a long truck's centre may move within what the test
+        allows a view), is still gated where it drives."""
+        tr = self.tracks
+        rest = (tr.status == TrackStatus.CONFIRMED) & ~tr.moving(self.config)
+        rest &= (tr.llr < self.config.llr0) & (
+            np.hypot(tr.x[:, 3], tr.x[:, 4]) < self.config.evident_mps
+        )
+        if not rest.any():
+            return x_pred, P_pred
+        x, P = x_pred.copy(), P_pred.copy()
+        dt = np.maximum((t_ns - tr.t_ns[rest]) * 1e-9, 0.0)
+        x[rest, :3] = tr.xs[rest]
+        x[rest, 3:] = 0.0
+        P[rest, :3, :3] = tr.Ps[rest] + (self.config.q_static_m**2 * dt)[:, None, None] * np.eye(3)
+        return x, P
 
     def _parts_of_confirmed(
         self, ti: np.ndarray, mi: np.ndarray, meas: Measurements
