@@ -51,6 +51,19 @@ class ClassPrototype:
     fitted: bool = False
 
 
+def descendants(is_a: Mapping[str, str | None], name: str) -> set[str]:
+    """``name`` and every class whose ``is_a`` chain reaches it; ``is_a[c]`` is the parent of
+    class ``c``, None for a root (every parent a key)."""
+    out = set()
+    for c in is_a:
+        k: str | None = c
+        while k is not None and k != name:
+            k = is_a[k]
+        if k == name:
+            out.add(c)
+    return out
+
+
 class ClassLibrary:
     """Prototypes by name with the ``is_a`` taxonomy; insertion order is kept."""
 
@@ -150,7 +163,7 @@ class ClassLibrary:
     def descendants(self, name: str) -> set[str]:
         """``name`` and every class whose lineage contains it."""
         self.get(name)
-        return {c for c in self._by_name if name in self.lineage(c)}
+        return descendants({c: p.is_a for c, p in self._by_name.items()}, name)
 
     # ------------------------------------------------------------------ writing
 

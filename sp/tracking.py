@@ -322,13 +322,19 @@ def footprint_spread(what: np.ndarray) -> np.ndarray:
     return out
 
 
+def stationary_predict(Ps: np.ndarray, dt_s: np.ndarray, q: float) -> np.ndarray:
+    """The stationary model's position covariance Ps (T, 3, 3) m^2 after a random walk of q
+    m/sqrt(s) over dt_s (T,) s."""
+    return Ps + (q**2 * dt_s)[:, None, None] * np.eye(3)
+
+
 def stationary_update(
     xs: np.ndarray, Ps: np.ndarray, z: np.ndarray, R: np.ndarray, dt_s: np.ndarray, q: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The stationary model's step: position xs (T, 3) with covariance Ps (T, 3, 3), a random
     walk of q m/sqrt(s) over dt_s (T,), measured by z (T, 3) with noise R (T, 3, 3).
     Returns (xs, Ps, log-likelihood (T,) of the innovation)."""
-    Pp = Ps + (q**2 * dt_s)[:, None, None] * np.eye(3)
+    Pp = stationary_predict(Ps, dt_s, q)
     S = Pp + R
     y = z - xs
     ll = gaussian_loglik(y, S)
@@ -547,18 +553,18 @@ class Tracker:
         mover confirmed before the test has its evidence, or whose velocity filter has it
         faster than ``evident_mps`` (a long truck's centre may move within what the test
         allows a view), is still gated where it drives."""
-        tr = self.tracks
-        rest = (tr.status == TrackStatus.CONFIRMED) & ~tr.moving(self.config)
-        rest &= (tr.llr < self.config.llr0) & (
-            np.hypot(tr.x[:, 3], tr.x[:, 4]) < self.config.evident_mps
-        )
+        cfg, tr = self.config, self.tracks
+        # below both thresholds the test holds it at rest; slower than evident_mps, its
+        # velocity filter is not sure of a motion either (Tracks.moving)
+        rest = (tr.status == TrackStatus.CONFIRMED) & (tr.llr < min(cfg.llr0, cfg.llr_moving))
+        rest &= np.hypot(tr.x[:, 3], tr.x[:, 4]) < cfg.evident_mps
         if not rest.any():
             return x_pred, P_pred
         x, P = x_pred.copy(), P_pred.copy()
         dt = np.maximum((t_ns - tr.t_ns[rest]) * 1e-9, 0.0)
         x[rest, :3] = tr.xs[rest]
         x[rest, 3:] = 0.0
-        P[rest, :3, :3] = tr.Ps[rest] + (self.config.q_static_m**2 * dt)[:, None, None] * np.eye(3)
+        P[rest, :3, :3] = stationary_predict(tr.Ps[rest], dt, cfg.q_static_m)
         return x, P
 
     def _parts_of_confirmed(

@@ -199,6 +199,8 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
            target="0 (the labels have no persons)", command=cmd)  # fmt: skip
     assert s["cars"] == 10
     assert s["recall"] >= 0.9, s
+    # 0.7 today: three cars parked nose to tail are one entity, which finds each of them
+    assert s["recall_alone"] >= 0.7, s
     # targets missed, recorded above: 7 of the 9 cars found classified vehicle (0.78; 0.8
     # wanted; partly seen cars called rock or wall), and 2 objects called person where the
     # labels have none (the prototypes fitted on the simulator's sensors take real clutter

@@ -358,11 +358,11 @@ def test_two_people_walking_close_together_are_two_tracks() -> None:
     assert (one.status == TrackStatus.CONFIRMED).sum() == 1
 
 
-def _parked_car_then_neighbour(tracker: Tracker) -> tuple[int, np.ndarray]:
+def _parked_car_then_neighbour(tracker: Tracker) -> np.ndarray:
     """A parked car (4.5 x 1.8 m, its length along x) at y = 0 confirmed at rest, its visible
     centre wandering across it as the view changes (0.1 m a sweep for the last 6 sweeps),
-    then unseen for a sweep, then a segment of the car parked beside it, 3 m on: (the
-    track's index, track_of)."""
+    then unseen for a sweep, then a segment of the car parked beside it, 3 m on: the step's
+    track_of (the parked car's track is track 0)."""
     what = np.array([[4.5, 1.8, 1.5, 0.0]])
     y = [0.05 * ((-1) ** k) for k in range(20)] + [0.1 + 0.1 * k for k in range(6)]
     for k, yk in enumerate(y):
@@ -373,17 +373,16 @@ def _parked_car_then_neighbour(tracker: Tracker) -> tuple[int, np.ndarray]:
     t = (len(y) + 1) * SWEEP_NS
     beyond = Measurements(np.array([[20.0, 3.0, 0.75]]), np.array([t]), what)
     track_of, _ = tracker.step(beyond, t)
-    return 0, track_of
+    return track_of
 
 
 def test_a_parked_car_is_gated_where_it_rests_not_where_its_centre_drifted() -> None:
-    k, track_of = _parked_car_then_neighbour(Tracker())
-    assert track_of[0] != k  # the car beyond is a new track, not the parked one moved
+    track_of = _parked_car_then_neighbour(Tracker())
+    assert track_of[0] != 0  # the car beside it is a new track, not the parked one moved
 
     class VelocityGated(Tracker):
         def _gated_states(self, x_pred, P_pred, t_ns):
             return x_pred, P_pred
 
     # gated on its constant-velocity prediction, the parked car's track took it
-    k, track_of = _parked_car_then_neighbour(VelocityGated())
-    assert track_of[0] == k
+    assert _parked_car_then_neighbour(VelocityGated())[0] == 0

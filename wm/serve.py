@@ -59,7 +59,6 @@ This module imports FastAPI; the command line imports it only for ``wm serve``.
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 import time
@@ -71,7 +70,7 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from core.errors import EngineError
@@ -370,14 +369,6 @@ class LiveNode:
 
 
 # --- the HTTP API ----------------------------------------------------------------------------
-
-
-def _json_response(content: dict) -> Response:
-    """``content`` (plain str, int, float, list, dict and None only) as a JSON response,
-    encoded at once: FastAPI's generic encoder walks every value of a region's entity list
-    first, which costs more than the query itself."""
-    body = json.dumps(content, allow_nan=False, separators=(",", ":"))
-    return Response(body, media_type="application/json")
 
 
 def _vec(a: np.ndarray) -> list[float]:
@@ -746,8 +737,10 @@ def create_app(
                 rows = _region_rows(snap, shape, cls, statuses, min_confidence, level)
             except KDError as e:  # an unknown class, in the KD's words
                 raise bad(e) from None
-            return _json_response({"cycle_t_ns": snap.cycle_t_ns, "frame": "world",
-                                   "entities": [snap.entity(int(k)) for k in rows]})  # fmt: skip
+            # a response at once: FastAPI's generic encoder would first walk every value of
+            # the entity list, which costs more than the query
+            return JSONResponse({"cycle_t_ns": snap.cycle_t_ns, "frame": "world",
+                                 "entities": [snap.entity(int(k)) for k in rows]})  # fmt: skip
 
         def go(w: Any) -> list[Any]:  # before the first cycle: What Is under the lock
             ans = w.region(shape, cls, statuses, min_confidence, level)

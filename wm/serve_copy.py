@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from kd_store.classes import descendants
 from kd_store.errors import KDError
 
 #: wall seconds a view stays in the per-cycle copy after a client last asked for it
@@ -160,10 +161,4 @@ class Taxonomy:
         :meth:`kd_store.ClassLibrary.descendants` (the same error for an unknown class)."""
         if name not in self.is_a:
             raise KDError(f"class {name!r} is not in the class library")
-        return {c for c in self.is_a if name in self._lineage(c)}
-
-    def _lineage(self, name: str) -> list[str]:
-        out = [name]
-        while (parent := self.is_a[out[-1]]) is not None:
-            out.append(parent)
-        return out
+        return descendants(self.is_a, name)
