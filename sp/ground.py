@@ -62,12 +62,13 @@ class GroundConfig:
     resume_gap_m:      after a non-ground return, the ground resumes only at least this much
                        farther (plus ``resume_gap_per_m`` times the range) than it, and rising
                        no steeper than ``resume_slope_deg`` from the last ground return.
-                       At 15 degrees the roof of a car parked behind another (5-7 degrees
-                       above the ground before the first one) is taken for ground; at 5 it
-                       is not, which helped a simulated parking lot, but on real street
-                       scans (KITTI) the ground behind parked cars was then refused too and
-                       4 of 10 labelled cars were lost in what it joined. The steeper rule
-                       stays the default until a test tells the two apart on real data.
+                       At 5 degrees the roof of a car parked behind another (5-7 degrees
+                       above the ground before the first one) is not taken for ground, as it
+                       is at 15. On real street scans (KITTI) the gentler rule once lost cars,
+                       but only because the grouping joined three cars parked nose to tail
+                       across the returns between them (:mod:`sp.segments` now skips a pixel
+                       only when it is empty or an occluder), and the merged piece's track
+                       then failed.
     cell_m, n_sectors: polar grid of the refinement pass (radial cell length, sectors).
     refine_above_m:    in refinement, returns this far above the local lowest ground are
                        not ground; returns within ``refine_within_m`` of it are.
@@ -79,7 +80,7 @@ class GroundConfig:
     max_slope_deg: float = 32.0
     step_m: float = 0.06
     resume_gap_m: float = 0.8
-    resume_slope_deg: float = 15.0
+    resume_slope_deg: float = 5.0
     resume_gap_per_m: float = 0.04
     refine: bool = True
     cell_m: float = 2.0

@@ -288,6 +288,16 @@ def _step_cut(range_m, ia, ja, ib, jb, di, dj, sf64, sm64):  # pragma: no cover
     return cut
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _skip_ok(r_a, r_mid, r_b, sf, sm):  # pragma: no cover
+    """:func:`_skips_ok` of one link: the pixel between holds no return, or one in front of
+    both ends by more than the step threshold ``sm + sf * r`` (r the nearer end's range)."""
+    if not (r_mid > 0 and r_mid < np.inf):
+        return True
+    r = _minimum(r_a, r_b)
+    return r_mid < r - (sm + sf * r)
+
+
 # inlined into the kernel: a call per link, with two arrays to pass, would cost more than the test
 @numba.njit(cache=True, nogil=True, inline="always")
 def _joined(
@@ -353,8 +363,10 @@ def _components_kernel(
             ):
                 root = _union(parent, root, pos[i * W + j1])
             j2 = _wrap(j + 2, W)
-            if mask[i, j2] and _joined(
-                xyz, range_m, i, j, i, j2, 0, 2, s02, jm02, step_on, sf, sm, sf64, sm64
+            if (
+                mask[i, j2]
+                and _skip_ok(range_m[i, j], range_m[i, j1], range_m[i, j2], sf, sm)
+                and _joined(xyz, range_m, i, j, i, j2, 0, 2, s02, jm02, step_on, sf, sm, sf64, sm64)
             ):
                 root = _union(parent, root, pos[i * W + j2])
             # down the column: the next row, then the rows after it while those between
@@ -456,6 +468,9 @@ def label_objects_reference(
         if di >= H:
             continue
         a, b = _links(mask, di, dj, empty)
+        if dj == 2:
+            keep = _skips_ok(range_flat_m, a, b, W, cfg)
+            a, b = a[keep], b[keep]
         d = np.linalg.norm(flat[a] - flat[b], axis=1)
         r = np.minimum(range_flat_m[a], range_flat_m[b])
         near = d <= np.maximum(cfg.join_m, r * step)
@@ -530,6 +545,24 @@ def _links(
     a = np.flatnonzero(ok)
     b = a + di * W if dj == 0 else (a // W + di) * W + (a % W + dj) % W
     return a, b
+
+
+def _skips_ok(
+    range_flat_m: np.ndarray, a: np.ndarray, b: np.ndarray, W: int, cfg: SegmentConfig
+) -> np.ndarray:
+    """(n,) bool: the next-but-one links a -> b (flat indices, b two columns on) may skip the
+    pixel between them. They may when it holds no return (a dropout) or a return in front of
+    both ends by more than the step threshold (an occluder, such as a post before a wall).
+    A return between the two in range, or behind both (the background seen through a gap
+    between two cars parked nose to tail), leaves the direct links to decide: skipping it
+    would join across the very boundary it shows."""
+    mid = (a // W) * W + (a % W + 1) % W
+    r_mid = range_flat_m[mid]
+    r = np.minimum(range_flat_m[a], range_flat_m[b])
+    with np.errstate(invalid="ignore"):
+        hit = (r_mid > 0) & (r_mid < np.inf)
+        front = r_mid < r - (cfg.step_m + cfg.step_frac * r)
+    return ~hit | front
 
 
 def _neighbour(

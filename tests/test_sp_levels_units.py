@@ -119,11 +119,11 @@ def test_a_gentle_resume_rule_tells_the_roof_of_a_car_behind_a_car_from_ground()
     xyz, valid = _columns(NEAR_GROUND + CAR_FACE + roof)
     on_roof = np.zeros(valid.shape, dtype=bool)
     on_roof[: len(roof)] = True
-    gentle, _ = ground_mask(xyz, valid, GroundConfig(resume_slope_deg=5.0))
+    gentle, _ = ground_mask(xyz, valid, GroundConfig())
     assert gentle[-len(NEAR_GROUND) :].all()
     assert not gentle[on_roof].any()
-    # the default, steeper rule (kept for real street scans: GroundConfig) takes it for ground
-    steep, _ = ground_mask(xyz, valid, GroundConfig())
+    # a steeper rule takes it for ground
+    steep, _ = ground_mask(xyz, valid, GroundConfig(resume_slope_deg=15.0))
     assert steep[on_roof].all()
 
 

@@ -465,3 +465,53 @@ def test_one_body_or_a_long_object_is_not_cut() -> None:
     xyz, _, hit = cast(_side_by_side(0.35))  # the same returns on a car-length segment
     labels = np.where(hit >= 0, 0, -1)
     assert _gap_split(labels, xyz, 4.5) is labels
+
+
+def _row(ranges: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """One scan row (1, n) of returns at ``ranges`` (m; inf = none) on successive columns of
+    the 1024-column image, level with the sensor: xyz (1, n, 3) and range (1, n)."""
+    r = np.array(ranges, dtype=np.float64)[None, :]
+    az = AZ[: r.shape[1]][None, :]
+    xyz = np.stack([np.cos(az), np.sin(az), np.zeros_like(az)], axis=-1)
+    hit = np.isfinite(r)[..., None]
+    return np.where(hit, xyz * np.nan_to_num(r, posinf=0.0)[..., None], 0.0), r
+
+
+def _groups(ranges: list[float], grouped: list[bool]) -> list[int]:
+    """Labels of a one-row scene by the compiled grouping, checked against the reference."""
+    xyz, r = _row(ranges)
+    mask = np.array(grouped)[None, :]
+    cfg = SegmentConfig(min_pixels=1, near_pixels=0)
+    got = label_objects(xyz, r, mask, ROW_STEP, COL_STEP, cfg)
+    ref = label_objects_reference(xyz, r, mask, ROW_STEP, COL_STEP, cfg)
+    assert _components(got) == _components(ref)
+    return got[0].tolist()
+
+
+# two cars parked nose to tail, seen past the corner of the first: its side recedes to 27 m,
+# the second's begins at 28.4 m and recedes too. The first return of the second car is too far
+# from the first car's corner for a next-column link, but the next-but-one link (twice the
+# reach) from that corner would reach the second car's next return.
+CAR_A = [25.0, 25.5, 26.0, 26.5, 27.0]
+CAR_B = [28.9, 29.4, 29.9, 30.4]
+
+
+def test_the_next_but_one_link_does_not_skip_a_return_between_two_objects() -> None:
+    labels = _groups([*CAR_A, 28.4, *CAR_B], [True] * 10)
+    assert len(set(labels[:5])) == 1 and len(set(labels[5:])) == 1
+    assert labels[4] != labels[5]
+    # the same scene with that return missing (a dropout): the link skips it and joins the cars
+    labels = _groups([*CAR_A, np.inf, *CAR_B], [*[True] * 5, False, *[True] * 4])
+    assert labels[4] == labels[6]
+    # ... and a return behind both (the background seen through the gap) does not join them
+    labels = _groups([*CAR_A, 45.0, *CAR_B], [True] * 10)
+    assert labels[4] != labels[6]
+
+
+def test_the_next_but_one_link_skips_an_occluder_in_front() -> None:
+    # a wall at 20 m with a post 8 m out hiding one of its columns: the wall stays one piece
+    wall_m = [20.0 + 0.02 * k for k in range(9)]
+    ranges = [*wall_m[:4], 8.0, *wall_m[5:]]
+    labels = _groups(ranges, [True] * 9)
+    assert len({labels[k] for k in range(9) if k != 4}) == 1
+    assert labels[4] != labels[3]
