@@ -1,23 +1,23 @@
-"""What the SP levels of one processor share: configuration, class table, sweep count, and the
-observations of the sweep.
+"""What the SP levels of one processor share: configuration, class library and table, id
+source, sweep count, and the observations of the sweep.
 
 Reference 001, 4.5.6 (levels 2 to 5 of sensory processing), 4.4.4 (entity images and the
-class images made from them), 4.2 (the world model writes SP's observations into the KD).
-:class:`SPConfig` holds every parameter of levels 2-5; an :class:`SPContext` is built once per
-:class:`sp.pipeline.SensoryProcessor` and handed to each level module (:mod:`sp.level2_lists`
-... :mod:`sp.level5_groups`), which record their observations in it
-(:mod:`sp.observations`) rather than write the KD.
+class images made from them), 4.2 (the world model alone writes the KD, SP's observations
+included). :class:`SPConfig` holds every parameter of levels 2-5; an :class:`SPContext` is
+built once per :class:`sp.pipeline.SensoryProcessor` and handed to each level module
+(:mod:`sp.level2_lists` ... :mod:`sp.level5_groups`), which record their observations in it
+(:mod:`sp.observations`); SP holds no knowledge database.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-import kd_store
+from kd_store import ClassLibrary, Level, Status
 from sp.classify import ClassifyConfig
 from sp.egosphere import EgosphereConfig
 from sp.events import EventClass
@@ -35,10 +35,10 @@ from sp.windowing import WindowConfig
 IMAGE_NAMES = {2: "sp2_lists", 3: "sp3_surfaces", 4: "sp4_objects", 5: "sp5_groups"}
 # a track's status (sp.tracking) as the KD's
 KD_STATUS = {
-    TrackStatus.HYPOTHESIZED: kd_store.Status.HYPOTHESIZED,
-    TrackStatus.CONFIRMED: kd_store.Status.CONFIRMED,
-    TrackStatus.DENIED: kd_store.Status.DENIED,
-    TrackStatus.GONE: kd_store.Status.GONE,
+    TrackStatus.HYPOTHESIZED: Status.HYPOTHESIZED,
+    TrackStatus.CONFIRMED: Status.CONFIRMED,
+    TrackStatus.DENIED: Status.DENIED,
+    TrackStatus.GONE: Status.GONE,
 }
 
 
@@ -95,17 +95,19 @@ class SPConfig:
 
 
 class SPContext:
-    """The state the levels share: the configuration, the class table the class images are
-    made from (entity id -> index into ``class_names``), the sweep count that spreads the list
-    and surface frame rewrites over sweeps (:meth:`due`), and the sweep's observations in the
-    order they were made (:meth:`take_observations`).
+    """The state the levels share: the configuration, the class library and the class table
+    the class images are made from (entity id -> index into ``class_names``), the id source,
+    the sweep count that spreads the list and surface frame rewrites over sweeps (:meth:`due`),
+    and the sweep's observations in the order they were made (:meth:`take_observations`).
 
-    ``kd`` is read, never written: its class library, its id space (a new entity's or event's
-    id, so images, tracks and frames share it), which frames it still holds (short-term memory
-    forgets hypotheses), and the status of the groups of earlier sweeps."""
+    ``classes`` is the class library the world model keeps (it adds the specific classes it
+    founds from SP's observations; SP reads it). ``new_id`` gives a fresh frame id for each
+    new entity or event SP observes; the world model passes its KD's id source, so images,
+    tracks and frames share the id."""
 
-    def __init__(self, kd: kd_store.KnowledgeDatabase, config: SPConfig) -> None:
-        self.kd = kd
+    def __init__(self, classes: ClassLibrary, new_id: Callable[[], int], config: SPConfig) -> None:
+        self.classes = classes
+        self.new_id = new_id
         self.config = config
         self.class_table = ClassTable()  # entity id -> class index, for the class images
         self.class_names: list[str] = []
@@ -121,15 +123,15 @@ class SPContext:
     def new_entity(
         self,
         name: str,
-        level: kd_store.Level,
+        level: Level,
         images: tuple[str, ...],
-        status: kd_store.Status = kd_store.Status.HYPOTHESIZED,
+        status: Status = Status.HYPOTHESIZED,
         confidence: float = 0.0,
         generic_classes: tuple[str, ...] = (),
     ) -> int:
-        """Observe a new entity; returns its id (taken from the KD's id space now)."""
+        """Observe a new entity; returns its id (taken from the id source now)."""
         op = NewEntity(
-            self.kd.new_id(), name, level, images, status, confidence, tuple(generic_classes)
+            self.new_id(), name, level, images, status, confidence, tuple(generic_classes)
         )
         self._created[op.entity_id] = op
         self.observations.append(op)
@@ -145,7 +147,7 @@ class SPContext:
     ) -> int:
         """Observe an instantaneous event involving ``entity_ids``; returns its id."""
         op = EventObserved(
-            self.kd.new_id(),
+            self.new_id(),
             event_class,
             int(t_ns),
             tuple(int(i) for i in entity_ids),
@@ -163,19 +165,15 @@ class SPContext:
         """The new-entity observation of ``frame_id`` made this sweep, if any."""
         return self._created.get(frame_id)
 
-    def known(self, frame_id: int) -> bool:
-        """Whether frame ``frame_id`` exists: in the KD, or observed new this sweep."""
-        return frame_id in self.kd or frame_id in self._created
-
     def take_observations(self) -> list[Observation]:
         """The observations since the last call, in order; the next sweep starts afresh."""
         out, self.observations, self._created = self.observations, [], {}
         return out
 
     def refresh_classes(self) -> None:
-        """Re-read the class names from the KD's library (a specific class was founded).
+        """Re-read the class names from the class library (a specific class was founded).
         ``class_names`` is replaced, not changed, so earlier results keep theirs."""
-        self.class_names = [p.name for p in self.kd.classes]
+        self.class_names = [p.name for p in self.classes]
         self.class_index = {n: i for i, n in enumerate(self.class_names)}
 
     def set_class(self, entity_id: int, name: str | None) -> None:

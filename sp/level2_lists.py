@@ -69,8 +69,9 @@ class ListLevel:
 
     Per slot: ``ids`` the list's frame id, ``conf`` its recursive confidence, ``hits`` the
     sweeps it was seen, ``open`` whether still hypothesized, ``key`` its owner * 4 + kind,
-    ``dead`` denied (its key makes a new list if seen again). ``lut`` maps owner * 4 + kind
-    to the slot; ``lists_of`` maps an owner id to its list ids.
+    ``dead`` denied (its key makes a new list if seen again), ``unheld`` the KD holds no frame
+    of it (the world model said so: :meth:`frames_let_go`). ``lut`` maps owner * 4 + kind to
+    the slot; ``lists_of`` maps an owner id to its list ids.
     """
 
     def __init__(self, ctx: SPContext) -> None:
@@ -84,7 +85,8 @@ class ListLevel:
         self.open = np.zeros(0, dtype=bool)
         self.key = np.zeros(0, dtype=np.int64)  # slot -> owner * 4 + kind
         self.dead = np.zeros(0, dtype=bool)  # denied: its key makes a new list if seen
-        self.classifier = Classifier(ctx.kd.classes, Level.LIST, ctx.config.classify)
+        self.unheld = np.zeros(0, dtype=bool)  # the KD holds no frame of it
+        self.classifier = Classifier(ctx.classes, Level.LIST, ctx.config.classify)
 
     def step(
         self,
@@ -179,6 +181,7 @@ class ListLevel:
         self.open = np.r_[self.open, np.ones(len(new), dtype=bool)]
         self.key = np.r_[self.key, missing.astype(np.int64)]
         self.dead = np.r_[self.dead, np.zeros(len(new), dtype=bool)]
+        self.unheld = np.r_[self.unheld, np.zeros(len(new), dtype=bool)]
 
     # ------------------------------------------------------------------ filtering
 
@@ -221,6 +224,13 @@ class ListLevel:
         self.dead[slots] = True
         self.open[slots] = False
 
+    def frames_let_go(self, frame_ids: np.ndarray) -> None:
+        """The KD holds no frame of the lists among ``frame_ids`` (int64): its short-term
+        memory forgot them, or the world model could not write their making. They are
+        released when next seen (:meth:`classify`)."""
+        if self.ids.size and len(frame_ids):
+            self.unheld |= np.isin(self.ids, frame_ids)
+
     def owner_gone(self, owner_id: int, also: Iterable[int] = ()) -> None:
         """Owner ``owner_id`` went: its lists (and the lists ``also``, e.g. its contact
         boundary) go too."""
@@ -239,10 +249,10 @@ class ListLevel:
 
     def classify(self, a: ListAttributes, first_new: int) -> None:
         """Classes and frames of the lists seen (``a``) that are due this sweep or new (slot
-        at least ``first_new``). A hypothesis the KD's short-term memory has let go of is
-        treated as denied."""
+        at least ``first_new``). A list the KD no longer holds (its short-term memory let a
+        hypothesis go) is treated as denied."""
         ctx = self.ctx
-        gone = np.array([not ctx.known(int(i)) for i in self.ids[a.ids]], dtype=bool)
+        gone = self.unheld[a.ids]
         if gone.any():
             self.release(a.ids[gone])
         ids = self.ids[a.ids]

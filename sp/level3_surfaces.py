@@ -72,7 +72,7 @@ class SurfaceLevel:
         self._surface_contact: dict[int, int] = {}  # free surface id -> its contact list id
         self._surface_status: dict[int, int] = {}  # free surface id -> status written to KD
         self._crease: dict[tuple[int, int], tuple[int, int]] = {}  # surfaces -> (list, t_ns)
-        self.classifier = Classifier(ctx.kd.classes, Level.SURFACE, ctx.config.classify)
+        self.classifier = Classifier(ctx.classes, Level.SURFACE, ctx.config.classify)
 
     # ------------------------------------------------------------------ grouping: the ground
 
@@ -131,7 +131,7 @@ class SurfaceLevel:
             self.ground_id = ctx.new_entity(
                 "ground",
                 Level.SURFACE,
-                generic_classes=("ground",) if "ground" in ctx.kd.classes else (),
+                generic_classes=("ground",) if "ground" in ctx.classes else (),
                 images=(IMAGE_NAMES[3],),
                 status=Status.CONFIRMED,
                 confidence=1.0,
@@ -231,7 +231,7 @@ class SurfaceLevel:
         lid = ctx.new_entity(
             name,
             Level.LIST,
-            generic_classes=("slope_edge",) if "slope_edge" in ctx.kd.classes else (),
+            generic_classes=("slope_edge",) if "slope_edge" in ctx.classes else (),
             images=(IMAGE_NAMES[2],),
             status=Status.CONFIRMED,
             confidence=1.0,

@@ -23,9 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import kd_store
 from core.geometry import matrix_to_quat, rot_z
-from kd_store import Attribute, Level, StateBatch, Status
+from kd_store import Attribute, ClassKind, Level, StateBatch, Status
 from logs.types import CameraFrame
 from sp.appearance import object_appearance
 from sp.classify import Classifier
@@ -91,7 +90,7 @@ class ObjectLevel:
     def __init__(self, ctx: SPContext) -> None:
         self.ctx = ctx
         self.tracker = Tracker(ctx.config.tracker)
-        self.classifier = Classifier(ctx.kd.classes, Level.OBJECT, ctx.config.classify)
+        self.classifier = Classifier(ctx.classes, Level.OBJECT, ctx.config.classify)
         self.track_class: dict[int, tuple[str | None, float]] = {}
         self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
         self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
@@ -263,7 +262,7 @@ class ObjectLevel:
         track_of, prev = self.tracker.step(meas, t_ns, provisional_ids, self._sensor_xy)
         tr = self.tracker.tracks
         # M-of-N birth: hypotheses seen often enough get their frame (and "appeared") now; the
-        # frame's id comes from the KD's id space, so images, tracks and frames share it
+        # frame's id comes from the id source (the KD's), so images, tracks and frames share it
         promote = np.flatnonzero(
             (tr.id < 0)
             & ((tr.hits >= cfg.birth_hits) | (tr.status == TrackStatus.CONFIRMED))
@@ -380,8 +379,8 @@ class ObjectLevel:
                 continue
             self.track_class[tid] = (m.name, m.score)
             ctx.set_class(tid, m.name)
-            proto = ctx.kd.classes.get(m.name)
-            specific = m.name if proto.kind == kd_store.ClassKind.SPECIFIC else None
+            proto = ctx.classes.get(m.name)
+            specific = m.name if proto.kind == ClassKind.SPECIFIC else None
             ctx.record(
                 FrameChange(
                     tid, generic_classes=m.generic, specific_class=specific, sets_specific=True
@@ -419,7 +418,7 @@ class ObjectLevel:
 
     def refresh_classes(self) -> bool:
         """Take in the specific classes the world model founded from earlier observations
-        (:class:`~sp.observations.ClassFounded`, now in the KD's library): the classifier and
+        (:class:`~sp.observations.ClassFounded`, now in the class library): the classifier and
         the class names. True when there were any."""
         if not self.ctx.classes_founded:
             return False

@@ -12,6 +12,9 @@ Reference 001, 4.5.6 (level 5: groups of objects), 4.5.1 (the five SP functions)
 - classification: against the level-5 prototypes (in :meth:`GroupLevel.compute`).
 
 The groups' frames, states, relations and events are observations (:mod:`sp.observations`).
+The status and confidence of each current group are kept here as observed, which is what its
+KD frame holds once the world model has written them (:meth:`GroupLevel.not_written` undoes
+what it could not write).
 """
 
 from __future__ import annotations
@@ -26,7 +29,15 @@ from sp.context import IMAGE_NAMES, SPContext, unit
 from sp.events import EventClass
 from sp.groups import group_labels, match_groups
 from sp.level4_objects import ObjectLevel
-from sp.observations import FrameChange, Related, StateObserved, StateRule, Unrelated
+from sp.observations import (
+    FrameChange,
+    NewEntity,
+    Observation,
+    Related,
+    StateObserved,
+    StateRule,
+    Unrelated,
+)
 from sp.tracking import Tracks, TrackStatus, evident_speed
 
 # classes of objects that move by themselves: only they link as moving members of a group
@@ -47,11 +58,15 @@ class GroupsObserved:
 
 class GroupLevel:
     """Level-5 group entities: ``groups`` maps each current group's id to its member object
-    ids; ``_group_hits`` counts the sweeps each group has been seen."""
+    ids, ``frames`` to its status and confidence (0..1) as its frame holds them;
+    ``_group_hits`` counts the sweeps each group has been seen."""
 
     def __init__(self, ctx: SPContext) -> None:
         self.ctx = ctx
         self.groups: dict[int, frozenset[int]] = {}
+        self.frames: dict[int, tuple[Status, float]] = {}
+        # this sweep's groups whose status or confidence changed: the values before
+        self._before: dict[int, tuple[Status, float]] = {}
         self._group_hits: dict[int, int] = {}  # cycles each group has been seen
 
     def step(self, t_ns: int, image4: np.ndarray, objects: ObjectLevel) -> GroupsObserved:
@@ -62,7 +77,7 @@ class GroupLevel:
         group starts hypothesized and is confirmed by its own recursive confidence as it
         persists (:meth:`filter`), like any other entity."""
         ctx = self.ctx
-        kd = ctx.kd  # read: the status of the groups of earlier sweeps
+        self._before = {}
         tr = objects.tracker.tracks
         current = self.group(objects)
         carried, _, ended = match_groups(self.groups, current)
@@ -95,7 +110,8 @@ class GroupLevel:
         for gid in ended:
             for m in self.groups[gid]:
                 ctx.record(Unrelated(m, "belongs_to", gid, t_ns, if_present=True))
-            was_confirmed = kd.get(gid).status == Status.CONFIRMED
+            was_confirmed = self._frame(gid)[0] == Status.CONFIRMED
+            del self.frames[gid]
             status = Status.GONE if was_confirmed else Status.DENIED
             ctx.record(FrameChange(gid, status=status))
             if was_confirmed:
@@ -127,20 +143,43 @@ class GroupLevel:
         tracker's gain ``alpha`` towards 1 each cycle the group persists; the group is
         confirmed (and "group_formed" appended to ``events``) once it is above the tracker's
         ``confirm`` after ``min_hits`` cycles, as an object track is. A group of earlier
-        sweeps has its status and confidence in the KD; a new one has those it was observed
-        with."""
+        sweeps has the status and confidence of its frame (``frames``); a new one has those
+        it was observed with."""
         ctx = self.ctx
         tc = ctx.config.tracker
         new = ctx.created(gid)
-        f = new if new is not None else ctx.kd.get(gid)
-        c = f.confidence + tc.alpha * (1.0 - f.confidence) if gid in self.groups else f.confidence
+        was = (new.status, new.confidence) if new is not None else self._frame(gid)
+        c = was[1] + tc.alpha * (1.0 - was[1]) if gid in self.groups else was[1]
         hits = self._group_hits.get(gid, 0) + 1
         self._group_hits[gid] = hits
         status = None
-        if f.status == Status.HYPOTHESIZED and c >= tc.confirm and hits >= tc.min_hits:
+        if was[0] == Status.HYPOTHESIZED and c >= tc.confirm and hits >= tc.min_hits:
             status = Status.CONFIRMED
             events.append(ctx.event(EventClass.GROUP_FORMED, t_ns, [gid, *members], 5))
         ctx.record(FrameChange(gid, status=status, confidence=unit(c)))
+        self._before[gid] = was
+        self.frames[gid] = (was[0] if status is None else status, unit(c))
+
+    def _frame(self, gid: int) -> tuple[Status, float]:
+        """Status and confidence of the frame of group ``gid`` of an earlier sweep; a
+        ValueError (the sweep fails) when its frame was never written."""
+        f = self.frames.get(gid)
+        if f is None:
+            raise ValueError(f"group {gid}: the KD holds no frame of it (never written)")
+        return f
+
+    def not_written(self, observations: list[Observation]) -> None:
+        """The world model could not write ``observations`` (the tail of a sweep's, after a
+        write the KD refused): the groups' status and confidence go back to what their
+        frames hold, and a group whose making was not written has no frame."""
+        for op in observations:
+            # :meth:`filter`'s change (the only one with a confidence) was not written
+            if isinstance(op, FrameChange) and op.confidence is not None:
+                if op.entity_id in self._before and op.entity_id in self.frames:
+                    self.frames[op.entity_id] = self._before[op.entity_id]
+        for op in observations:
+            if isinstance(op, NewEntity):
+                self.frames.pop(op.entity_id, None)
 
     def compute(self, gid: int, members: frozenset[int], t_ns: int, tracks: Tracks) -> None:
         """Group ``gid``'s attributes from its members' tracks (count, length along its
@@ -158,9 +197,7 @@ class GroupLevel:
             "speed_mps": Attribute(observed=speed),
             "density_per_m2": Attribute(observed=float(k.sum()) / (spread * spread)),
         }
-        m = Classifier(ctx.kd.classes, Level.GROUP).classify(
-            {n: a.observed for n, a in attrs.items()}
-        )
+        m = Classifier(ctx.classes, Level.GROUP).classify({n: a.observed for n, a in attrs.items()})
         ctx.record(FrameChange(gid, attributes=attrs, generic_classes=m.generic))
         ctx.set_class(gid, m.name)
         ctx.record(StateObserved(gid, t_ns, p.mean(axis=0), v.mean(0), StateRule.AFTER_LAST))

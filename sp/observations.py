@@ -11,8 +11,9 @@ The order matters and is kept: a later observation may refer to a frame an earli
 and a few of them depend on what the KD holds when they are written (``PartsGone``,
 ``StateObserved.rule``, ``FrameChange.if_status``, ``Unrelated.if_present``): the world model
 writes them one after the other, so the KD it consults is the one SP's earlier observations
-of the sweep made. Frame ids come from the KD's id space (``kd.new_id``) when SP observes a new
-entity or an event, so SP's images, tracks and tables and the KD's frames share the id.
+of the sweep made. Frame ids come from SP's id source (the world model gives the KD's
+``new_id``) when SP observes a new entity or an event, so SP's images, tracks and tables and the
+KD's frames share the id.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from sp.events import EventClass
 
 @dataclass(frozen=True)
 class NewEntity:
-    """A new entity frame with id ``entity_id`` (reserved from the KD's id space): ``name``,
+    """A new entity frame with id ``entity_id`` (from SP's id source, the KD's): ``name``,
     SP ``level``, the entity ``images`` it appears in, its first ``status`` and
     ``confidence`` (0..1), and generic class pointers (general to specific)."""
 
@@ -119,7 +120,7 @@ class Unrelated:
 @dataclass(frozen=True)
 class EventObserved:
     """An instantaneous event (start = end = ``t_ns``) of class ``event_class`` at SP
-    ``level``, with id ``event_id`` (reserved from the KD's id space), involving
+    ``level``, with id ``event_id`` (from SP's id source, the KD's), involving
     ``entity_ids``; ``confidence`` 0..1 (clipped when written)."""
 
     event_id: int

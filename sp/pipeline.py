@@ -19,11 +19,15 @@ to 5). One call of :meth:`SensoryProcessor.process` is one cycle, the levels in 
 8. with a camera frame: the confirmed objects' appearance (:mod:`sp.appearance`).
 
 Each level module holds its own state (trackers, tables); the levels share an
-:class:`~sp.context.SPContext` (configuration, class table, sweep count). SP writes no frame
-into the KD: the levels observe new entities, their attributes, states, classes, relations
-and events (:mod:`sp.observations`), in order, and the result carries them
-(``SPResult.observations``) for the world model to write (:class:`wm.entities.EntityUpdater`,
-reference 001, 4.2). New frames' ids come from the KD's id space as they are observed.
+:class:`~sp.context.SPContext` (configuration, class library and table, id source, sweep
+count). SP holds no knowledge database: it is given the class library and an id source, the
+levels observe new entities, their attributes, states, classes, relations and events
+(:mod:`sp.observations`), in order, and the result carries them (``SPResult.observations``)
+for the world model, which alone writes the KD (:class:`wm.entities.EntityUpdater`,
+reference 001, 4.2). New frames' ids come from the id source as they are observed (the world
+model gives the KD's ``new_id``). What SP needs to know of the KD's frames afterwards it
+is told: which observations were written (:meth:`SensoryProcessor.observations_written`) and
+which frames short-term memory forgot (:meth:`SensoryProcessor.frames_forgotten`).
 
 Deskewing: ``T_world_ladar`` is the sensor pose at ``pose_t_ns`` (the sweep's stamp unless the
 caller says otherwise). The world model's node deskews each sweep once on its pose track and
@@ -40,14 +44,14 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-import kd_store
 from core.errors import EngineError
 from core.geometry import check_pose, interpolate_pose
+from kd_store import ClassLibrary
 from logs.types import CameraFrame, LadarScan
 from sp.context import IMAGE_NAMES, SPConfig, SPContext
 from sp.egosphere import EgosphereImage, to_egosphere
@@ -56,7 +60,7 @@ from sp.level2_lists import ListLevel
 from sp.level3_surfaces import SurfaceLevel
 from sp.level4_objects import ObjectLevel
 from sp.level5_groups import GroupLevel
-from sp.observations import Observation
+from sp.observations import NewEntity, Observation
 from sp.sweep_points import sweep_points
 from sp.tracking import Tracker
 
@@ -132,11 +136,18 @@ class _Clock:
 
 class SensoryProcessor:
     """SP levels 1-5 over LADAR sweeps: the level modules (``level2`` ... ``level5``) called
-    in order, once per sweep. ``kd`` is read (class library, id space, frames it holds),
-    never written: the results' observations are for :class:`wm.entities.EntityUpdater`."""
+    in order, once per sweep. ``classes`` is the class library the world model keeps (SP
+    reads it; the world model adds the specific classes it founds), ``new_id`` the source of
+    new frame ids (the world model's KD's ``new_id``). The results' observations are for
+    :class:`wm.entities.EntityUpdater` to write into the KD."""
 
-    def __init__(self, kd: kd_store.KnowledgeDatabase, config: SPConfig | None = None) -> None:
-        self.ctx = SPContext(kd, config or SPConfig())
+    def __init__(
+        self,
+        classes: ClassLibrary,
+        new_id: Callable[[], int],
+        config: SPConfig | None = None,
+    ) -> None:
+        self.ctx = SPContext(classes, new_id, config or SPConfig())
         self.level2 = ListLevel(self.ctx)
         self.level3 = SurfaceLevel(self.ctx, self.level2)
         self.level4 = ObjectLevel(self.ctx)
@@ -146,8 +157,9 @@ class SensoryProcessor:
         self.n_failed = 0
 
     @property
-    def kd(self) -> kd_store.KnowledgeDatabase:
-        return self.ctx.kd
+    def classes(self) -> ClassLibrary:
+        """The class library SP classifies with."""
+        return self.ctx.classes
 
     @property
     def config(self) -> SPConfig:
@@ -167,12 +179,29 @@ class SensoryProcessor:
         """Level 4's object tracker."""
         return self.level4.tracker
 
-    def observations_written(self, result: SPResult) -> None:
-        """The world model has written ``result``'s observations into the KD: a specific class
-        founded from them joins SP's classes now (the classifier, ``class_names``, and the
-        result's ``class_names``)."""
+    def observations_written(self, result: SPResult, n_written: int | None = None) -> None:
+        """The world model has written ``result``'s observations into the KD, the first
+        ``n_written`` of them (None: all; fewer when the KD refused one and the rest were
+        skipped, :meth:`not_written`): a specific class founded from them joins SP's classes
+        now (the classifier, ``class_names``, and the result's ``class_names``)."""
+        if n_written is not None and n_written < len(result.observations):
+            self.not_written(result.observations[n_written:])
         if self.level4.refresh_classes():
             result.class_names = self.class_names
+
+    def not_written(self, observations: Sequence[Observation]) -> None:
+        """The world model could not write ``observations`` into the KD: the lists and groups
+        whose making is among them have no frame there, and the groups keep the status and
+        confidence their frames hold."""
+        ops = list(observations)
+        made = [op.entity_id for op in ops if isinstance(op, NewEntity)]
+        self.level2.frames_let_go(np.array(made, dtype=np.int64))
+        self.level5.not_written(ops)
+
+    def frames_forgotten(self, frame_ids: Sequence[int] | np.ndarray) -> None:
+        """The KD's short-term memory forgot frames ``frame_ids`` (what the KD's
+        ``advance`` returns): a list among them is released when next seen, as if denied."""
+        self.level2.frames_let_go(np.asarray(frame_ids, dtype=np.int64))
 
     # ------------------------------------------------------------------ the cycle
 
@@ -373,7 +402,7 @@ class SensoryProcessor:
     def _value_tables(self) -> dict[str, np.ndarray]:
         """Value of every class of ``class_names`` (cached until a class is founded)."""
         if self._values[0] != len(self.class_names):
-            self._values = (len(self.class_names), class_values(self.kd.classes, self.class_names))
+            self._values = (len(self.class_names), class_values(self.classes, self.class_names))
         return self._values[1]
 
 

@@ -4,6 +4,7 @@ verbatim from the per-kernel test files when their equivalence cases joined the 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import cv2
@@ -197,6 +198,185 @@ def non_ground(xyz: np.ndarray, valid: np.ndarray, seed: int) -> np.ndarray:
     (a pixel that is valid but not grouped breaks image contiguity: the near join's case)."""
     keep = np.random.default_rng(seed + 1000).random(valid.shape) > 0.05
     return valid & (xyz[..., 2] > -SENSOR_H + 0.15) & keep
+
+
+# --- sp.ground: ray-cast sweeps in the gravity-aligned sensor frame -------------------------
+
+
+def ground_rays(h: int, w: int, rng: np.random.Generator) -> np.ndarray:
+    """(h, w, 3) unit rays: rows from +0.3 rad (row 0) down to -0.4 rad with a little jitter
+    per row, columns in :mod:`sp.egosphere`'s azimuth order (pi down to -pi)."""
+    el = np.linspace(0.3, -0.4, h) + rng.normal(0.0, 1e-3, h)
+    az = np.pi - (np.arange(w) + 0.5) * 2 * np.pi / w
+    E, A = np.meshgrid(el, az, indexing="ij")
+    return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1)
+
+
+def plane_t(d: np.ndarray, height: float, a: float, b: float, dz: float = 0.0) -> np.ndarray:
+    """Ray parameter (m) where rays ``d`` meet z = -height + dz + a x + b y (inf if never)."""
+    den = d[..., 2] - a * d[..., 0] - b * d[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (-height + dz) / den
+    return np.where((den < -1e-6) & (t > 0), t, np.inf)
+
+
+def box_t(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Ray parameter (m) of the first hit of rays ``d`` from the origin on the box [lo, hi]
+    (its far side when the origin is inside it)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = lo / d, hi / d
+    t_near = np.nanmax(np.minimum(t1, t2), axis=-1)
+    t_far = np.nanmin(np.maximum(t1, t2), axis=-1)
+    t = np.where(t_near > 0, t_near, t_far)
+    return np.where((t_near <= t_far) & (t > 0), t, np.inf)
+
+
+def ground_sweep(
+    seed: int,
+    h: int = 64,
+    w: int = 1024,
+    fill: str = "nan",
+    height: float | None = None,
+    quantum_m: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A ray-cast sweep in the gravity-aligned sensor frame: a sloped ground with a curb
+    (a 0.1 m step beyond a line), boxes (cars, a wall) standing on it, range noise, raised
+    returns (vegetation), random and column-block drop-outs, no return beyond 120 m.
+
+    Returns xyz (h, w, 3) float64 m, with ``fill`` ("nan", "zero" or "junk") where invalid, and
+    valid (h, w) bool. ``quantum_m`` > 0 rounds the coordinates to it, as a sensor's fixed
+    resolution does: then the returns of a vertical face share exact ranges (ties).
+    """
+    rng = np.random.default_rng(seed)
+    sensor_h = rng.uniform(1.5, 2.2) if height is None else height
+    a, b = rng.uniform(-0.15, 0.15, 2)  # up to ~9 degrees of slope
+    d = ground_rays(h, w, rng)
+    t = plane_t(d, sensor_h, a, b)
+    # the curb: beyond y = y0 the ground is 0.1 m higher
+    y0 = rng.uniform(3.0, 8.0)
+    t_curb = plane_t(d, sensor_h, a, b, dz=0.1)
+    t = np.where(t_curb * d[..., 1] > y0, t_curb, t)
+    for _ in range(rng.integers(3, 9)):
+        cx, cy = rng.uniform(-40, 40, 2)
+        if np.hypot(cx, cy) < 4.0:
+            continue
+        half = rng.uniform([0.5, 0.5], [3.0, 1.2])
+        z0 = -sensor_h + a * cx + b * cy
+        lo = np.array([cx - half[0], cy - half[1], z0 - 0.5])
+        hi = np.array([cx + half[0], cy + half[1], z0 + rng.uniform(0.4, 3.0)])
+        t = np.minimum(t, box_t(d, lo, hi))
+    t = t * (1 + 0.002 * rng.standard_normal(t.shape))
+    valid = np.isfinite(t) & (t < 120.0) & (t > 0.5)
+    valid &= rng.random(valid.shape) >= 0.05
+    for _ in range(3):  # a few blocks of columns with no return (a puddle, an occlusion)
+        j = rng.integers(0, w)
+        valid[:, j : j + rng.integers(1, 12)] = False
+    xyz = np.where(valid[..., None], t[..., None] * d, 0.0)
+    xyz[..., 2] += 0.02 * rng.standard_normal(valid.shape)
+    xyz[..., 2] += np.where(rng.random(valid.shape) < 0.02, rng.uniform(0.1, 1.5, valid.shape), 0)
+    if quantum_m > 0:
+        xyz = np.round(xyz / quantum_m) * quantum_m
+    xyz[~valid] = {"nan": np.nan, "zero": 0.0, "junk": 1e6}[fill]
+    return xyz, valid
+
+
+# --- sp.lists: level-2 sweeps -------------------------------------------------------------------
+
+GROUND_OWNER = 500  # owner id of the ground in the synthetic owner images
+
+
+@dataclasses.dataclass
+class ListSweep:
+    """A synthetic LADAR sweep as SP level 2 gets it.
+
+    range_m:   (H, W) float32 metres, inf where empty (and NaN, 0 or -1 at some empty pixels:
+               every form of "no return"), 1 to 80 m where valid;
+    valid:     (H, W) bool;
+    intensity: (H, W) float32 reflectance-like units, NaN where empty;
+    owner:     (H, W) int64 object (0..), ground (GROUND_OWNER) or -1 (none, or an unowned
+               return).
+    """
+
+    range_m: np.ndarray
+    valid: np.ndarray
+    intensity: np.ndarray
+    owner: np.ndarray
+
+
+def list_sweep(seed: int, H: int = 64, W: int = 1024) -> ListSweep:
+    """A sweep of ground, boxes (walls, cars, people, poles) and foliage seen from 1.8 m."""
+    g = np.random.default_rng(seed)
+    el = np.linspace(np.radians(3.0), np.radians(-25.0), H)[:, None] * np.ones((1, W))
+    az = (np.arange(W)[None, :] + 0.5) * (2 * np.pi / W) * np.ones((H, 1))
+    with np.errstate(divide="ignore"):
+        rng = np.where(el < -1e-3, SENSOR_H / np.sin(-el), np.inf)  # the flat ground
+    rng = rng * (1.0 + g.normal(0.0, 0.003, (H, W)))  # range noise
+    owner = np.where(np.isfinite(rng), GROUND_OWNER, -1)
+    refl = np.where(np.isfinite(rng), 0.2, np.nan)
+    # painted stripes on the ground (lane markings: a step in brightness, not in range)
+    for _ in range(g.integers(2, 5)):
+        a0 = g.uniform(0, 2 * np.pi)
+        stripe = (np.abs(((az - a0) + np.pi) % (2 * np.pi) - np.pi) < g.uniform(0.01, 0.05)) & (
+            owner == GROUND_OWNER
+        )
+        refl[stripe] = g.uniform(0.5, 0.9)
+    # boxes: an azimuth span, a top elevation, a range at one end and a slope along azimuth
+    # (a wall at a grazing angle); poles thin and far; people and cars near
+    boxes = []
+    for kind, n in (("wall", g.integers(3, 7)), ("car", g.integers(3, 9)), ("pole", 8)):
+        for _ in range(n):
+            a0 = g.uniform(0, 2 * np.pi)
+            if kind == "wall":
+                span, r0, slope, top = g.uniform(0.2, 1.2), g.uniform(8, 60), g.uniform(-8, 8), 12
+            elif kind == "car":
+                span, r0, slope, top = g.uniform(0.05, 0.4), g.uniform(3, 25), 0.0, 1.6
+            else:
+                span, r0, slope, top = g.uniform(0.003, 0.02), g.uniform(10, 75), 0.0, 4
+            boxes.append((a0, span, r0, slope, top))
+    for k, (a0, span, r0, slope, top) in enumerate(boxes):
+        da = (az - a0) % (2 * np.pi)
+        r = np.clip(r0 + slope * da, 1.0, 80.0)
+        top_el = np.arctan2(top - SENSOR_H, r)
+        hit = (da < span) & (el <= top_el) & (r < rng)
+        rng = np.where(hit, r * (1.0 + g.normal(0.0, 0.002, (H, W))), rng)
+        owner = np.where(hit, k, owner)
+        refl = np.where(hit, g.uniform(0.05, 0.8), refl)
+    # foliage: ranges scattered by metres (a range edge at most pixels), its own owner
+    for _ in range(g.integers(1, 3)):
+        a0, span = g.uniform(0, 2 * np.pi), g.uniform(0.1, 0.4)
+        hit = ((az - a0) % (2 * np.pi) < span) & (el > np.radians(-12))
+        r = g.uniform(4.0, 12.0, (H, W))
+        rng = np.where(hit, r, rng)
+        owner = np.where(hit, len(boxes), owner)
+        refl = np.where(hit, g.uniform(0.1, 0.4, (H, W)), refl)
+    rng = np.where(rng > 80.0, np.inf, rng)
+    valid = np.isfinite(rng)
+    valid &= g.random((H, W)) > 0.03  # dropped returns
+    valid[g.random(H) < 0.05] = False  # rows that did not fire
+    owner = np.where(valid, owner, -1)
+    owner[valid & (g.random((H, W)) < 0.02)] = -1  # returns in no object
+    rng = np.where(valid, rng, np.inf).astype(np.float32)
+    # the other forms of "no return" on a few empty pixels
+    empty = np.flatnonzero(~valid.ravel())
+    for v in (np.nan, 0.0, -1.0):
+        rng.ravel()[g.choice(empty, size=min(empty.size, 20), replace=False)] = v
+    inten = (refl * 1000.0 / np.maximum(np.where(valid, rng, 1.0), 1.0) ** 0.5).astype(np.float32)
+    inten = inten * (1.0 + g.normal(0.0, 0.05, (H, W))).astype(np.float32)
+    inten[~valid] = np.nan
+    return ListSweep(rng, valid, inten, owner.astype(np.int64))
+
+
+def small_list_sweep(seed: int, H: int, W: int) -> ListSweep:
+    """A small image with steps, NaN and empty pixels everywhere (every border case)."""
+    g = np.random.default_rng(seed)
+    rng = g.choice([2.0, 2.2, 5.0, 30.0, 31.0, 79.0], (H, W)) * g.uniform(0.99, 1.01, (H, W))
+    valid = g.random((H, W)) < 0.8
+    rng = np.where(valid, rng, g.choice([np.inf, np.nan, 0.0], (H, W)))
+    inten = np.where(valid, g.uniform(0.0, 100.0, (H, W)), np.nan)
+    owner = np.where(valid, g.integers(-1, 4, (H, W)), -1)
+    return ListSweep(
+        rng.astype(np.float32), valid, inten.astype(np.float32), owner.astype(np.int64)
+    )
 
 
 # --- maps.pyramid: textures -------------------------------------------------------------------

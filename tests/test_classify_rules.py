@@ -126,6 +126,8 @@ def test_a_group_is_hypothesized_until_its_confidence_confirms_it() -> None:
     tc = sp.config.tracker
     gid = kd.add_entity("g", Level.GROUP, confidence=tc.confidence0).id
     members = frozenset(kd.add_entity(f"o{i}", Level.OBJECT).id for i in range(2))
+    # level 5 keeps its groups' status and confidence: the group as its frame was made
+    sp.level5.frames[gid] = (Status.HYPOTHESIZED, tc.confidence0)
     statuses = []
     for k in range(4):
         events: list[int] = []

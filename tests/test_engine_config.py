@@ -17,11 +17,11 @@ import pytest
 import kd_store
 from core.errors import EngineError
 from kd_store.config import KDConfig
-from maps.stack import StackConfig
+from maps.stack import MapStack, StackConfig
 from sp.context import SPConfig
 from sp.odometry import LadarOdometry, OdometryConfig
 from wm.cli import BG_BUDGET_S, _planner_config, build_parser, main
-from wm.config import NodeConfig, PlannerConfig, PoseSource, WhatIfConfig
+from wm.config import NodeConfig, PlannerConfig, PoseSource, VehicleConfig, WhatIfConfig
 from wm.engine_config import ConfigError, EngineConfig
 from wm.node import WorldModelNode
 
@@ -292,3 +292,111 @@ def test_serve_rolls_out_with_the_whatif_section_and_bg_plans_with_the_planner_s
     assert len(plans) == 1
     assert plans[0]["candidates"] == 6
     assert np.allclose(np.diff(plans[0]["t_s"]), 0.25)
+
+
+# --- one place for each setting: the vehicle (node.vehicle), the horizons (kd.memory) ----------
+
+
+def _rollout(wi, level: str = "subsystem"):
+    """One plan asking 10 m/s straight ahead, from rest at the origin."""
+    from wm.whatif import ControlPlan, Start
+
+    plan = ControlPlan(np.array([0.0]), np.array([10.0]), np.array([0.0]), "fast")
+    return wi.simulate([plan], level=level, start=Start(np.zeros(2), 0.0, 0.0, 0))
+
+
+def test_the_vehicle_set_in_its_one_place_reaches_the_node_and_what_if(tmp_path: Path) -> None:
+    """``node.vehicle`` is the one vehicle: a file setting it there gives it to the node and
+    to What If built from the node's configuration (the node's own, the server's per-cycle
+    copy, ``wm whatif``'s), whose rollouts keep to its speed limit."""
+    from wm.serve import CycleSnapshot, what_if_over
+    from wm.serve_ros import node_what_if
+    from wm.whatif import WhatIf
+
+    path = _write(tmp_path / "v.yaml", "node:\n  vehicle: {max_speed_mps: 3.0, width_m: 1.5}\n")
+    cfg = EngineConfig.from_yaml(path)
+    assert cfg.node.vehicle == replace(VehicleConfig(), max_speed_mps=3.0, width_m=1.5)
+    assert "vehicle" not in cfg.to_dict()["whatif"]  # written once, in its section
+    with kd_store.open() as kd:
+        node = WorldModelNode(kd, replace(cfg, node=replace(cfg.node, odometry_process=False)))
+        node.stack.move_to(np.zeros(2))
+        assert node.config.vehicle.max_speed_mps == 3.0
+        snap = CycleSnapshot.of(kd, node.self_id, 0, node.stack, node.engine_config)
+        for wi in (node_what_if(node), what_if_over(snap), WhatIf(kd, node.stack, cfg)):
+            assert wi.vehicle == cfg.node.vehicle
+            assert _rollout(wi).speed.max() == pytest.approx(3.0)
+        # the default vehicle (15 m/s at most) goes as fast as the plan asks
+        assert _rollout(WhatIf(kd, node.stack)).speed.max() == pytest.approx(10.0)
+    with pytest.raises(TypeError, match="not its whatif section"):
+        WhatIf(None, node.stack, WhatIfConfig())  # type: ignore[arg-type]
+
+
+def test_the_horizons_set_in_kd_memory_reach_the_kd_and_what_if(tmp_path: Path) -> None:
+    """Each level's planning horizon is ``kd.memory.horizons_s``: the KD's short-term memory
+    keeps that long a history and What If rolls out that long."""
+    from wm.whatif import WhatIf
+
+    horizons = "{primitive: 0.5, subsystem: 2.0, vehicle: 30, section: 600}"
+    text = f"kd:\n  memory:\n    horizons_s: {horizons}\n"
+    cfg = EngineConfig.from_yaml(_write(tmp_path / "h.yaml", text))
+    assert "horizons_s" not in cfg.to_dict()["whatif"]
+    with kd_store.open(":memory:", cfg.kd) as kd:
+        assert kd.config.memory.horizon_ns(3) == 2_000_000_000  # SP level 3: subsystem
+        wi = WhatIf(kd, MapStack(cfg.maps), cfg)
+        wi.stack.move_to(np.zeros(2))
+        assert _rollout(wi).t_s[-1] == pytest.approx(2.0)
+        assert _rollout(wi, "vehicle").t_s[-1] == pytest.approx(30.0)
+
+
+def _earlier_format(**whatif: object) -> dict:
+    """The defaults as the earlier format wrote them: the vehicle and the horizons in the
+    whatif section as well, changed by ``whatif``."""
+    doc = EngineConfig().to_dict()
+    doc["whatif"]["vehicle"] = dict(doc["node"]["vehicle"])
+    doc["whatif"]["horizons_s"] = dict(doc["kd"]["memory"]["horizons_s"])
+    doc["whatif"].update(whatif)
+    return doc
+
+
+def test_a_file_of_the_earlier_format_loads_with_a_warning(tmp_path: Path) -> None:
+    """A recorded ``K.config.yaml`` of the earlier format gives ``whatif.vehicle`` and
+    ``whatif.horizons_s``: read at their new places, each with a warning saying where."""
+    import yaml
+
+    path = tmp_path / "old.config.yaml"
+    path.write_text(yaml.safe_dump(_earlier_format()))
+    with pytest.warns(FutureWarning) as caught:
+        assert EngineConfig.from_yaml(path) == EngineConfig()
+    said = sorted(str(w.message) for w in caught)
+    assert len(said) == 2 and all(s.startswith(f"{path}: ") for s in said)
+    assert "whatif.horizons_s is read as kd.memory.horizons_s" in said[0]
+    assert "whatif.vehicle is read as node.vehicle" in said[1]
+    # the vehicle given in What If's section alone (what What If read then) is node.vehicle
+    only = _write(tmp_path / "v.yaml", "whatif:\n  vehicle: {max_speed_mps: 4.0}\n")
+    with pytest.warns(FutureWarning, match=r"whatif\.vehicle is read as node\.vehicle"):
+        got = EngineConfig.from_yaml(only)
+    assert got == replace(
+        EngineConfig(), node=replace(NodeConfig(), vehicle=VehicleConfig(max_speed_mps=4.0))
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "old", "new"),
+    [
+        # two vehicles: which one is meant cannot be told
+        ("node:\n  vehicle: {max_speed_mps: 5.0}\nwhatif:\n  vehicle: {max_speed_mps: 4.0}\n",
+         "whatif.vehicle", "node.vehicle"),
+        # What If's horizons other than the KD's: read there, they would change the KD's memory
+        ("whatif:\n  horizons_s: {subsystem: 3.0}\n", "whatif.horizons_s", "kd.memory.horizons_s"),
+        ("kd:\n  memory: {horizons_s: {subsystem: 4.0}}\nwhatif:\n  horizons_s: {subsystem: 3.0}\n",
+         "whatif.horizons_s", "kd.memory.horizons_s"),
+    ],
+)  # fmt: skip
+def test_a_moved_key_that_would_change_a_run_names_where_it_lives(
+    tmp_path: Path, text: str, old: str, new: str
+) -> None:
+    path = _write(tmp_path / "old.yaml", text)
+    with pytest.raises(ConfigError) as e:
+        EngineConfig.from_yaml(path)
+    msg = str(e.value)
+    assert msg.startswith(f"{path}: {old}: ") and f"lives in {new} alone" in msg, msg

@@ -1,5 +1,7 @@
 """Point fusion against a slow point-by-point reference, a known height function, and the
-stack's level chain against direct fusion."""
+stack's level chain against direct fusion; what ray casting frees and leaves (the compiled
+fusion and cast against their references are in the kernel harness,
+test_kernel_equivalence.py)."""
 
 from __future__ import annotations
 
@@ -268,3 +270,93 @@ def test_stack_refuses_bad_levels_and_survives_a_teleport() -> None:
     stack.move_to(np.zeros(2))  # and back: the tile store restores the kept levels
     assert stack.level("subsystem").window("count").sum() == 1
     assert stack.level("primitive").window("count").sum() == 0  # level 2 keeps no tiles
+
+
+# --- ray casting: what the beams free (their cells against plain geometry: the kernel harness)
+
+
+@pytest.mark.parametrize("stride", [1, 4])
+def test_rays_free_the_cells_before_a_wall_and_leave_those_behind(stride: int) -> None:
+    """A wall of returns 10 m ahead (no ground seen; the height rule off: plain 2-D
+    traversal): the cells between the sensor and the wall end free (negative log-odds), the
+    wall cells occupied, the cells behind it and beside the beam fan untouched."""
+    cfg = FusionConfig(ray_free_height_m=100.0, ray_stride=stride)
+    level = MapLevel(LevelConfig("t", 0.4, 128))
+    sensor = np.array([0.2, 0.2, 1.5])
+    y, z = np.meshgrid(np.linspace(-3.0, 3.0, 121), np.linspace(0.1, 2.0, 20))
+    wall = np.column_stack([np.full(y.size, 10.1), y.ravel() + 0.2, z.ravel()])
+    for t in range(3):
+        stats = fuse_points(level, wall, 1e-3, t_ns=t, config=cfg, ray_origin_xyz=sensor)
+    assert stats.cells_freed["t"] > 100
+    occ = level.window("occupancy")
+    cx = (np.arange(128) + level.origin_cell[0] + 0.5) * 0.4  # window column centres, x
+    cy = (np.arange(128) + level.origin_cell[1] + 0.5) * 0.4
+    X, Y = np.meshgrid(cx, cy)  # [row, col] like the window
+    in_fan = np.abs(Y - 0.2) < 0.25 * (X - 0.2)  # well inside the fan of beams (|y| < 3 m at x=10)
+    between = in_fan & (X > 0.6) & (X < 9.6)
+    free = np.isclose(occ[between], 3 * cfg.l_miss)
+    assert free.mean() == 1.0 if stride == 1 else free.mean() > 0.95  # beams left out: gaps
+    wall_cells = (np.abs(X - 10.2) < 0.2) & (np.abs(Y - 0.2) < 2.8)
+    assert np.all(occ[wall_cells] > 0)
+    behind = X > 10.6
+    assert np.all(occ[behind] == 0)
+    aside = np.abs(Y - 0.2) > 0.35 * (X - 0.2) + 0.8  # clearly outside the fan
+    assert np.all(occ[aside] == 0)
+
+
+def test_rays_do_not_free_cells_they_pass_high_above() -> None:
+    """A beam to a far low point crosses the near cells (their ground known at 0 m, a priori)
+    higher than ``ray_free_height_m``: they stay unknown; the cells near its end, where it is
+    low, free."""
+    cfg = FusionConfig(ray_free_height_m=1.0)
+    level = MapLevel(LevelConfig("t", 0.5, 64))
+    level.set_window("elevation", np.zeros((64, 64), dtype=np.float32))
+    sensor = np.array([0.1, 0.1, 3.0])  # 3 m up: a beam to (10, 0.1, 0.5) is low only near it
+    fuse_points(level, np.array([[10.1, 0.1, 0.5]]), 1e-4, t_ns=1, config=cfg,
+                ray_origin_xyz=sensor)  # fmt: skip
+    rows, cols = np.nonzero(level.window("occupancy") < 0)
+    xy = level.window_to_world(rows, cols)
+    # beam height above ground at x: 3 - 2.5 x / 10 <= 1 m  ->  x >= 8 m
+    assert len(xy) > 0 and xy[:, 0].min() >= 7.5 and xy[:, 0].max() < 10.0
+    assert np.all(np.abs(xy[:, 1] - 0.1) < 0.5)
+
+
+def test_rays_pass_over_an_object_top_but_clear_a_cell_it_has_left() -> None:
+    """Cells with a 1 m high top seen in them: a beam over the top leaves them, a beam below
+    it (the object has gone) frees them."""
+    cfg = FusionConfig(ray_free_height_m=2.0)
+    level = MapLevel(LevelConfig("t", 0.5, 64))
+    top = np.column_stack([np.full(5, 5.25), np.full(5, 0.25), np.linspace(0.2, 1.0, 5)])
+    fuse_points(level, top, 1e-4, t_ns=0, config=cfg)  # max 1.0 m in cell (10, 0)
+    cell = np.array([[5.25, 0.25]])
+    occ0 = level.read("occupancy", cell)[0]
+    far = np.array([[10.25, 0.25, 1.6]])
+    fuse_points(level, far, 1e-4, t_ns=1, config=cfg, ray_origin_xyz=[0.25, 0.25, 1.6])
+    assert level.read("occupancy", cell)[0] == occ0  # crossed at 1.6 m, over the 1 m top
+    assert level.read("occupancy", np.array([[3.25, 0.25]]))[0] < 0  # no point there: freed
+    low = np.array([[10.25, 0.25, 0.6]])
+    fuse_points(level, low, 1e-4, t_ns=2, config=cfg, ray_origin_xyz=[0.25, 0.25, 0.6])
+    assert level.read("occupancy", cell)[0] == pytest.approx(occ0 + cfg.l_miss)
+
+
+def test_ray_max_beams_traces_every_kth_beam_of_a_dense_sweep() -> None:
+    """With ``ray_max_beams`` a sweep of N beams is traced at stride ceil(N / cap): the same
+    cells as that stride given explicitly, fewer than all beams would free; a sweep within the
+    cap is traced whole; a cap below 1 is refused by name."""
+    y, z = np.meshgrid(np.linspace(-3.0, 3.0, 121), np.linspace(0.1, 2.0, 20))
+    wall = np.column_stack([np.full(y.size, 10.1), y.ravel() + 0.2, z.ravel()])  # 2420 beams
+    sensor = np.array([0.2, 0.2, 1.5])
+
+    def occupancy(**cfg) -> np.ndarray:
+        level = MapLevel(LevelConfig("t", 0.4, 128))
+        config = FusionConfig(ray_free_height_m=100.0, **cfg)
+        fuse_points(level, wall, 1e-3, t_ns=0, config=config, ray_origin_xyz=sensor)
+        return level.window("occupancy")
+
+    capped = occupancy(ray_max_beams=len(wall) // 4 + 1)  # stride 4
+    assert np.array_equal(capped, occupancy(ray_stride=4, ray_max_beams=None))
+    full = occupancy(ray_max_beams=None)
+    assert (capped < 0).sum() < (full < 0).sum()
+    assert np.array_equal(occupancy(ray_max_beams=len(wall)), full)
+    with pytest.raises(FusionError, match="ray_max_beams must be >= 1"):
+        occupancy(ray_max_beams=0)

@@ -145,3 +145,19 @@ def test_a_window_larger_than_the_image_is_refused_like_the_reference() -> None:
     for reg in (register, register_reference):
         with pytest.raises(PyramidError, match="larger than the image"):
             reg(ref, ref[:3, :3])
+
+
+@pytest.mark.parametrize("offset", [0.0, 50.0, 1000.0])
+def test_registration_does_not_depend_on_the_attribute_offset(offset):
+    """A range-like image (tens of metres varying by millimetres) registers like the same
+    image near zero: the correlation sums keep their precision after the mean comes out."""
+    rng = np.random.default_rng(7)
+    relief = cv2.GaussianBlur(rng.random((320, 320)).astype(np.float32), (0, 0), 2.0)
+    big = relief * np.float32(0.01)  # a few millimetres of relief
+    shift = (9, -13)
+    ref = big[32:288, 32:288] + np.float32(offset)
+    mov = big[32 - shift[0] : 288 - shift[0], 32 - shift[1] : 288 - shift[1]] + np.float32(offset)
+    m = register(ref, mov, max_shift_px=16)
+    assert np.abs(m.shift_rc - shift).max() < 0.05
+    assert 0.99 < m.peak <= 1.0 + 1e-6
+    assert m.confidence > 0.7

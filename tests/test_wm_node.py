@@ -173,7 +173,7 @@ def test_bg_selected_plans_never_collide_with_true_objects(node, truth) -> None:
     goal = T[:2, 3] + 30.0 * T[:2, 0]
     sel = planner.plan(goal)
     assert sel.collision_entity == -1
-    veh = wi.config.vehicle
+    veh = wi.vehicle
     t0 = node.kd.get(node.self_id).state.t_ns
     for t, xy, yaw in zip(sel.t_s, sel.xy, sel.yaw, strict=True):
         dt = (t0 - b.t_ns) * 1e-9 + t
@@ -292,7 +292,7 @@ def test_bg_consumer_replans_over_the_log_without_meeting_true_objects(log) -> N
     truth_kd = _TruthInKD(node.kd)
     wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
     planner = Planner(wi)
-    veh = wi.config.vehicle
+    veh = wi.vehicle
     checked = moved = 0
     for frame in open_log(log).frames():
         for cycle in node.feed(frame):

@@ -631,9 +631,9 @@ def whatif_lines(
     level: str, config: EngineConfig | None = None,
 ) -> list[str]:  # fmt: skip
     """Simulate the plan ``t_s`` (K,) s, ``xy_body`` (K, 2) m in the body frame of
-    ``T_world_body`` over ``stack`` and ``kd`` at ``level``, with the ``whatif`` section of
-    ``config`` (an EngineConfig; None: the defaults) and judged with its ``node.vj``; the
-    lines a user reads."""
+    ``T_world_body`` over ``stack`` and ``kd`` at ``level``, rolled out as ``config`` (an
+    EngineConfig; None: the defaults) says (its ``whatif`` section, ``node.vehicle`` and
+    ``kd.memory.horizons_s``) and judged with its ``node.vj``; the lines a user reads."""
     from core.geometry import transform_points
     from wm import vj
     from wm.engine_config import EngineConfig
@@ -641,7 +641,7 @@ def whatif_lines(
 
     engine = config if config is not None else EngineConfig()
     xy = transform_points(T_world_body, np.column_stack([xy_body, np.zeros(len(xy_body))]))[:, :2]
-    wi = WhatIf(kd, stack, engine.whatif, self_id=self_id)
+    wi = WhatIf(kd, stack, engine, self_id=self_id)
     res = wi.simulate([WaypointPlan(t_s, xy, "cli")], level=level)
     ev = vj.evaluate(res, xy[-1], engine.node.vj)
     hit = int(res.collision_entity[0])

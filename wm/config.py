@@ -24,14 +24,9 @@ DEFAULT_LEVEL_PERIODS_S: dict[str, float] = {
     "section": 5.0,
 }
 
-#: Planning horizon (s) and step (s) of What If rollouts per level (reference 001, 4.1: the
-#: subsystem level plans about 5 s ahead, the vehicle level about a minute).
-DEFAULT_HORIZONS_S: dict[str, float] = {
-    "primitive": 0.5,
-    "subsystem": 5.0,
-    "vehicle": 60.0,
-    "section": 600.0,
-}
+#: Step (s) of What If rollouts per level; a rollout lasts the level's planning horizon, which
+#: is the KD's (``kd_store.config.DEFAULT_HORIZONS_S``: reference 001, 4.1, the subsystem level
+#: plans about 5 s ahead, the vehicle level about a minute).
 DEFAULT_STEPS_S: dict[str, float] = {
     "primitive": 0.05,
     "subsystem": 0.1,
@@ -69,7 +64,8 @@ class PredictionConfig:
 
 @dataclass(frozen=True)
 class VehicleConfig:
-    """The vehicle model of What If: footprint (m) and limits (SI units)."""
+    """The vehicle: footprint (m) and limits (SI units). Set once, as ``node.vehicle``; What If
+    rolls plans out with it (:class:`wm.whatif.WhatIf`)."""
 
     length_m: float = 4.5
     width_m: float = 2.0
@@ -168,7 +164,7 @@ class NodeConfig:
     snapshot_every_s: float = 5.0  # ... at most this often (s of log time), and at the end
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     vj: VJConfig = field(default_factory=VJConfig)
-    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)  # What If's vehicle model too
     use_sp: bool = True  # run SP levels 2..5 (off: maps, odometry and predictions only)
     odometry_process: bool = True  # register sweeps in a child process, one sweep ahead
     # sweeps the odometry process may have in hand: with two, a registration that runs late
@@ -218,10 +214,11 @@ class NodeConfig:
 
 @dataclass(frozen=True)
 class WhatIfConfig:
-    """What If rollouts: the vehicle model and each level's step and horizon (s)."""
+    """What If rollouts: each level's step (s), and how far entities and clearances are
+    looked at (m). The vehicle model and each level's horizon are set once elsewhere, where
+    What If reads them: ``node.vehicle`` and ``kd.memory.horizons_s`` of the engine
+    configuration (:class:`wm.engine_config.EngineConfig`) it is built from."""
 
-    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     steps_s: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_STEPS_S))
-    horizons_s: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_HORIZONS_S))
     entity_search_margin_m: float = 20.0  # entities this far beyond the reachable disc ignored
     clearance_refine_m: float = 3.0  # refine a plan's least clearance with fcl below this

@@ -15,6 +15,7 @@ import difflib
 import math
 import types
 import typing
+import warnings
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -35,10 +36,34 @@ class ConfigError(EngineError, ValueError):
 
 
 @dataclass(frozen=True)
+class MovedKey:
+    """A setting that moved to another section: ``old`` and ``new`` dotted keys. A document
+    giving ``old`` is read as giving ``new`` (with a FutureWarning) when that keeps what a
+    run does: when both give the same value, or, with ``may_set``, when the document does not
+    give ``new`` (nothing read ``new`` before the move). Otherwise it is a ConfigError naming
+    both keys."""
+
+    old: str
+    new: str
+    may_set: bool
+
+
+#: Settings that lived in two sections, now in one (files written before give both):
+#: the vehicle was ``whatif.vehicle`` (What If's; ``node.vehicle`` was read by nothing), and
+#: What If's horizons ``whatif.horizons_s`` repeated the KD's memory horizons (each level's
+#: planning horizon, both read).
+MOVED_KEYS = (
+    MovedKey("whatif.vehicle", "node.vehicle", may_set=True),
+    MovedKey("whatif.horizons_s", "kd.memory.horizons_s", may_set=False),
+)
+
+
+@dataclass(frozen=True)
 class EngineConfig:
     """Every setting of a run, one section per subsystem (the defaults are each class's own).
 
-    node:     the node cycle, predictions, value judgment, the vehicle (:class:`NodeConfig`).
+    node:     the node cycle, predictions, value judgment, the vehicle (:class:`NodeConfig`;
+              ``vehicle`` is What If's vehicle model too).
     sp:       sensory processing levels 2-5 (:class:`sp.context.SPConfig`).
     odometry: LADAR odometry (:class:`sp.odometry.OdometryConfig`); in the node's odometry
               process (``node.odometry_process``) ``max_threads: 0`` means one thread, since
@@ -47,16 +72,20 @@ class EngineConfig:
     kd:       the knowledge database the run writes: spatial index cell (m), tolerances, map
               tiles batched and cached, short-term memory horizons (s), the promotion rule to
               long-term memory (:class:`kd_store.config.KDConfig`); ``promotion.statuses`` is
-              a set, written as a sorted list.
+              a set, written as a sorted list. ``memory.horizons_s`` is each level's planning
+              horizon, What If's too.
     planner:  behavior generation, ``wm bg`` (:class:`wm.config.PlannerConfig`); ``wm bg``
               plans over HTTP, so unless the file or ``--budget-s`` gives ``budget_s`` it
               takes 1 s a cycle, not the in-process planner's 0.2 s (wm.cli.BG_BUDGET_S).
-    whatif:   What If rollouts: the vehicle model, each level's step and horizon (s)
+    whatif:   What If rollouts: each level's step (s) and the search margins
               (:class:`wm.config.WhatIfConfig`); ``wm serve``'s What If and IsPathValid, and
-              ``wm whatif``.
+              ``wm whatif``. What If reads the vehicle and the horizons from ``node`` and
+              ``kd`` (:class:`wm.whatif.WhatIf`).
 
-    A YAML document gives only the fields it changes, nested sections by name: mappings
-    (sections) merge into the defaults, lists and dicts replace the default whole.
+    Each setting lives in one section. A YAML document gives only the fields it changes,
+    nested sections by name: mappings (sections) merge into the defaults, lists and dicts
+    replace the default whole. A key that moved (:data:`MOVED_KEYS`) is still read where it
+    was when that keeps what a run does.
     """
 
     node: NodeConfig = field(default_factory=NodeConfig)
@@ -80,7 +109,8 @@ class EngineConfig:
     ) -> EngineConfig:
         """``base`` (None: the defaults) changed by ``doc`` (parsed YAML; None: nothing
         changed)."""
-        return from_document(cls, {} if doc is None else doc, base or cls(), source)
+        base = base or cls()
+        return from_document(cls, _moved({} if doc is None else doc, base, source), base, source)
 
     @classmethod
     def from_yaml(cls, path: str | Path, base: EngineConfig | None = None) -> EngineConfig:
@@ -114,6 +144,82 @@ class EngineConfig:
         if path is not None:
             Path(path).write_text(text, encoding="utf-8")
         return text
+
+
+_ABSENT = object()
+
+
+def _at(doc: Any, key: str) -> Any:
+    """The value at dotted ``key`` of the mapping ``doc`` (_ABSENT when not there)."""
+    for part in key.split("."):
+        if not isinstance(doc, dict) or part not in doc:
+            return _ABSENT
+        doc = doc[part]
+    return doc
+
+
+def _typed_default(base: Any, key: str) -> tuple[Any, Any]:
+    """(type hint, value of ``base``) of the field at dotted ``key`` of the dataclass ``base``."""
+    *parents, name = key.split(".")
+    for part in parents:
+        base = getattr(base, part)
+    return typing.get_type_hints(type(base))[name], getattr(base, name)
+
+
+def _moved(doc: Any, base: EngineConfig, source: str) -> Any:
+    """``doc`` with each key that moved (:data:`MOVED_KEYS`) read at its new place, a
+    FutureWarning saying so; a ConfigError where reading it there would change what a run
+    does. ``doc`` itself is not changed."""
+    if not isinstance(doc, dict):
+        return doc
+    for moved in MOVED_KEYS:
+        value = _at(doc, moved.old)
+        if value is _ABSENT:
+            continue
+        tp, default = _typed_default(base, moved.new)
+        was = from_document(tp, value, default, source, moved.old)
+        given = _at(doc, moved.new)
+        now = default if given is _ABSENT else from_document(tp, given, default, source, moved.new)
+        if was != now and not (given is _ABSENT and moved.may_set):
+            whose = "this file's" if given is not _ABSENT else "the default"
+            raise ConfigError(
+                f"{source}: {moved.old}: this setting lives in {moved.new} alone now, and "
+                f"{whose} {moved.new} differs ({now!r}); give the value there and remove "
+                f"{moved.old}"
+            )
+        doc = _without(doc, moved.old.split("."))
+        if given is _ABSENT and was != now:
+            doc = _with(doc, moved.new.split("."), value)
+        warnings.warn(
+            f"{source}: {moved.old} is read as {moved.new}, where this setting lives now; "
+            f"give it there and remove {moved.old}",
+            FutureWarning,
+            stacklevel=3,
+        )
+    return doc
+
+
+def _without(doc: dict, path: list[str]) -> dict:
+    """A copy of ``doc`` without the key at ``path`` (copies along the path only)."""
+    out = dict(doc)
+    if len(path) == 1:
+        del out[path[0]]
+    else:
+        out[path[0]] = _without(doc[path[0]], path[1:])
+    return out
+
+
+def _with(doc: dict, path: list[str], value: Any) -> dict:
+    """A copy of ``doc`` with ``value`` at ``path`` (missing sections made; copies along the
+    path only). A section that is not a mapping is left for :func:`from_document` to name."""
+    out = dict(doc)
+    if len(path) == 1:
+        out[path[0]] = value
+        return out
+    sub = doc.get(path[0], {})
+    if isinstance(sub, dict):
+        out[path[0]] = _with(sub, path[1:], value)
+    return out
 
 
 class _Dumper(yaml.SafeDumper):

@@ -9,6 +9,8 @@ event frame with its ``involves`` pointers, or a specific class. The few observa
 depend on what the KD holds (a list already denied or forgotten, a state no newer than the
 latest) are judged against the KD as the earlier ones of the sweep left it.
 
+SP holds no KD: it is given the class library and the KD's id source, and told what became
+of its observations (how many were written, which frames short-term memory forgot).
 :class:`KDSensoryProcessor` is SP with this step after every sweep, for callers that run SP
 on its own and want its frames in the KD at once (tests, benchmarks).
 """
@@ -43,6 +45,7 @@ class EntityUpdater:
     def __init__(self, kd: kd_store.KnowledgeDatabase) -> None:
         self.kd = kd
         self.n_written = 0  # observations written since the start
+        self.n_applied = 0  # observations the last apply wrote (before a refused one)
         self._write: dict[type, Callable[[Any], None]] = {
             NewEntity: self._new_entity,
             FrameChange: self._frame_change,
@@ -58,13 +61,13 @@ class EntityUpdater:
 
     def apply(self, observations: Iterable[Observation]) -> int:
         """Write ``observations`` in order; returns how many. A write the KD refuses raises
-        its ``KDError`` (the observations before it are written)."""
-        n = 0
+        its ``KDError`` (the observations before it, ``n_applied`` of them, are written)."""
+        self.n_applied = 0
         for op in observations:
             self._write[type(op)](op)
-            n += 1
-        self.n_written += n
-        return n
+            self.n_applied += 1
+        self.n_written += self.n_applied
+        return self.n_applied
 
     def _new_entity(self, op: NewEntity) -> None:
         self.kd.add_entity(
@@ -160,23 +163,35 @@ def write_event(kd: kd_store.KnowledgeDatabase, op: EventObserved) -> int:
 
 class KDSensoryProcessor(SensoryProcessor):
     """SP followed by the entity update on every sweep: :meth:`process` returns SP's result
-    after its observations are in the KD, as the node cycle does in two steps."""
+    after its observations are in the KD, as the node cycle does in two steps. SP is given
+    ``kd``'s class library and id source; ``kd`` itself only the updater holds. A caller that
+    lets the KD's memory move on (``kd.advance``) tells SP what it forgot
+    (:meth:`frames_forgotten`), as the node does."""
 
     def __init__(self, kd: kd_store.KnowledgeDatabase, config: SPConfig | None = None) -> None:
-        super().__init__(kd, config)
+        super().__init__(kd.classes, kd.new_id, config)
         self.updater = EntityUpdater(kd)
 
     def process(self, *args: Any, **kwargs: Any) -> SPResult:
         """:meth:`SensoryProcessor.process` (same arguments, passed on as given, so the two
         signatures cannot drift apart), then its observations into the KD."""
         result = super().process(*args, **kwargs)
-        self.updater.apply(result.observations)
+        self._apply(result.observations)
         self.observations_written(result)
         return result
 
     def write_pending(self) -> int:
         """Write what the levels observed outside :meth:`process` (a level's step called on
         its own); returns how many observations."""
-        n = self.updater.apply(self.ctx.take_observations())
+        n = self._apply(self.ctx.take_observations())
         self.level4.refresh_classes()
         return n
+
+    def _apply(self, observations: list[Observation]) -> int:
+        """The updater's :meth:`EntityUpdater.apply`; when the KD refuses a write, SP is told
+        which observations were not written before the error propagates."""
+        try:
+            return self.updater.apply(observations)
+        except kd_store.KDError:
+            self.not_written(observations[self.updater.n_applied :])
+            raise

@@ -240,7 +240,12 @@ class WorldModelNode:
         self.config = self.engine_config.node
         self.stack = stack if stack is not None else MapStack(self.engine_config.maps)
         self.stats = NodeStats()
-        self.sp = SensoryProcessor(kd, self.engine_config.sp) if self.config.use_sp else None
+        # SP is given the class library and the KD's id source; the node alone writes the KD
+        self.sp = (
+            SensoryProcessor(kd.classes, kd.new_id, self.engine_config.sp)
+            if self.config.use_sp
+            else None
+        )
         self.entities = EntityUpdater(kd)
         if self.sp is None:
             self.stats.notes.append("SP levels 2..5 off (NodeConfig.use_sp)")
@@ -692,7 +697,9 @@ class WorldModelNode:
 
         self._predict(scan, T_world_body, span)
         if self.stats.sweeps % self.config.kd_advance_every == 0:
-            self.kd.advance(scan.t_ns)
+            forgotten = self.kd.advance(scan.t_ns)
+            if self.sp is not None:
+                self.sp.frames_forgotten(forgotten)
         clock.lap("predict")
         self._flush(scan.t_ns)
         clock.lap("flush")
@@ -826,16 +833,19 @@ class WorldModelNode:
         frames, states, relations), in the order SP made them (:mod:`wm.entities`). A write
         the KD refuses is counted and logged, and the rest of the sweep's observations are
         skipped (``stats.skipped["entity update refused"]``), as SP skipped the rest of a
-        sweep whose write the KD refused when SP wrote the KD itself."""
+        sweep whose write the KD refused when SP wrote the KD itself. SP is told how many
+        were written, so what it assumes of its frames in the KD stays true."""
         if sp_result is None or self.sp is None:
             return
+        n_written = None
         try:
             self.entities.apply(sp_result.observations)
         except kd_store.KDError as e:
+            n_written = self.entities.n_applied
             self._count_skip(
                 f"SP observations at t_ns={sp_result.t_ns}", f"entity update refused: {e}"
             )
-        self.sp.observations_written(sp_result)
+        self.sp.observations_written(sp_result, n_written)
 
     def _levels(self, t_ns: int) -> None:
         """Step 5: each level's terrain and cost layer, at the level's own period."""

@@ -101,13 +101,13 @@ class ServeError(EngineError, ValueError):
     """A live node or server that cannot start or answer (names the value)."""
 
 
-def served_whatif_config(config: Any | None = None) -> Any:
-    """The :class:`~wm.config.WhatIfConfig` the server's What If and IsPathValid roll out
-    with: the ``whatif`` section of the server's configuration ``config`` (an
-    :class:`~wm.engine_config.EngineConfig`; a NodeConfig or None: the defaults)."""
+def served_config(config: Any | None = None) -> Any:
+    """The :class:`~wm.engine_config.EngineConfig` the server's What If and IsPathValid roll
+    out with (its ``whatif`` section, ``node.vehicle`` and ``kd.memory.horizons_s``): the
+    server's configuration ``config`` (a NodeConfig or None: the other sections' defaults)."""
     from wm.engine_config import EngineConfig
 
-    return EngineConfig.of(config).whatif
+    return EngineConfig.of(config)
 
 
 @dataclass
@@ -146,8 +146,8 @@ class CycleSnapshot:
     cols: dict[str, np.ndarray]
     row: dict[int, int]
     whatif: Any | None = None
-    # the WhatIfConfig answers from ``whatif`` roll out with (None: the defaults)
-    whatif_config: Any | None = None
+    # the EngineConfig answers from ``whatif`` roll out with (None: the defaults)
+    engine_config: Any | None = None
     maps: Any | None = None
     taxonomy: Taxonomy | None = None
     events: tuple | None = None
@@ -160,28 +160,29 @@ class CycleSnapshot:
         self_id: int | None,
         cycle_t_ns: int,
         stack: Any | None = None,
-        whatif_config: Any | None = None,
+        engine_config: Any | None = None,
         wanted: Sequence[Hashable] = (),
         previous: CycleSnapshot | None = None,
         node: Any | None = None,
     ) -> CycleSnapshot:
         """Copy ``kd``'s entities and, with ``stack``, what What If reads of both (the levels
-        of ``whatif_config``, the server's :func:`served_whatif_config`; None: the defaults)
-        and the views ``wanted`` (demand keys, most recently asked first:
+        of the ``whatif`` section of ``engine_config``, the server's :func:`served_config`;
+        None: the defaults) and the views ``wanted`` (demand keys, most recently asked first:
         :meth:`wm.serve_copy.ServedDemand.wanted`); ``previous``: the cycle before's copy
         (its taxonomy is kept when the class library did not change); ``node``: the
         :class:`~wm.node.WorldModelNode`, for the entities of attention. Call it under the
         node's lock."""
         cols = kd.current_columns()
         wi = maps = None
-        whatif_config = whatif_config or served_whatif_config()
+        engine_config = served_config(engine_config)
         if stack is not None:
-            maps, wi = _copy_maps(kd, stack, self_id, whatif_config.steps_s, wanted, cols)
+            levels = engine_config.whatif.steps_s
+            maps, wi = _copy_maps(kd, stack, self_id, levels, wanted, cols)
         taxonomy = Taxonomy.of(kd.classes, previous.taxonomy if previous is not None else None)
         events = kd.event_frames() if EVENTS in wanted else None
         attention = attention_copies(node, wanted, cycle_t_ns) if node is not None else {}
         row = {int(i): k for k, i in enumerate(cols["id"])}
-        return cls(cycle_t_ns, self_id, cols, row, wi, whatif_config, maps, taxonomy, events,
+        return cls(cycle_t_ns, self_id, cols, row, wi, engine_config, maps, taxonomy, events,
                    attention)  # fmt: skip
 
     def entity(self, k: int) -> dict:
@@ -348,7 +349,7 @@ class LiveNode:
                 node = self.node
                 self.snapshot = CycleSnapshot.of(
                     self.kd, node.self_id, int(cycles[-1].t_ns), node.stack,
-                    served_whatif_config(node.engine_config), self.demand.wanted(),
+                    served_config(node.engine_config), self.demand.wanted(),
                     self.snapshot, node,
                 )  # fmt: skip
                 self.status.snapshot_ms = 1e3 * (time.perf_counter() - t)
@@ -577,10 +578,10 @@ def published(live: LiveNode) -> CycleSnapshot:
 
 def what_if_over(snap: CycleSnapshot) -> Any:
     """:class:`~wm.whatif.WhatIf` over the copy ``snap`` holds, with the server's config
-    (the ``whatif`` section the copy was taken for)."""
+    (the engine configuration the copy was taken for)."""
     from wm.whatif import WhatIf
 
-    return WhatIf.over(snap.whatif, snap.whatif_config)
+    return WhatIf.over(snap.whatif, snap.engine_config)
 
 
 def create_app(

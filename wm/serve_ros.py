@@ -639,10 +639,10 @@ def _check_polygon_cells(level: Any, polys: list[np.ndarray]) -> None:
 
 def node_what_if(node: Any) -> Any:
     """What If over the node's own KD and maps with the server's configuration
-    (:func:`wm.serve.served_whatif_config`); use it under the node's lock."""
+    (:func:`wm.serve.served_config`); use it under the node's lock."""
     from wm.whatif import WhatIf
 
-    return WhatIf(node.kd, node.stack, node.engine_config.whatif, self_id=node.self_id)
+    return WhatIf(node.kd, node.stack, node.engine_config, self_id=node.self_id)
 
 
 def source_what_if(src: LevelRead) -> Any:
@@ -888,11 +888,11 @@ def add_ros_routes(app: FastAPI, live: Any) -> None:
         try:
             start = wi.start_from_kd()
             first, end = judged_span(xy, start.xy, req.max_lookahead_distance)
-            speed = path_speed(start.speed_mps, wi.config.vehicle)
+            speed = path_speed(start.speed_mps, wi.vehicle)
             t_pose = path_schedule(xy, stamps, first, end, speed)
             t_s, wp = _waypoints(xy[first:end], t_pose)
             dt = wi.config.steps_s.get(req.level, math.nan)
-            horizon = plan_horizon_s(t_s, wp, dt, wi.config.vehicle)
+            horizon = plan_horizon_s(t_s, wp, dt, wi.vehicle)
             plan = WaypointPlan(t_s, wp, "path")
             result = wi.simulate([plan], level=req.level, start=start, horizon_s=horizon)
         except WhatIfError as e:

@@ -2,13 +2,15 @@
 
 "The WM simulates the probable results of hypothesized plans" (4.2); the planner then asks
 value judgment to evaluate them (4.1, the planning loop). A plan is timed waypoints or timed
-controls, at one map level (its step and horizon: :class:`~wm.config.WhatIfConfig`). Each
-plan is rolled out with a kinematic vehicle model with limits (speed, acceleration, curvature,
-yaw rate); along the swept footprint the level's layers are sampled (elevation, slope,
-traversability, cost, unknown cells); entity boxes from the KD, moving ones at their
-constant-velocity predictions for each step, are checked for collision with the vehicle's box
-by python-fcl (footprint collision: both boxes stand on one plane, 2.5D). All plans of a call
-are rolled out together (numpy over plans); fcl runs only where footprint circles meet.
+controls, at one map level (its step, :class:`~wm.config.WhatIfConfig`, and its horizon, the
+KD's memory horizon of the level, ``kd.memory.horizons_s`` of the engine configuration). Each
+plan is rolled out with a kinematic model of the vehicle (``node.vehicle``) with limits
+(speed, acceleration, curvature, yaw rate); along the swept footprint the level's layers are
+sampled (elevation, slope, traversability, cost, unknown cells); entity boxes from the KD,
+moving ones at their constant-velocity predictions for each step, are checked for collision
+with the vehicle's box by python-fcl (footprint collision: both boxes stand on one plane,
+2.5D). All plans of a call are rolled out together (numpy over plans); fcl runs only where
+footprint circles meet.
 
 What If reads the KD (the self state, the object entities near the start, their values) and
 the map stack (four layers of the level asked: :data:`SAMPLED_LAYERS`) and writes neither.
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,9 +34,12 @@ from core.errors import EngineError
 from kd_store import Level, State, Status
 from maps.level import MapLevel
 from maps.stack import MapStack
-from wm.config import VehicleConfig, WhatIfConfig
+from wm.config import NodeConfig, VehicleConfig, WhatIfConfig
 from wm.shapes import EntityBoxes, boxes_of
 from wm.vj import entity_value
+
+if TYPE_CHECKING:  # at run time imported when needed: it imports SP, the odometry and the maps
+    from wm.engine_config import EngineConfig
 
 
 class WhatIfError(EngineError, ValueError):
@@ -387,28 +393,42 @@ class WhatIf:
     """The What If interface over a KD and a map stack (module docstring), or over a copy of
     what it reads of them (:meth:`over`).
 
-    ``self_id`` is the KD entity of the vehicle itself (left out of collision checks and used
-    as the default start)."""
+    What If is built from the engine configuration ``config`` (a bare NodeConfig or None: the
+    other sections' defaults) and keeps of it: ``config``, its ``whatif`` section (each level's
+    step); ``vehicle``, the vehicle model (``node.vehicle``); ``horizons_s``, each level's
+    planning horizon in s (``kd.memory.horizons_s``, as long as the KD's short-term memory at
+    the level). ``self_id`` is the KD entity of the vehicle itself (left out of collision
+    checks and used as the default start)."""
 
     def __init__(
         self,
         kd: kd_store.KnowledgeDatabase,
         stack: MapStack,
-        config: WhatIfConfig | None = None,
+        config: EngineConfig | NodeConfig | None = None,
         self_id: int | None = None,
     ) -> None:
+        from wm.engine_config import EngineConfig
+
+        if isinstance(config, WhatIfConfig):
+            raise TypeError(
+                "WhatIf takes the engine configuration (EngineConfig), not its whatif section: "
+                "the vehicle is node.vehicle and the horizons kd.memory.horizons_s"
+            )
+        engine = EngineConfig.of(config)
         self.kd, self.stack = kd, stack
-        self.config = config or WhatIfConfig()
+        self.config: WhatIfConfig = engine.whatif
+        self.vehicle: VehicleConfig = engine.node.vehicle
+        self.horizons_s: Mapping[str, float] = engine.kd.memory.horizons_s
         self.self_id = self_id
-        f = self.config.vehicle.footprint_samples
-        u = np.linspace(-0.5, 0.5, f[0]) * self.config.vehicle.length_m
-        w = np.linspace(-0.5, 0.5, f[1]) * self.config.vehicle.width_m
+        f = self.vehicle.footprint_samples
+        u = np.linspace(-0.5, 0.5, f[0]) * self.vehicle.length_m
+        w = np.linspace(-0.5, 0.5, f[1]) * self.vehicle.width_m
         U, W = np.meshgrid(u, w, indexing="ij")
         self._foot = np.stack([U.ravel(), W.ravel()], 1)  # (F, 2) body-frame offsets
         self.copy: WhatIfCopy | None = None
 
     @classmethod
-    def over(cls, copy: WhatIfCopy, config: WhatIfConfig | None = None) -> WhatIf:
+    def over(cls, copy: WhatIfCopy, config: EngineConfig | NodeConfig | None = None) -> WhatIf:
         """What If reading ``copy`` instead of a KD and a stack: its answers are those
         ``WhatIf(kd, stack, config, self_id)`` gave when the copy was taken (for the levels
         copied)."""
@@ -453,7 +473,7 @@ class WhatIf:
             check_plan(p, i)
         start = start or self.start_from_kd()
         dt = cfg.steps_s[level]
-        horizon = cfg.horizons_s[level] if horizon_s is None else float(horizon_s)
+        horizon = self.horizons_s[level] if horizon_s is None else float(horizon_s)
         if not (np.isfinite(horizon) and horizon > 0):
             raise WhatIfError(f"horizon_s must be > 0 s, got {horizon_s!r}")
         n = max(1, round(horizon / dt))
@@ -462,7 +482,7 @@ class WhatIf:
         t_s = np.concatenate([[0.0], times])
         res = self._sample_maps(level, xy, yaw)
         if entities is None:
-            reach = cfg.vehicle.max_speed_mps * horizon + cfg.entity_search_margin_m
+            reach = self.vehicle.max_speed_mps * horizon + cfg.entity_search_margin_m
             entities = self.entities_near(start.xy, reach, start.t0_ns)
         col = self._collisions(xy, yaw, t_s, start, entities)
         step = np.diff(xy, axis=1)
@@ -473,7 +493,7 @@ class WhatIf:
         )  # fmt: skip
 
     def _roll(self, plans, start, n, dt, times):
-        veh = self.config.vehicle
+        veh = self.vehicle
         wanted = _wanted(plans, times)
         is_wp = np.array([isinstance(p, WaypointPlan) for p in plans])
         P = len(plans)
@@ -551,7 +571,7 @@ class WhatIf:
         }
         if not len(ents):
             return none
-        veh = self.config.vehicle
+        veh = self.vehicle
         r_veh = 0.5 * np.hypot(veh.length_m, veh.width_m)
         c = ents.at(t_s)[..., :2]  # (S1, M, 2) predicted centres
         d = np.linalg.norm(xy[:, :, None, :] - c[None], axis=-1)  # (P, S1, M)
@@ -571,7 +591,7 @@ class WhatIf:
         clearance of each plan refined with fcl where it is small."""
         import fcl
 
-        veh = self.config.vehicle
+        veh = self.vehicle
         P = xy.shape[0]
         car = fcl.CollisionObject(fcl.Box(veh.length_m, veh.width_m, veh.height_m))
         objs = [fcl.CollisionObject(fcl.Box(*map(float, s))) for s in ents.sizes_lwh]
