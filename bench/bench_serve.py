@@ -5,7 +5,13 @@ sends a bounded mix of requests at a fixed rate (entity lookups, circle queries,
 Figures: p50 / p99 latency per endpoint, the node's mean wall time per cycle under load against
 alone, and the staleness of answers (lag of the newest cycle behind the newest frame read).
 Targets (the network API's): p99 <= 20 ms for lookups and region queries, <= 60 ms for What
-If of 10 plans, cycle time at most 10 % longer under load."""
+If of 10 plans, cycle time at most 10 % longer under load.
+
+The node runs in a process of its own (``LiveNode(..., process=True)``, as ``wm serve`` runs
+it), its cycle time measured there; ``--in-process`` (``python -m bench.bench_serve
+--in-process``) runs it in a thread of the server's process instead, as before. Also
+recorded: the wall time of a cycle's copy crossing to the server (``transfer_ms``) and the
+node process's share of it (``send_ms``)."""
 
 from __future__ import annotations
 
@@ -35,12 +41,12 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _serve(log: Path, kd: Path):
+def _serve(log: Path, kd: Path, process: bool):
     import uvicorn
 
     from wm.serve import LiveNode, create_app
 
-    live = LiveNode(log, kd, rate=1.0).start()
+    live = LiveNode(log, kd, rate=1.0, process=process).start()
     port = _free_port()
     srv = uvicorn.Server(
         uvicorn.Config(create_app(live), host="127.0.0.1", port=port, log_level="warning")
@@ -137,8 +143,10 @@ def _worker(port: int, mix: list, k: int, stop: Any, results: Any) -> None:
     results.put((lat, errors))
 
 
-def _run(log: Path, tmp: Path, loaded: bool) -> tuple[dict, dict[str, list[float]], list[str]]:
-    live, srv, thread, port = _serve(log, tmp / f"kd-{loaded}.duckdb")
+def _run(
+    log: Path, tmp: Path, loaded: bool, process: bool
+) -> tuple[dict, dict[str, list[float]], list[str]]:
+    live, srv, thread, port = _serve(log, tmp / f"kd-{loaded}.duckdb", process)
     lat: dict[str, list[float]] = {}
     errors: list[str] = []
     lags: list[int] = []
@@ -152,10 +160,16 @@ def _run(log: Path, tmp: Path, loaded: bool) -> tuple[dict, dict[str, list[float
         sampler.join()
     else:
         _sample_lag(live, lags)
+    # the node's own figures: in its process when it runs in one (LiveStatus crosses with
+    # every cycle's copy)
+    proc = live.process_status() or {}
     status = {
         "mean_cycle_ms": 1e3 * live.status.feed_s / max(live.status.cycles, 1),
         "max_lag_ms": max(lags) / 1e6 if lags else math.nan,
         "wall_s": time.perf_counter() - t0,
+        "transfer_ms": proc.get("mean_transfer_ms") or math.nan,
+        "send_ms": proc.get("send_ms") or math.nan,
+        "replaced": proc.get("replaced", 0),
     }
     srv.should_exit = True
     thread.join(10)
@@ -171,39 +185,60 @@ def _sample_lag(live, lags: list[int]) -> None:
         time.sleep(0.05)
 
 
-def main() -> None:
+def main(process: bool = True) -> None:
     from fixtures.simulate import simulate_to_log
 
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         log = simulate_to_log("default", tmp / "serve.mcap", seconds=LOG_SECONDS, seed=3,
                               progress=False)  # fmt: skip
-        alone, _, _ = _run(log, tmp, loaded=False)
-        loaded, lat, errors = _run(log, tmp, loaded=True)
+        alone, _, _ = _run(log, tmp, loaded=False, process=process)
+        loaded, lat, errors = _run(log, tmp, loaded=True, process=process)
     n = sum(len(v) for v in lat.values())
-    print(f"{n} requests in {loaded['wall_s']:.1f} s (a {LOG_SECONDS:g} s log; alone it took "
-          f"{alone['wall_s']:.1f} s), {len(errors)} server errors")  # fmt: skip
+    where = "a process of its own" if process else "a thread of the server's process"
+    print(
+        f"{n} requests in {loaded['wall_s']:.1f} s (a {LOG_SECONDS:g} s log; alone it took "
+        f"{alone['wall_s']:.1f} s), {len(errors)} server errors; the node in {where}"
+    )
+    print(
+        f"mean cycle {alone['mean_cycle_ms']:.1f} ms alone, {loaded['mean_cycle_ms']:.1f} ms "
+        f"under load ({loaded['mean_cycle_ms'] / alone['mean_cycle_ms']:.3f}x)"
+    )
+    for name, ms in sorted(lat.items()):
+        p50, p99 = np.percentile(ms, [50, 99])
+        print(f"  {name:9s} p50 {p50:6.1f} ms  p99 {p99:6.1f} ms  ({len(ms)} requests)")
+    if process:
+        print(
+            f"copy transfer {loaded['transfer_ms']:.2f} ms mean under load (node's share "
+            f"{loaded['send_ms']:.2f} ms), {loaded['replaced']} replaced before taken"
+        )
+    suffix = "" if process else "_in_process"  # figures of the two modes apart
     targets = {"self": 20.0, "entity": 20.0, "region": 20.0, "whatif10": 60.0, "sql": None}
     for name, ms in sorted(lat.items()):
         a = np.asarray(ms)
         t = targets.get(name)
-        record(f"serve_{name}_p50_ms", float(np.percentile(a, 50)), "ms", command=CMD)
-        record(f"serve_{name}_p99_ms", float(np.percentile(a, 99)), "ms",
+        record(f"serve_{name}_p50_ms{suffix}", float(np.percentile(a, 50)), "ms", command=CMD)
+        record(f"serve_{name}_p99_ms{suffix}", float(np.percentile(a, 99)), "ms",
                target=None if t is None else f"<= {t:g} ms", command=CMD)  # fmt: skip
     record(
-        "serve_cycle_ms_under_load", loaded["mean_cycle_ms"], "ms",
+        f"serve_cycle_ms_under_load{suffix}", loaded["mean_cycle_ms"], "ms",
         baseline="the same replay with no requests", baseline_value=alone["mean_cycle_ms"],
         target="ratio <= 1.10", command=CMD,
     )  # fmt: skip
-    record("serve_max_lag_ms_under_load", loaded["max_lag_ms"], "ms",
+    record(f"serve_max_lag_ms_under_load{suffix}", loaded["max_lag_ms"], "ms",
            baseline="no requests", baseline_value=alone["max_lag_ms"], command=CMD)  # fmt: skip
-    record("serve_requests_per_s", n / loaded["wall_s"], "1/s", target=f">= {RATE_PER_S:g}",
-           command=CMD)  # fmt: skip
-    record("serve_replay_wall_s_under_load", loaded["wall_s"], "s",
+    record(f"serve_requests_per_s{suffix}", n / loaded["wall_s"], "1/s",
+           target=f">= {RATE_PER_S:g}", command=CMD)  # fmt: skip
+    record(f"serve_replay_wall_s_under_load{suffix}", loaded["wall_s"], "s",
            baseline="the same replay with no requests", baseline_value=alone["wall_s"],
            target="ratio <= 1.0 (real time)", command=CMD)  # fmt: skip
-    record("serve_server_errors", float(len(errors)), "count", target="0", command=CMD)
+    record(f"serve_server_errors{suffix}", float(len(errors)), "count", target="0", command=CMD)
+    if process:
+        record("serve_snapshot_transfer_ms_under_load", loaded["transfer_ms"], "ms",
+               command=CMD)  # fmt: skip
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main(process="--in-process" not in sys.argv[1:])

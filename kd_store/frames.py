@@ -112,6 +112,11 @@ class State:
             raise AttributeError(f"State is immutable (tried to set {name})")
         object.__setattr__(self, name, value)
 
+    def __reduce__(self) -> tuple:
+        # pickled as its vector (a live node sends states to its server's process): the
+        # default would set the slots one by one, which __setattr__ refuses once _v is set
+        return (_state_of, (self.t_ns, self.frame, self._v, self._asym))
+
     @property
     def position_xyz(self) -> np.ndarray:
         return self._v[_P]
@@ -172,6 +177,13 @@ class State:
 
 
 make_state = State  # the constructor takes array-likes
+
+
+def _state_of(t_ns: int, frame: str, v: np.ndarray, asym: float) -> State:
+    """A :class:`State` as pickled (:meth:`State.__reduce__`)."""
+    s = State.__new__(State)
+    s._init(t_ns, frame, np.array(v, dtype=np.float64), asym)
+    return s
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from serving import served
+from serving import served, start_live
 
 pytest.importorskip("fastapi")
 pytest.importorskip("uvicorn")
@@ -47,11 +47,12 @@ def truth(log: Path):
 
 @pytest.fixture(scope="module")
 def server(log: Path):
-    """A live node replaying the log at real time on its true poses, served on localhost."""
+    """A live node in a process of its own replaying the log at real time on its true poses,
+    served on localhost."""
     from wm.config import NodeConfig, PoseSource
-    from wm.serve import LiveNode, create_app
+    from wm.serve import create_app
 
-    live = LiveNode(log, ":memory:", NodeConfig(pose_source=PoseSource.TRUTH), rate=1.0).start()
+    live = start_live(log, ":memory:", NodeConfig(pose_source=PoseSource.TRUTH), rate=1.0)
     with served(create_app(live, token=TOKEN)) as base:
         yield live, base
     live.stop()
@@ -141,7 +142,7 @@ def test_a_bg_process_plans_over_http_and_never_passes_a_true_object(server, tru
     assert blocked >= 1, "the goal was never behind the target object: the check proves little"
     moved = max(np.linalg.norm(np.subtract(p["xy"][-1], p["xy"][0])) for p in plans)
     assert moved > 5.0, "every plan stood still: avoiding objects that way proves nothing"
-    told = live.node.plan_xy
+    told = live.call(_node_plan)
     assert told is not None and np.array_equal(told, np.array(plans[-1]["xy"]))
 
 
@@ -153,17 +154,11 @@ def test_in_process_and_remote_planners_pick_the_same_plan(server) -> None:
     from wm.client import Client
     from wm.config import PlannerConfig
     from wm.remote import RemoteWhatIf, run_bg
-    from wm.whatif import WhatIf
 
     live, base = server
     assert live.wait(120) and not live.status.error
-    node = live.node
     cfg = PlannerConfig(budget_s=60.0)  # every candidate weighed on both sides
-    with live.lock:  # the server reads the KD too: not at the same time
-        wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
-        start = wi.start_from_kd()
-        goal = start.xy + 30.0 * np.array([math.cos(start.yaw + 0.5), math.sin(start.yaw + 0.5)])
-        here = Planner(wi, cfg).plan(goal, start=start)
+    start, goal, here = live.call(_plan_in_process, cfg)
     remote = RemoteWhatIf(Client(base, TOKEN))
     far = Planner(remote, cfg).plan(goal)  # its start through the API
     assert remote.start_cycle_t_ns == live.status.cycle_t_ns
@@ -179,6 +174,25 @@ def test_in_process_and_remote_planners_pick_the_same_plan(server) -> None:
     assert made == 1 and len(line.splitlines()) == 1, line
     assert f"t0_ns={start.t0_ns} cycle_t_ns={live.status.cycle_t_ns} plan={here.plan.name} " in line
     assert f" cost={here.cost:.3f} risk={here.risk:.3f} collision=none elapsed_ms=" in line
+
+
+def _node_plan(live) -> np.ndarray | None:
+    """The plan the node was told (a :meth:`wm.serve.LiveNode.call`)."""
+    return live.node.plan_xy
+
+
+def _plan_in_process(live, cfg) -> tuple:
+    """(start, goal, plan) of Planner over the node's own What If, towards a goal 30 m ahead
+    and to the left, under the node's lock (a :meth:`wm.serve.LiveNode.call`)."""
+    from wm.bg import Planner
+    from wm.whatif import WhatIf
+
+    with live.lock:  # the server reads the KD too: not at the same time
+        node = live.node
+        wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
+        start = wi.start_from_kd()
+        goal = start.xy + 30.0 * np.array([math.cos(start.yaw + 0.5), math.sin(start.yaw + 0.5)])
+        return start, goal, Planner(wi, cfg).plan(goal, start=start)
 
 
 def _post(base: str, path: str, body: dict) -> tuple[int, dict]:

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from serving import served
+from serving import MODES, served
 
 pytest.importorskip("fastapi")
 uvicorn = pytest.importorskip("uvicorn")
@@ -111,15 +111,18 @@ def _run_kd(log: Path, kd_path: Path) -> None:
                 node.feed(frame)
 
 
-def test_posted_messages_make_the_kd_a_run_makes(log, tmp_path) -> None:
+@pytest.mark.parametrize("mode", MODES)
+def test_posted_messages_make_the_kd_a_run_makes(log, tmp_path, mode) -> None:
     """Every message of the log posted in log order as raw CDR: the KD the ingesting node
-    writes has the confirmed entities, entities and self states of a run over the log (the
-    same frames reach the same node in the same order: an exact match), none dropped."""
+    (in a process of its own, or in a thread) writes has the confirmed entities, entities and
+    self states of a run over the log (the same frames reach the same node in the same order:
+    an exact match), none dropped."""
     from wm.ingest import IngestNode
     from wm.serve import create_app
 
     _run_kd(log, tmp_path / "run.duckdb")
-    live = IngestNode(tmp_path / "ingest.duckdb", queue_size=10_000).start()
+    live = IngestNode(tmp_path / "ingest.duckdb", queue_size=10_000, process=mode == "process")
+    live.start()
     n = 0
     try:
         with served(create_app(live)) as base:
@@ -139,14 +142,15 @@ def test_posted_messages_make_the_kd_a_run_makes(log, tmp_path) -> None:
     assert ingested == run
 
 
-@pytest.fixture
-def ingest_server(tmp_path):
-    """An ingesting node with a queue of 2 frames and small body limits, served."""
+@pytest.fixture(params=MODES)
+def ingest_server(tmp_path, request):
+    """An ingesting node with a queue of 2 frames and small body limits, in a process of its
+    own and in a thread of this one, served."""
     from wm.ingest import IngestNode
     from wm.limits import ServeLimits
     from wm.serve import create_app
 
-    live = IngestNode(":memory:", queue_size=2).start()
+    live = IngestNode(":memory:", queue_size=2, process=request.param == "process").start()
     limits = ServeLimits(max_ingest_bytes=2 * 2**20, max_json_bytes=4096)
     with served(create_app(live, limits=limits)) as base:
         yield live, base
@@ -159,13 +163,7 @@ def test_a_flood_is_dropped_and_counted(ingest_server, log) -> None:
     and counted in /v1/status; every frame is either taken or dropped."""
     live, base = ingest_server
     sweep = next(m for m in _messages(log) if m[1] == POINTS)
-    feed = live.node.feed
-
-    def slow_feed(frame):
-        time.sleep(0.05)
-        return feed(frame)
-
-    live.node.feed = slow_feed
+    live.call(_slow_down, 0.05)
     answers, most_queued = [], 0
     for k in range(40):
         code, ans, _ = post(base, ingest_path(sweep[0], POINTS, 1_000_000_000 + k * 1000), sweep[2])
@@ -179,6 +177,74 @@ def test_a_flood_is_dropped_and_counted(ingest_server, log) -> None:
     assert ing["dropped"] > 0 and ing["queue_size"] == 2 and ing["frames"] == 39
     live.end(60)
     assert live.status.frames + live.counts.dropped == live.counts.frames == 40
+
+
+def _slow_down(live, seconds: float) -> None:
+    """Make every feed of the node take ``seconds`` longer (a :meth:`wm.serve.LiveNode.call`:
+    in the node's process when it runs in one)."""
+    feed = live.node.feed
+
+    def slow_feed(frame):
+        time.sleep(seconds)
+        return feed(frame)
+
+    live.node.feed = slow_feed
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_a_flood_of_a_real_log_is_dropped_and_the_node_cycles_on(log, mode) -> None:
+    """The log posted to a node (in a process of its own, or in a thread) with a queue of 8
+    frames: its first 1.5 s at a pace the node keeps (the client waits for the queue to
+    empty), the next second in batches as fast as the client can, then the rest at the node's
+    pace again. The flood is dropped and counted (in the answers and in /v1/status) while
+    the node takes what it can; the node cycles on through it and after it; every frame is
+    taken or dropped."""
+    from wm.ingest import IngestNode, pack_batch
+    from wm.serve import create_app
+
+    live = IngestNode(":memory:", queue_size=8, process=mode == "process").start()
+    msgs = list(_messages(log))
+    t0 = msgs[0][3]
+    flood_from, flood_to = t0 + 1_500_000_000, t0 + 2_500_000_000
+
+    def paced(part) -> None:
+        for topic, msgtype, data, t_ns in part:
+            deadline = time.time() + 30
+            while live.queue.qsize() and time.time() < deadline:
+                time.sleep(0.002)
+            code, ans, _ = post(base, ingest_path(topic, msgtype, t_ns), data)
+            assert code == 202, ans
+
+    try:
+        with served(create_app(live)) as base:
+            paced(m for m in msgs if m[3] < flood_from)
+            deadline = time.time() + 60
+            while live.status.cycles < 5 and time.time() < deadline:
+                time.sleep(0.05)
+            before = live.status.cycles
+            assert before >= 5, live.status
+            batches, batch = [], []
+            for m in (m for m in msgs if flood_from <= m[3] < flood_to):
+                if batch and sum(len(b[2]) for b in batch) + len(m[2]) > 16 * 2**20:
+                    batches.append(batch)
+                    batch = []
+                batch.append(m)
+            batches.append(batch)
+            dropped = 0
+            for part in batches:
+                code, ans, _ = post(base, "/v1/ingest/batch", pack_batch(part))
+                assert code == 202, ans
+                dropped += ans["dropped"]
+            code, st = get(base, "/v1/status")
+            assert code == 200 and not st["error"]
+            assert dropped > 0 and st["ingest"]["dropped"] == dropped == live.counts.dropped
+            assert st["ingest"]["queued"] <= 8
+            paced(m for m in msgs if m[3] >= flood_to)
+    finally:
+        live.stop(120)
+    assert live.status.done and not live.status.error
+    assert live.status.cycles > before + 5 and live.status.cycle_t_ns >= flood_to
+    assert live.status.frames + live.counts.dropped == live.counts.frames
 
 
 def test_bad_messages_get_a_400_naming_them(ingest_server) -> None:

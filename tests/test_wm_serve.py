@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from serving import free_port, served
+from serving import MODES, free_port, served, start_live
 
 pytest.importorskip("fastapi")
 uvicorn = pytest.importorskip("uvicorn")
@@ -29,13 +29,14 @@ def log(tmp_path_factory) -> Path:
     return simulate_to_log("default", path, seconds=6.0, seed=46, progress=False)
 
 
-@pytest.fixture(scope="module")
-def server(log: Path, tmp_path_factory):
-    """A live node replaying the log at twice real time, served on a free localhost port."""
-    from wm.serve import LiveNode, create_app
+@pytest.fixture(scope="module", params=MODES)
+def server(log: Path, tmp_path_factory, request):
+    """A live node replaying the log at twice real time, in a process of its own and in a
+    thread of this one, served on a free localhost port."""
+    from wm.serve import create_app
 
     kd_path = tmp_path_factory.mktemp("serve-kd") / "live.duckdb"
-    live = LiveNode(log, kd_path, rate=2.0).start()
+    live = start_live(log, kd_path, rate=2.0, mode=request.param)
     deadline = time.time() + 300  # the tests ask about the vehicle: its first cycle is due
     while live.status.cycles < 1 and not live.status.error and time.time() < deadline:
         time.sleep(0.05)

@@ -3,7 +3,8 @@ wm.serve.CycleSnapshot). Over real HTTP on localhost while a simulated log is re
 windows, GetGridMap, CheckSafety, class-filtered regions, events, the entities of attention and
 the plan answer while another thread holds the node's lock (as a cycle in progress holds it),
 from the cycle before, exactly as the node's own maps and KD hold them then; earlier layer
-names (``z_m2``) are taken. Then the pieces alone: the demand, the layers chosen within the byte
+names (``z_m2``) are taken. The node runs in a process of its own and in a thread of the
+test's. Then the pieces alone: the demand, the layers chosen within the byte
 limit, the taxonomy. The log and the request helper are test_wm_serve's."""
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from serving import MODES, holding_node_lock, node_lock_held, start_live
 from serving import served as served_app
 
 pytest.importorskip("fastapi")
@@ -30,16 +32,17 @@ SUBSYSTEM_CELLS = 256 * 256  # cells of a default level
 WHATIF_BYTES = 4 * 4 * SUBSYSTEM_CELLS * 4  # What If's 4 float32 layers of the 4 levels
 
 
-@pytest.fixture(scope="module")
-def running(log: Path, tmp_path_factory):  # noqa: F811 (test_wm_serve's fixture)
+@pytest.fixture(scope="module", params=MODES)
+def running(log: Path, tmp_path_factory, request):  # noqa: F811 (test_wm_serve's fixture)
     """A live node replaying the log at a quarter of real time on its true poses (no odometry
-    process to wait for), served on a free localhost port."""
+    process to wait for), in a process of its own and in a thread of this one, served on a
+    free localhost port."""
     from wm.config import NodeConfig, PoseSource
-    from wm.serve import LiveNode, create_app
+    from wm.serve import create_app
 
     kd_path = tmp_path_factory.mktemp("copy-kd") / "live.duckdb"
     config = NodeConfig(pose_source=PoseSource.TRUTH)
-    live = LiveNode(log, kd_path, config, rate=RATE).start()
+    live = start_live(log, kd_path, config, rate=RATE, mode=request.param)
     with served_app(create_app(live, token=TOKEN)) as base:
         yield live, base
     live.stop()
@@ -111,15 +114,12 @@ def _in_copy(live, extra: set[str]) -> bool:
 
 def test_answers_come_from_the_cycle_copy_while_the_node_lock_is_held(running) -> None:
     """Mid-replay: once asked for, the layers, the events and the entities of attention are in
-    every cycle's copy. With the node's lock held by this thread (the node waits at its next
-    cycle) every answer comes within 2 s, says the held cycle (the one before the one waiting),
-    and is what the node's levels and KD hold at that cycle: map windows (``z_m2`` read as
-    ``z_sq_dev_sum``), GetGridMap, CheckSafety, a region filtered by class, events,
-    attention; the plan is taken. After the lock is released the answers follow the node."""
-    from kd_store import Circle
-    from wm import serve_ros as ros
-    from wm.serve import _event_json
-    from wm.serve_views import attention_entities, find_level
+    every cycle's copy. With the node's lock held by the test (the node waits at its next
+    cycle; in the node's process when it runs in one) every answer comes within 2 s, says the
+    held cycle (the one before the one waiting), and is what the node's levels and KD hold at
+    that cycle: map windows (``z_m2`` read as ``z_sq_dev_sum``), GetGridMap, CheckSafety, a
+    region filtered by class, events, attention; the plan is taken. After the lock is
+    released the answers follow the node."""
 
     live, base = running
     # 1.5 s of log in: the maps around the vehicle are filled in, objects classed
@@ -145,13 +145,11 @@ def test_answers_come_from_the_cycle_copy_while_the_node_lock_is_held(running) -
     points = [{"x": a, "y": b} for a, b in poly]
     safety = {"polygons": [{"header": {"frame_id": "world"}, "polygon": {"points": points}}]}
     cls = _classed(live)
-    with live.lock:
-        root = live.kd.classes.lineage(cls)[-1]  # its geometric class: an ancestor
+    root = live.call(_root_class, cls)  # its geometric class: an ancestor
     region_q = f"/v1/entities?x={x}&y={y}&radius_m=200&class={cls}".replace(" ", "%20")
     root_q = f"/v1/entities?x={x}&y={y}&radius_m=200&class={root}"
-    with live.lock:  # the node waits at its next cycle; the maps and KD are the held cycle's
-        held = live.snapshot.cycle_t_ns
-        node, kd = live.node, live.kd
+    # the node waits at its next cycle; the maps and KD are the held cycle's
+    with holding_node_lock(live) as held:
         w = _quick(base, maps_q)
         w_new = _quick(base, maps_q.replace("z_m2", "z_sq_dev_sum"))
         code, npy, headers, took = _get(base, maps_q, accept="application/x-npy")
@@ -162,29 +160,16 @@ def test_answers_come_from_the_cycle_copy_while_the_node_lock_is_held(running) -
         events = _quick(base, f"/v1/events?t_from_ns=0&t_to_ns={2**62}")
         att = _quick(base, "/v1/attention?level=4")
         told = _quick(base, "/v1/plan", {"xy": [[x, y], [x + 10.0, y]]})
-        assert live.lock.locked() and live.snapshot.cycle_t_ns == held
-
-        # what the node itself holds at the held cycle (as the endpoints read it under the lock)
-        lvl = node.stack.level("subsystem")
-        xy = _cells(w)
-        for layer in ("entity_id", "z_sq_dev_sum", "elevation"):
-            np.testing.assert_array_equal(
-                np.array(w["values"][layer], dtype=np.float64).ravel(),
-                lvl.read(layer, xy).astype(np.float64),
-            )
-        want_safe = ros.polygon_safety(
-            ros.polygon_window(find_level(node.stack, "subsystem"), poly),
-            ros._entity_boxes(ros.node_what_if(node), [poly], held), poly, 0.0, False, held,
-        )  # fmt: skip
-        circle = Circle("world", (x, y), 200.0)
-        want_class = kd.region(circle, classes=[cls]).tolist()
-        want_root = kd.region(circle, classes=[root]).tolist()
-        want_events = [_event_json(e) for e in kd.events(0, 2**62)]
-        want_att = attention_entities(node, 4, held)
-        plan_xy = node.plan_xy.tolist()
+        assert live.call(node_lock_held) and live.snapshot.cycle_t_ns == held
+        gxy = _grid_centres(grid["map"])
+        want = live.call(_held_reference, x, y, poly, cls, root, held, _cells(w), gxy)
 
     for ans in (w, w_new, grid, safe, by_class, by_root, events, att, told):
         assert ans["cycle_t_ns"] == held
+    for layer in ("entity_id", "z_sq_dev_sum", "elevation"):
+        np.testing.assert_array_equal(
+            np.array(w["values"][layer], dtype=np.float64).ravel(), want["window"][layer]
+        )
     # the earlier name is the current one, said so in the body and a header
     assert w["layers"] == ["entity_id", "z_sq_dev_sum", "elevation"]
     assert w["renamed_layers"] == {"z_m2": "z_sq_dev_sum"} and w_new["renamed_layers"] == {}
@@ -197,22 +182,58 @@ def test_answers_come_from_the_cycle_copy_while_the_node_lock_is_held(running) -
     )
     assert grid["map"]["layers"] == ["z_sq_dev_sum", "class_id", "traversability"]
     assert grid["renamed_layers"] == {"z_m2": "z_sq_dev_sum"}
-    gxy = _grid_centres(grid["map"])
     for layer, data in zip(grid["map"]["layers"], grid["map"]["data"], strict=True):
         got = np.array(data["data"], dtype=np.float64)  # None -> NaN
-        np.testing.assert_array_equal(got, lvl.read(layer, gxy).astype(np.float64))
+        np.testing.assert_array_equal(got, want["grid"][layer])
     for key in ("is_safe", "traversability", "why", "known_fraction"):
-        assert safe[key] == [want_safe[key]], key
+        assert safe[key] == [want["safe"][key]], key
+    want_class, want_root = want["class"], want["root"]
     assert [e["entity_id"] for e in by_class["entities"]] == want_class and want_class
     assert [e["entity_id"] for e in by_root["entities"]] == want_root
     assert set(want_class) < set(want_root)  # a class includes its descendants
-    assert events["events"] == want_events and want_events
-    assert att["entities"] == want_att and att["node_level"] == "vehicle"
-    assert told["points"] == 2 and plan_xy == [[x, y], [x + 10.0, y]]
+    assert events["events"] == want["events"] and want["events"]
+    assert att["entities"] == want["attention"] and att["node_level"] == "vehicle"
+    assert told["points"] == 2 and want["plan_xy"] == [[x, y], [x + 10.0, y]]
 
     # released: the node runs on and the answers follow it
     _wait(lambda: live.snapshot.cycle_t_ns > held or live.status.done, "the next cycle")
     assert _quick(base, maps_q)["cycle_t_ns"] > held
+
+
+def _root_class(live, cls: str) -> str:
+    """The geometric class ``cls`` descends from (a :meth:`wm.serve.LiveNode.call`)."""
+    with live.lock:
+        return live.kd.classes.lineage(cls)[-1]
+
+
+def _held_reference(live, x, y, poly, cls, root, held, w_xy, grid_xy) -> dict:
+    """What the node itself holds at the held cycle, read as the endpoints read it under the
+    lock (the test holds the lock: a :meth:`wm.serve.LiveNode.call` that does not take it):
+    the subsystem level's cells at the window's and the grid's centres, CheckSafety of
+    ``poly``, regions by class, events, attention of level 4, the plan."""
+    from kd_store import Circle
+    from wm import serve_ros as ros
+    from wm.serve import _event_json
+    from wm.serve_views import attention_entities, find_level
+
+    node, kd = live.node, live.kd
+    lvl = node.stack.level("subsystem")
+    circle = Circle("world", (x, y), 200.0)
+    return {
+        "window": {layer: lvl.read(layer, w_xy).astype(np.float64)
+                   for layer in ("entity_id", "z_sq_dev_sum", "elevation")},
+        "grid": {layer: lvl.read(layer, grid_xy).astype(np.float64)
+                 for layer in ("z_sq_dev_sum", "class_id", "traversability")},
+        "safe": ros.polygon_safety(
+            ros.polygon_window(find_level(node.stack, "subsystem"), poly),
+            ros._entity_boxes(ros.node_what_if(node), [poly], held), poly, 0.0, False, held,
+        ),
+        "class": kd.region(circle, classes=[cls]).tolist(),
+        "root": kd.region(circle, classes=[root]).tolist(),
+        "events": [_event_json(e) for e in kd.events(0, 2**62)],
+        "attention": attention_entities(node, 4, held),
+        "plan_xy": node.plan_xy.tolist(),
+    }  # fmt: skip
 
 
 def _grid_centres(m: dict) -> np.ndarray:

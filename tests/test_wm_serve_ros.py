@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from serving import MODES, holding_node_lock, level_cells, node_lock_held, start_live
 from serving import served as served_app
 
 pytest.importorskip("fastapi")
@@ -23,14 +24,15 @@ SAFETY = "/v1/elevation_mapping/check_safety"
 PATH = "/v1/nav2/is_path_valid"
 
 
-@pytest.fixture(scope="module")
-def served(log: Path, tmp_path_factory):  # noqa: F811 (test_wm_serve's fixture)
-    """A live node that has replayed the whole log (as fast as it can), served on a free
-    localhost port: every test sees the same, final, cycle."""
-    from wm.serve import LiveNode, create_app
+@pytest.fixture(scope="module", params=MODES)
+def served(log: Path, tmp_path_factory, request):  # noqa: F811 (test_wm_serve's fixture)
+    """A live node that has replayed the whole log (as fast as it can), in a process of its
+    own and in a thread of this one, served on a free localhost port: every test sees the
+    same, final, cycle."""
+    from wm.serve import create_app
 
     kd_path = tmp_path_factory.mktemp("ros-kd") / "live.duckdb"
-    live = LiveNode(log, kd_path, rate=0.0).start()
+    live = start_live(log, kd_path, rate=0.0, mode=request.param)
     assert live.wait(600) and not live.status.error, live.status.error
     with served_app(create_app(live, token=TOKEN)) as base:
         yield live, base
@@ -148,13 +150,12 @@ def test_grid_map_values_are_the_map_window_values(served, dx, length_x, length_
         assert arr["layout"]["data_offset"] == 0 and len(arr["data"]) == nx * ny
     xy = _grid_centres(m)
     _, win = call(base, f"/v1/maps/subsystem?x={x}&y={y}&half_m={half}&layers={','.join(layers)}")
-    with live.lock:
-        lvl = live.node.stack.level("subsystem")
-        for layer, arr in zip(layers, m["data"], strict=True):
-            M = _grid_matrix(arr)
-            want = lvl.read(layer, xy.reshape(-1, 2)).astype(np.float64).reshape(M.shape)
-            np.testing.assert_array_equal(M, want)
-            np.testing.assert_array_equal(M, _window_value(win, layer, xy))
+    cells = live.call(level_cells, "subsystem", layers, xy.reshape(-1, 2))
+    for layer, arr in zip(layers, m["data"], strict=True):
+        M = _grid_matrix(arr)
+        want = cells[layer].astype(np.float64).reshape(M.shape)
+        np.testing.assert_array_equal(M, want)
+        np.testing.assert_array_equal(M, _window_value(win, layer, xy))
     elev = _grid_matrix(m["data"][0])
     if dx is None:  # past the edge: empty cells (null, -1) beside known ones
         beyond = xy[..., 0] > win["level_bounds"][1][0]
@@ -188,10 +189,15 @@ def _truth_in_kd_world(live, log_path: Path):
     from wm.evaluation import load_truth
 
     truth = load_truth(log_path)
-    with live.lock:
-        s = live.kd.get(live.node.self_id).state
+    s = live.call(_self_state)
     T_est = se3(quat_to_matrix(s.orientation_xyzw), s.position_xyz)
     return truth, T_est @ se3_inverse(truth.poses.at(s.t_ns)), int(s.t_ns)
+
+
+def _self_state(live):
+    """The KD's self state (a :meth:`wm.serve.LiveNode.call`)."""
+    with live.lock:
+        return live.kd.get(live.node.self_id).state
 
 
 def _polygon(corners: np.ndarray, z: float = 0.0) -> dict:
@@ -260,7 +266,12 @@ def _reference_safety(
 ) -> dict:
     """CheckSafety as it was first written, under the node's lock throughout: every cell of
     the polygon's bounding-box window tested against every edge, every box against the
-    polygon by :func:`maps.submap.inside_polygon`; the answer's shape."""
+    polygon by :func:`maps.submap.inside_polygon`; the answer's shape. Worked out where the
+    node is (:meth:`wm.serve.LiveNode.call`)."""
+    return live.call(_reference_safety_on, polys, z, hull, level)
+
+
+def _reference_safety_on(live, polys: list[np.ndarray], z: float, hull: bool, level: str) -> dict:
     from maps.submap import inside_polygon
     from wm import serve_ros as ros
     from wm.serve_views import find_level, map_window
@@ -396,13 +407,16 @@ def test_large_check_safety_never_takes_the_node_lock(served, monkeypatch) -> No
     monkeypatch.setattr(ros, "polygon_safety", watched)
     entries = _Entries(live.lock)
     monkeypatch.setattr(live, "lock", entries)
+    calls = []  # requests to the node itself: none either (in its process, when in one)
+    to_node = live.call
+    monkeypatch.setattr(live, "call", lambda *a, **kw: calls.append(a) or to_node(*a, **kw))
     body = {"polygons": [_polygon(p) for p in polys], "compute_untraversable_polygon": True}
     code, ans = call(base, SAFETY, body)
     assert code == 200, ans
     assert len(ans["is_safe"]) == 100 and judged_locked == [False] * 100
     # near the limit: a polygon of twice the area is refused
     assert call(base, SAFETY, {"polygons": [_polygon(2 * circle + me)] * 100})[0] == 413
-    assert entries.entered == 0
+    assert entries.entered == 0 and calls == []
 
 
 def test_polygon_geometry_helpers() -> None:
@@ -653,13 +667,10 @@ def test_bad_ros_requests_get_a_4xx_naming_the_value(served, path, body, code, n
 def test_what_if_and_is_path_valid_answer_while_the_node_lock_is_held(served) -> None:
     """What If, its start, IsPathValid, CheckSafety, GetGridMap and map windows of What If's
     layers read the copy the last cycle published, never the node's lock: with the lock held
-    by another thread (as a cycle in progress holds it) they answer, from that cycle
+    by the test (as a cycle in progress holds it) they answer, from that cycle
     (``cycle_t_ns``), as What If in-process over the KD and the maps of that cycle answers,
     and as the node's levels hold the cells (the node has finished: the KD and the maps are
     the last cycle's)."""
-    import threading
-
-    from wm.whatif import ControlPlan, WaypointPlan, WhatIf
 
     live, base = served
     cycle = live.snapshot.cycle_t_ns
@@ -675,24 +686,9 @@ def test_what_if_and_is_path_valid_answer_while_the_node_lock_is_held(served) ->
     polys = _safety_polygons(me)[:12]
     grid_req = {"position_x": float(me[0]) + 0.13, "position_y": float(me[1]),
                 "length_x": 8.0, "length_y": 6.0, "layers": sampled}  # fmt: skip
-    held, done = threading.Event(), threading.Event()
-    node = live.node
-    in_process = {}
-
-    def hold() -> None:
-        with live.lock:
-            held.set()
-            wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
-            ctl = [ControlPlan(np.array(p["t_s"]), np.array(p["speed_mps"]),
-                               np.array(p["curvature_1pm"]), p["name"]) for p in plans]  # fmt: skip
-            in_process["whatif"] = wi.simulate(ctl, horizon_s=5.0)
-            in_process["start"] = wi.start_from_kd()
-            done.wait(60)  # until the requests are answered (or a request's time runs out)
-
-    holder = threading.Thread(target=hold)
-    holder.start()
-    try:
-        assert held.wait(30)
+    with holding_node_lock(live) as held:  # as a cycle in progress holds it
+        assert held == cycle
+        in_process = live.call(_what_if_reference, plans)
         code, ans = call(base, "/v1/whatif", {"plans": plans, "horizon_s": 5.0, "traces": True})
         code_s, start = call(base, "/v1/whatif/start")
         code_p, path = call(base, PATH, {"path": _path(points)})
@@ -700,10 +696,7 @@ def test_what_if_and_is_path_valid_answer_while_the_node_lock_is_held(served) ->
         code_c, safe = call(base, SAFETY, {"polygons": [_polygon(p, 0.5) for p in polys]})
         code_m, win = call(base, f"/v1/maps/vehicle?x={me[0]}&y={me[1]}&half_m=40&layers="
                                  "elevation,cost")  # fmt: skip
-        assert live.lock.locked()  # answered with the lock held throughout
-    finally:
-        done.set()
-        holder.join(60)
+        assert live.call(node_lock_held)  # answered with the lock held throughout
     assert code == 200 and code_s == 200 and code_p == 200, (ans, start, path)
     assert code_g == 200 and code_c == 200 and code_m == 200, (grid, safe, win)
     assert ans["cycle_t_ns"] == start["cycle_t_ns"] == path["cycle_t_ns"] == cycle
@@ -711,20 +704,20 @@ def test_what_if_and_is_path_valid_answer_while_the_node_lock_is_held(served) ->
     want_safe = _reference_safety(live, polys, 0.5, False, "subsystem")
     for key in ("is_safe", "traversability", "why", "known_fraction"):
         assert safe[key] == want_safe[key], key
-    with live.lock:  # the maps as the last cycle left them
-        lvl = live.node.stack.level("subsystem")
-        xy = _grid_centres(grid["map"]).reshape(-1, 2)
-        for layer, arr in zip(sampled, grid["map"]["data"], strict=True):
-            M = _grid_matrix(arr)
-            want = lvl.read(layer, xy).astype(np.float64).reshape(M.shape)
-            np.testing.assert_array_equal(M, want)
-        vlvl = live.node.stack.level("vehicle")
-        for layer in ("elevation", "cost"):
-            got = np.array(win["values"][layer], dtype=np.float64)
-            rows, cols = np.meshgrid(*(np.arange(n) for n in got.shape), indexing="ij")
-            res, (ox, oy) = win["resolution_m"], win["origin"]
-            cells = np.stack([ox + (cols.ravel() + 0.5) * res, oy + (rows.ravel() + 0.5) * res], 1)
-            np.testing.assert_array_equal(got.ravel(), vlvl.read(layer, cells).astype(np.float64))
+    # the maps as the last cycle left them
+    xy = _grid_centres(grid["map"]).reshape(-1, 2)
+    cells = live.call(level_cells, "subsystem", sampled, xy)
+    for layer, arr in zip(sampled, grid["map"]["data"], strict=True):
+        M = _grid_matrix(arr)
+        np.testing.assert_array_equal(M, cells[layer].astype(np.float64).reshape(M.shape))
+    rows, cols = np.meshgrid(*(np.arange(n) for n in np.shape(win["values"]["cost"])),
+                             indexing="ij")  # fmt: skip
+    res, (ox, oy) = win["resolution_m"], win["origin"]
+    at = np.stack([ox + (cols.ravel() + 0.5) * res, oy + (rows.ravel() + 0.5) * res], 1)
+    vcells = live.call(level_cells, "vehicle", ["elevation", "cost"], at)
+    for layer in ("elevation", "cost"):
+        got = np.array(win["values"][layer], dtype=np.float64)
+        np.testing.assert_array_equal(got.ravel(), vcells[layer].astype(np.float64))
     want = in_process["whatif"]
     assert ans["t0_ns"] == want.t0_ns == start["t0_ns"] == in_process["start"].t0_ns
     assert start["xy"] == in_process["start"].xy.tolist()
@@ -741,10 +734,31 @@ def test_what_if_and_is_path_valid_answer_while_the_node_lock_is_held(served) ->
         collided = want.collision_entity[i] >= 0
         assert p["collision_entity"] == (int(want.collision_entity[i]) if collided else None)
     # IsPathValid's rollout is What If's over the same cycle
+    end_xy = live.call(_path_end_reference, path)
+    assert path["end_gap_m"] == float(np.linalg.norm(end_xy - points[path["end_pose_index"] - 1]))
+
+
+def _what_if_reference(live, plans: list[dict]) -> dict:
+    """What If over the node's own KD and maps (the test holds the node's lock: a
+    :meth:`wm.serve.LiveNode.call` that does not take it): ``plans`` rolled out for 5 s, and
+    the start from the KD."""
+    from wm.whatif import ControlPlan, WhatIf
+
+    node = live.node
+    wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
+    ctl = [ControlPlan(np.array(p["t_s"]), np.array(p["speed_mps"]),
+                       np.array(p["curvature_1pm"]), p["name"]) for p in plans]  # fmt: skip
+    return {"whatif": wi.simulate(ctl, horizon_s=5.0), "start": wi.start_from_kd()}
+
+
+def _path_end_reference(live, path: dict) -> np.ndarray:
+    """The last position (world xy m) of What If's rollout of IsPathValid's ``plan``, over the
+    node's own KD and maps under its lock (a :meth:`wm.serve.LiveNode.call`)."""
+    from wm.whatif import WaypointPlan, WhatIf
+
     with live.lock:
+        node = live.node
         wi = WhatIf(node.kd, node.stack, self_id=node.self_id)
         plan = WaypointPlan(np.array(path["plan"]["t_s"]), np.array(path["plan"]["xy"]), "path")
         res = wi.simulate([plan], level=path["level"], horizon_s=path["horizon_s"])
-    assert path["end_gap_m"] == float(
-        np.linalg.norm(res.xy[0, -1] - points[path["end_pose_index"] - 1])
-    )
+    return res.xy[0, -1]

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from serving import MODES, level_cells, start_live
 from serving import served as served_app
 
 pytest.importorskip("fastapi")
@@ -27,14 +28,15 @@ QUEUE = 3  # cycles a stream client may fall behind: small, so a stalled one dro
 RATE = 0.4  # replay speed: slow, so the node still runs through the stream test
 
 
-@pytest.fixture(scope="module")
-def served(log: Path, tmp_path_factory):  # noqa: F811 (test_wm_serve's fixture)
+@pytest.fixture(scope="module", params=MODES)
+def served(log: Path, tmp_path_factory, request):  # noqa: F811 (test_wm_serve's fixture)
     """A live node replaying the log at 0.4 times real time (so it is still running while the
-    stream test reads), served on a free localhost port with a 3-cycle stream queue."""
-    from wm.serve import LiveNode, create_app
+    stream test reads), in a process of its own and in a thread of this one, served on a free
+    localhost port with a 3-cycle stream queue."""
+    from wm.serve import create_app
 
     kd_path = tmp_path_factory.mktemp("views-kd") / "live.duckdb"
-    live = LiveNode(log, kd_path, rate=RATE).start()
+    live = start_live(log, kd_path, rate=RATE, mode=request.param)
     app = create_app(live, token=TOKEN, stream_queue=QUEUE)
     with served_app(app) as base:
         yield live, base, app.state.stream_feed
@@ -145,8 +147,7 @@ def test_stream_follows_the_cycles_and_never_slows_the_node(served) -> None:
     ids = {e["entity_id"] for m in cycles for e in m["created"] + m["changed"]}
     # an entity ends once (denied, gone, or forgotten); the KD may forget an ended one later
     ended = {e["entity_id"] for m in cycles for e in m["ended"]}
-    with live.lock:
-        held = set(live.kd.entity_ids().tolist())
+    held = set(live.call(_kd_entity_ids))
     stored = {r[0] for r in c.sql("SELECT id FROM entities")["rows"]}
     assert ids - ended <= held | stored and ids & held
     for m in cycles:  # the entity columns are as the KD gave them
@@ -179,13 +180,12 @@ def test_map_windows_equal_the_node_maps(served) -> None:
     assert w["frame"] == "world" and w["resolution_m"] == 0.4 and w["shape"] == [51, 51]
     assert w["cycle_t_ns"] == live.status.cycle_t_ns
     xy = _world_of_cells(w)
-    with live.lock:
-        lvl = live.node.stack.level("subsystem")
-        for layer in ("elevation", "cost"):
-            want = lvl.read(layer, xy).astype(np.float64)
-            got = np.array(w["values"][layer], dtype=np.float64).ravel()  # None -> NaN
-            np.testing.assert_array_equal(got, want)
-        assert np.isfinite(lvl.read("elevation", np.array([[x, y]]))).all()
+    cells = live.call(level_cells, "subsystem", ["elevation", "cost"], xy)
+    for layer in ("elevation", "cost"):
+        got = np.array(w["values"][layer], dtype=np.float64).ravel()  # None -> NaN
+        np.testing.assert_array_equal(got, cells[layer].astype(np.float64))
+    here = live.call(level_cells, "subsystem", ["elevation"], np.array([[x, y]]))
+    assert np.isfinite(here["elevation"]).all()
 
     # a window reaching past the level's own (102 m across) as .npy and as Arrow, level by number
     q = f"/v1/maps/3?x={x}&y={y}&half_m=60&layers=elevation,entity_id,last_seen_ns"
@@ -202,11 +202,11 @@ def test_map_windows_equal_the_node_maps(served) -> None:
     table = pa.ipc.open_stream(body).read_all()
     assert table.column_names == ["row", "col", "x", "y", "elevation", "entity_id", "last_seen_ns"]
     np.testing.assert_allclose(np.c_[table["x"], table["y"]], xy)
-    with live.lock:
-        for k, layer in enumerate(meta["layers"]):
-            want = lvl.read(layer, xy)
-            np.testing.assert_array_equal(arr[k].ravel(), want.astype(np.float64))
-            np.testing.assert_array_equal(table[layer].to_numpy(), want)
+    cells = live.call(level_cells, "subsystem", meta["layers"], xy)
+    for k, layer in enumerate(meta["layers"]):
+        want = cells[layer]
+        np.testing.assert_array_equal(arr[k].ravel(), want.astype(np.float64))
+        np.testing.assert_array_equal(table[layer].to_numpy(), want)
     assert np.isnan(arr[0, 0, 0]) and arr[1, 0, 0] == -1  # outside the level: empty values
 
 
@@ -243,19 +243,13 @@ def test_attention_lists_entities_of_the_level_with_why(served) -> None:
     assert code == 200, ans
     assert ans["frame"] == "world" and ans["node_level"] == "vehicle" and ans["entities"]
     assert call(base, "/v1/attention?level=vehicle")[1] == ans
-    with live.lock:
-        kd, node = live.kd, live.node
-        listed = [
-            i for i in kd.attention("vehicle")
-            if int(kd.get(i).level) == 4 and kd.get(i).status.value not in ("denied", "gone")
-        ]  # fmt: skip
-        tracked = {int(i) for i in node.sp.tracker.tracks.id if i >= 0}
-        frames = {e["entity_id"]: kd.get(e["entity_id"]) for e in ans["entities"]}
+    listed, tracked, positions = live.call(
+        _attention_truth, [e["entity_id"] for e in ans["entities"]]
+    )
     assert [e["entity_id"] for e in ans["entities"] if e["rank"] is not None] == listed
     for e in ans["entities"]:
-        f = frames[e["entity_id"]]
         assert e["level"] == 4 and e["status"] in ("confirmed", "hypothesized") and e["why"]
-        assert e["position"] == pytest.approx(list(f.state.position_xyz))
+        assert e["position"] == pytest.approx(positions[e["entity_id"]])
         if e["entity_id"] in tracked:
             assert any(w.startswith("predicted window") for w in e["why"])
         if e["status"] == "hypothesized":
@@ -274,3 +268,24 @@ def test_a_stream_queue_drops_its_oldest_and_says_how_many() -> None:
     assert q.dropped == 3
     with pytest.raises(ValueError, match="0 cycles"):
         StreamClient(0)
+
+
+def _kd_entity_ids(live) -> list[int]:
+    """The ids the node's KD holds (a :meth:`wm.serve.LiveNode.call`)."""
+    with live.lock:
+        return live.kd.entity_ids().tolist()
+
+
+def _attention_truth(live, ids: list[int]) -> tuple[list[int], set[int], dict[int, list]]:
+    """(the KD's attention list of the 'vehicle' node level, of level 4 and not ended; SP's
+    tracked entities; the KD's current position (world m) of each of ``ids``), under the
+    node's lock (a :meth:`wm.serve.LiveNode.call`)."""
+    with live.lock:
+        kd, node = live.kd, live.node
+        listed = [
+            i for i in kd.attention("vehicle")
+            if int(kd.get(i).level) == 4 and kd.get(i).status.value not in ("denied", "gone")
+        ]  # fmt: skip
+        tracked = {int(i) for i in node.sp.tracker.tracks.id if i >= 0}
+        positions = {i: kd.get(i).state.position_xyz.tolist() for i in ids}
+    return [int(i) for i in listed], tracked, positions

@@ -20,6 +20,7 @@
              [--snapshot S.duckdb [--snapshot-every 5]]
     wm serve --ingest [--queue 64] [--kd KD.duckdb] ...  (clients POST ROS 2 messages to /v1/ingest)
            [--rate-limit R [--burst N]]  (per client: N requests at once, then R a second)
+           [--in-process]  (the node in a thread of the server's process, not a process of its own)
     wm bg --url http://127.0.0.1:8765 --goal X,Y [--token-env VAR] [--period-s 0.5]
           [--cycles N] [--budget-s 1] [--min-clearance-m 0.5] [--level subsystem] [--json]
           [--no-tell] [--config FILE.yaml]  (its planner section; the flags given override it)
@@ -410,13 +411,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # a KD file that exists gets one more run, which continues its maps (their geometry is
     # the recorded configuration's)
     config = _engine_config(args, args.kd)
+    # the node in a process of its own unless asked: the server's Python work in this process
+    # then never takes the node's interpreter lock (wm.serve_proc)
+    process = not args.in_process
     if args.ingest:
         from wm.ingest import IngestNode
 
-        live = IngestNode(args.kd, config, args.queue).start()
+        live = IngestNode(args.kd, config, args.queue, process=process).start()
         what = f"ROS 2 messages posted to /v1/ingest (queue {args.queue} frames)"
     else:
-        live = LiveNode(_check_log(args.replay), args.kd, config, args.rate).start()
+        live = LiveNode(_check_log(args.replay), args.kd, config, args.rate, process).start()
         what = f"{args.replay} at {args.rate:g}x"
     _record_config(args.kd, config)  # once the KD opened: never beside a file that is no KD
     print(f"serving {what} on http://{args.host}:{args.port}/v1 "
@@ -897,6 +901,10 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     v.add_argument("--burst", type=int, default=100, help="requests at once under --rate-limit")
     v.add_argument("--rate", type=float, default=1.0, help="replay speed (0: as fast as it can)")
+    v.add_argument(
+        "--in-process", action="store_true",
+        help="run the node in a thread of the server's process (default: a process of its own)",
+    )  # fmt: skip
     v.add_argument("--kd", default="live.duckdb", help="KD file the node writes (DuckDB)")
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default: localhost)")
     v.add_argument("--port", type=int, default=8765)

@@ -50,7 +50,14 @@ from wm.serve import LiveNode, ServeError
 MAX_INSTANT_MESSAGES = 1024
 #: the longest topic or type name taken
 MAX_NAME_CHARS = 256
-_END = object()  # the queue's last item: the input ended
+
+
+class _End:
+    """The queue's last item: the input ended (a class, so that it is itself again when the
+    queue crosses to the node's process)."""
+
+
+_END = _End()
 # a batch record's head: topic length, type length (u16), log time (int64 ns), data length (u32)
 _RECORD = struct.Struct("<HHqI")
 
@@ -90,18 +97,31 @@ class IngestNode(LiveNode):
     """A world-model node fed by :meth:`ingest` instead of a log (module docstring).
 
     ``kd_path``: the KD file it writes (``":memory:"`` for none); ``queue_size``: frames
-    waiting for the node at most (more are dropped and counted)."""
+    waiting for the node at most (more are dropped and counted); ``process``: the node in a
+    process of its own (:class:`~wm.serve.LiveNode`). Messages are decoded in this process
+    either way; with ``process`` the queue is a :class:`multiprocessing.Queue` the node's
+    process reads, so the decoding never takes the node's interpreter lock."""
 
     def __init__(
-        self, kd_path: str | Path = ":memory:", config: Any | None = None, queue_size: int = 64
+        self,
+        kd_path: str | Path = ":memory:",
+        config: Any | None = None,
+        queue_size: int = 64,
+        process: bool = False,
     ) -> None:
         if queue_size < 1:
             raise ServeError(f"ingest queue size {queue_size}: need at least 1")
-        super().__init__(None, kd_path, config, rate=0.0)
+        super().__init__(None, kd_path, config, rate=0.0, process=process)
         from logs.mcap_log import CdrFrameDecoder
         from logs.types import ReadStats
 
-        self.queue: queue.Queue = queue.Queue(maxsize=queue_size)
+        self.queue_size = queue_size
+        if process:  # bounded as the thread's queue: a put that finds it full raises Full
+            import multiprocessing as mp
+
+            self.queue: Any = mp.get_context("spawn").Queue(maxsize=queue_size)
+        else:
+            self.queue = queue.Queue(maxsize=queue_size)
         self.counts = IngestCounts()
         self.decoder = CdrFrameDecoder(ReadStats(), on_error=self._unframed)
         self._decode_lock = threading.Lock()  # the assembler keeps the order of the messages
@@ -117,7 +137,7 @@ class IngestNode(LiveNode):
         ``t_ns``, int64 ns) and queue the frames it completes; the :class:`IngestAnswer`."""
         msgtype = _full_type(msgtype)
         with self._decode_lock:
-            if not self._accepting or self.closed:
+            if not self._accepting or self.closed or (self.process and not self.running):
                 raise ServeError("the live node is not taking messages (stopped)")
             role = self.decoder.role(topic, msgtype, kind)
             if role is None:
@@ -172,7 +192,10 @@ class IngestNode(LiveNode):
         self.counts.problem = problem
 
     def status_extra(self) -> dict:
-        return {"log": None, "ingest": self.counts.json(self.queue.qsize(), self.queue.maxsize)}
+        return {"log": None, "ingest": self.counts.json(self.queue.qsize(), self.queue_size)}
+
+    def spawn_args(self) -> dict[str, Any]:
+        return {"kd_path": self.kd_path, "config": self.config, "queue_size": self.queue_size}
 
     # --- the node side --------------------------------------------------------------------
 
@@ -188,7 +211,7 @@ class IngestNode(LiveNode):
                 if self._stop.is_set():
                     return
                 continue
-            if frame is _END:
+            if isinstance(frame, _End):
                 break
             self._feed(frame)
         self._account(self._cycle(self.node.finish), 0.0)
@@ -204,16 +227,19 @@ class IngestNode(LiveNode):
         self.counts.frames += len(tail)
         for item in [*tail, _END]:  # the node's thread takes them: waiting here is bounded
             try:
-                self.queue.put(item, timeout=timeout_s if self._thread.is_alive() else 0.01)
+                self.queue.put(item, timeout=timeout_s if self._feeding() else 0.01)
             except queue.Full:
                 self.counts.dropped += item is not _END
-        self._thread.join(timeout_s)
+        self.wait(timeout_s)
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """End the input (:meth:`end`: every frame taken reaches the node), then stop."""
-        if self._thread.is_alive():
+        if self._feeding():
             self.end(timeout_s)
         super().stop(timeout_s)
+        if self.process:  # frames left for a node that is gone must not hold up the exit
+            self.queue.cancel_join_thread()
+            self.queue.close()
 
 
 def pack_batch(messages: list[tuple[str, str, bytes, int]]) -> bytes:

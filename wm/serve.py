@@ -4,10 +4,15 @@ answers What Is? queries from BG and other modules"; docs/architecture.md, the n
 
     wm serve --replay LOG [--rate 1.0] [--kd KD.duckdb] [--host 127.0.0.1] [--port 8765]
     wm serve --ingest [--queue 64] [--kd KD.duckdb] ...   (fed ROS 2 messages: wm.ingest)
+    wm serve ... --in-process                              (the node in a thread, not a process)
 
 :class:`LiveNode` feeds the log's frames to a :class:`~wm.node.WorldModelNode` in a thread of its
 own, paced by their stamps (``rate`` times real time; 0: as fast as it can), and flushes the KD
-as ``wm run`` does. A query sees the KD between two cycles, never in the middle of one: an
+as ``wm run`` does; with ``process=True`` (``wm serve``'s default; ``--in-process``: a thread)
+that node runs in a process of its own, which sends each cycle's copy to the server's process
+and answers there what needs the node itself (:mod:`wm.serve_proc`). Below, "under the lock"
+is the node's lock, wherever the node runs; the routes reach the node only through
+:meth:`LiveNode.call`. A query sees the KD between two cycles, never in the middle of one: an
 answer is at most one cycle behind the newest fused sweep, and says which (``cycle_t_ns``).
 At the end of each cycle, under the node's lock, the node's thread copies what the frequent
 queries read (:class:`CycleSnapshot`; what and at what cost: :mod:`wm.serve_copy`): the KD's
@@ -62,10 +67,10 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
@@ -95,6 +100,10 @@ MAX_SQL_BYTES = 64 * 2**20
 # entities it is checked against are the KD's present ones, moved at constant velocity to the
 # start's time, which says little about another time
 MAX_START_OFFSET_S = 10.0
+# the longest a request waits for an answer that needs the node itself (LiveNode.call), s: a
+# cycle holds the node's lock for well under a second, SQL stops itself at 10 s
+CALL_TIMEOUT_S = 30.0
+T = TypeVar("T")
 
 
 class ServeError(EngineError, ValueError):
@@ -215,12 +224,16 @@ def _copy_maps(
 
 
 class LiveNode:
-    """A world-model node fed from a log in a thread of its own (see the module docstring).
+    """A world-model node fed from a log (see the module docstring), in a thread of its own
+    or, with ``process``, in a process of its own (:mod:`wm.serve_proc`).
 
     ``log_path``: any log :func:`logs.open_log` reads (None for a node fed otherwise:
     :class:`wm.ingest.IngestNode`); ``kd_path``: the KD file it writes (``":memory:"`` for
     none); ``rate``: replay speed against the log's stamps (1.0 real time, 0 as fast as
-    possible)."""
+    possible); ``process``: run the node in a child process (spawned), so that the server's
+    Python work in this process never takes the node's interpreter lock. Either way the API
+    (:func:`create_app`) reads :attr:`snapshot`, :attr:`status` and :attr:`demand`, and
+    reaches the node itself only through :meth:`call`."""
 
     def __init__(
         self,
@@ -228,6 +241,7 @@ class LiveNode:
         kd_path: str | Path = ":memory:",
         config: Any | None = None,
         rate: float = 1.0,
+        process: bool = False,
     ) -> None:
         if not (math.isfinite(rate) and rate >= 0):
             raise ServeError(f"replay rate {rate}: need a finite number >= 0")
@@ -236,6 +250,7 @@ class LiveNode:
         self.log_path = None if log_path is None else Path(log_path)
         self.kd_path, self.rate = str(kd_path), rate
         self.config = config
+        self.process = process
         self.lock = threading.Lock()
         self.status = LiveStatus()
         self.node: Any | None = None
@@ -244,12 +259,31 @@ class LiveNode:
         # the views clients asked for lately: the end of each cycle copies them (wm.serve_copy)
         self.demand = ServedDemand()
         self.closed = False
+        # set in the node's own process by wm.serve_proc: called after each frame fed
+        # (``fresh``: a cycle left a new snapshot; ``final``: the node is done)
+        self.on_publish: Callable[[bool, bool], None] | None = None
+        # where the stream's per-cycle messages go (wm.serve_views.CycleFeed, or the pipe to
+        # the server's process); stream clients connected now, told by the server
+        self.stream_sink: Callable[[bytes], None] | None = None
+        self.stream_clients = 0
+        self.stream_diff: Any | None = None  # wm.serve_views.CycleDiff, once a client came
+        self._link: Any | None = None  # wm.serve_proc.NodeLink when ``process``
         self._ready = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="live-node", daemon=True)
 
+    def spawn_args(self) -> dict[str, Any]:
+        """The keyword arguments that build this node again in the node's process."""
+        return {"log_path": self.log_path, "kd_path": self.kd_path, "config": self.config,
+                "rate": self.rate}  # fmt: skip
+
     def start(self, timeout_s: float = 60.0) -> LiveNode:
         """Open the log and the KD and start replaying; returns once queries can be served."""
+        if self.process:
+            from wm.serve_proc import NodeLink
+
+            self._link = NodeLink.start(self, timeout_s)
+            return self
         self._thread.start()
         if not self._ready.wait(timeout_s):
             raise ServeError(f"the live node did not start within {timeout_s} s")
@@ -260,8 +294,14 @@ class LiveNode:
     def stop(self, timeout_s: float = 30.0) -> None:
         """Stop replaying, finish the node and close the KD (what it committed stays); the
         API then answers 503."""
+        if self._link is not None:
+            self._link.stop(timeout_s)
+            self.closed = True
+            self.snapshot = None
+            return
         self._stop.set()
-        self._thread.join(timeout_s)
+        if self._thread.ident is not None:  # started (a start that failed in a process: not)
+            self._thread.join(timeout_s)
         with self.lock:
             if self.kd is not None and not self.closed:
                 self.kd.close()
@@ -270,8 +310,71 @@ class LiveNode:
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Wait for the end of the log; True when the replay is done."""
+        if self._link is not None:
+            return self._link.wait(timeout_s)
         self._thread.join(timeout_s)
         return self.status.done
+
+    @property
+    def running(self) -> bool:
+        """Whether the node can answer: started, not stopped, and (in a process of its own)
+        that process alive. After the end of the log it still answers from its last cycle."""
+        if self._link is not None:
+            return not self.closed and self._link.alive
+        return self.node is not None and not self.closed
+
+    def _feeding(self) -> bool:
+        """Whether the node still takes frames (its thread, or its process, runs on)."""
+        if self._link is not None:
+            return self._link.alive and not self.status.done
+        return self._thread.is_alive()
+
+    def call(self, fn: Callable[..., T], *args: Any, timeout_s: float = CALL_TIMEOUT_S) -> T:
+        """``fn(node_side, *args)``, where ``node_side`` is the :class:`LiveNode` that holds
+        the node (this one, or its twin in the node's process): requests that need the node
+        itself (lookups at another time or in another frame, SQL, the plan, a map layer not in
+        the cycle's copy). ``fn`` takes the node's lock itself where it reads the node; it is
+        a module-level function (it is sent by name to the node's process) and its answer and
+        exceptions are sent back (an :class:`~fastapi.HTTPException` as itself). In a process
+        of its own: :class:`ServeError` when the process is gone or gives no answer within
+        ``timeout_s`` s, never a longer wait."""
+        if self._link is not None:
+            return self._link.call(fn, args, timeout_s)
+        return fn(self, *args)
+
+    def tell_stream_clients(self, n: int) -> None:
+        """The stream has ``n`` clients now: with none the node keeps only its baseline."""
+        if self._link is not None:
+            self._link.tell("stream_clients", n)
+        else:
+            self.stream_clients = n
+
+    @property
+    def vj_config(self) -> Any:
+        """The node's value-judgment configuration (set once with the node, never changed)."""
+        if self._link is not None:
+            return self._link.info["vj_config"]
+        if self.node is None:
+            raise ServeError("the live node is not running (not started, or stopped)")
+        return self.node.config.vj
+
+    @property
+    def map_levels(self) -> Any | None:
+        """The node's map levels as a :class:`~wm.whatif.StackCopy` holding no layer (their
+        geometry and layer names), None for a node without maps."""
+        if self._link is not None:
+            return self._link.info["levels"]
+        if self.node is None or self.node.stack is None:
+            return None
+        from wm.serve_copy import copy_levels
+
+        return copy_levels(self.node.stack, {})
+
+    def process_status(self) -> dict | None:
+        """What ``/v1/status`` says of the node's process (None for a node in a thread):
+        its pid, whether it runs, and the transfer of the cycles' copies
+        (:meth:`wm.serve_proc.NodeLink.figures`)."""
+        return self._link.figures() if self._link is not None else None
 
     def _run(self) -> None:
         import kd_store
@@ -306,6 +409,8 @@ class LiveNode:
                 self.node.close()
                 self.kd.flush()
             self.status.done = True
+            if self.on_publish is not None:
+                self.on_publish(False, True)
 
     def _open_source(self) -> Any:
         from logs import open_log
@@ -362,11 +467,74 @@ class LiveNode:
             self.status.cycle_t_ns = int(cycles[-1].t_ns)
             self.status.cycle_ms = 1e3 * wall_s / len(cycles)
         self.status.skipped = int(sum(self.node.stats.skipped.values()))
+        if self.on_publish is not None:  # in the node's process: to the server's
+            self.on_publish(bool(cycles), False)
 
     def what_is(self) -> Any:
         if self.node is None or self.closed:
             raise ServeError("the live node is not running (not started, or stopped)")
         return self.node.whatis()
+
+
+# --- requests that need the node itself (LiveNode.call) ----------------------------------------
+
+
+def what_is_query(live: LiveNode, query: str, *args: Any) -> tuple[Any, int]:
+    """(answer, the newest cycle's time) of What Is under the node's lock, between two
+    cycles: ``"entity"`` (entity id or None for the vehicle itself, t_ns or None, frame) as
+    ``/v1/entities/{id}`` answers it; ``"region"`` (shape, classes, statuses, min_confidence,
+    levels): the entities as ``/v1/entities`` lists them; ``"events"`` (t_from_ns, t_to_ns,
+    class_name): as ``/v1/events`` lists them. Raises ServeError, WhatIsError or KDError."""
+    from wm.whatis import WhatIsError
+
+    with live.lock:
+        snap = live.snapshot  # set under the lock with the cycle, unlike ``live.status``
+        cycle = snap.cycle_t_ns if snap is not None else -1
+        w = live.what_is()
+        if query == "entity":
+            entity_id, t_ns, frame = args
+            if entity_id is None:  # the vehicle itself
+                w.check_frame(frame)
+                if w.self_id is None:
+                    raise WhatIsError("no self state yet: no sweep has been fused")
+                entity_id = w.self_id
+            return _entity_json(w.entity(entity_id, t_ns, frame), cycle), cycle
+        if query == "region":
+            shape, classes, statuses, min_confidence, levels = args
+            ans = w.region(shape, classes, statuses, min_confidence, levels)
+            return [_entity_json(w.entity(int(i)), cycle) for i in ans.ids], cycle
+        if query == "events":
+            return [_event_json(e) for e in w.events(*args)], cycle
+    raise ServeError(f"What Is query {query!r}: unknown (entity, region or events)")
+
+
+def sql_query(live: LiveNode, query: str, limits: Any) -> tuple[Any, int]:
+    """(Arrow table, the newest cycle's time) of one read-only SELECT over the KD's views as
+    of the node's last flush (:func:`kd_store.query.query_reader` within ``limits``). A
+    reader needs only the KD's own lock, not the node's, so SQL never waits for a cycle."""
+    from kd_store.query import query_reader
+
+    kd = live.kd
+    if kd is None or live.closed:
+        raise HTTPException(503, "the KD is not open (not started, or stopped)")
+    reader = kd.reader()
+    cycle = live.status.cycle_t_ns
+    try:
+        return query_reader(reader, query, limits), cycle
+    finally:
+        reader.close()
+
+
+def set_plan(live: LiveNode, xy: np.ndarray | None) -> None:
+    """Tell the node the controller's plan (``WorldModelNode.set_plan``; path world m, or
+    None). No lock: the path replaces the node's whole, and each cycle reads it once."""
+    node = live.node
+    if node is None or live.closed:
+        raise HTTPException(503, "the live node is not running (not started, or stopped)")
+    try:
+        node.set_plan(xy)
+    except EngineError as e:
+        raise HTTPException(400, str(e)) from None
 
 
 # --- the HTTP API ----------------------------------------------------------------------------
@@ -567,7 +735,7 @@ def published(live: LiveNode) -> CycleSnapshot:
     lock: 503 when the node is not running, 400 before its first cycle (nothing to answer
     from: no self state, no maps yet)."""
     snap = live.snapshot  # one read: a cycle ending now replaces it whole
-    if live.node is None or live.closed:
+    if not live.running:
         raise HTTPException(503, "the live node is not running (not started, or stopped)")
     if snap is None:
         raise HTTPException(400, "the node has run no cycle yet: no self state to start from")
@@ -596,7 +764,7 @@ def create_app(
     ``/v1/stream`` client may fall behind before its oldest are dropped."""
     import kd_store
     from kd_store.errors import KDError, ResultTooLarge
-    from kd_store.query import QueryLimits, query_reader
+    from kd_store.query import QueryLimits
     from wm.whatis import WhatIsError
 
     def authorised(request: Request) -> None:
@@ -621,18 +789,16 @@ def create_app(
     def bad(e: Exception, code: int = 400) -> HTTPException:
         return HTTPException(code, str(e))
 
-    def ask(fn: Any) -> Any:
-        """Run ``fn(what_is)`` under the node's lock, between two cycles, with the newest
-        cycle's time (its copy's, set under the lock with the cycle); What Is errors become a
-        4xx."""
-        with live.lock:
-            try:
-                snap = live.snapshot
-                return fn(live.what_is()), (snap.cycle_t_ns if snap is not None else -1)
-            except ServeError as e:
-                raise bad(e, 503) from None
-            except (WhatIsError, KDError) as e:
-                raise bad(e, 404 if "unknown id" in str(e) else 400) from None
+    def ask(query: str, *args: Any) -> tuple[Any, int]:
+        """What Is ``query`` (:func:`what_is_query`) on the node under its lock, between two
+        cycles, with the newest cycle's time; What Is errors become a 4xx, a node that is not
+        running (or whose process is gone) a 503."""
+        try:
+            return live.call(what_is_query, query, *args)
+        except ServeError as e:
+            raise bad(e, 503) from None
+        except (WhatIsError, KDError) as e:
+            raise bad(e, 404 if "unknown id" in str(e) else 400) from None
 
     @app.get("/v1/status")
     def status() -> dict:
@@ -657,6 +823,7 @@ def create_app(
             "error": s.error,
             **live.status_extra(),
             "stream": feed.status(),
+            "node_process": live.process_status(),
         }
 
     def present(entity_id: int | None, t_ns: int | None, frame: str) -> dict | None:
@@ -672,15 +839,7 @@ def create_app(
         """The vehicle's own state as of ``t_ns`` (default: now) in ``frame``."""
         if now := present(None, t_ns, frame):  # ``entity_id`` None: the self entity
             return now
-
-        def go(w: Any) -> Any:
-            w.check_frame(frame)
-            if w.self_id is None:
-                raise WhatIsError("no self state yet: no sweep has been fused")
-            return w.entity(w.self_id, t_ns, frame)
-
-        ans, cycle = ask(go)
-        return _entity_json(ans, cycle)
+        return ask("entity", None, t_ns, frame)[0]
 
     @app.get("/v1/entities/{entity_id}")
     def entity(entity_id: int, t_ns: int | None = None, frame: str = "world") -> dict:
@@ -688,8 +847,7 @@ def create_app(
         ladar, egosphere or map:<level>."""
         if now := present(entity_id, t_ns, frame):
             return now
-        ans, cycle = ask(lambda w: w.entity(entity_id, t_ns, frame))
-        return _entity_json(ans, cycle)
+        return ask("entity", entity_id, t_ns, frame)[0]
 
     @app.get("/v1/entities")
     def region(
@@ -743,12 +901,8 @@ def create_app(
             return JSONResponse({"cycle_t_ns": snap.cycle_t_ns, "frame": "world",
                                  "entities": [snap.entity(int(k)) for k in rows]})  # fmt: skip
 
-        def go(w: Any) -> list[Any]:  # before the first cycle: What Is under the lock
-            ans = w.region(shape, cls, statuses, min_confidence, level)
-            return [w.entity(int(i)) for i in ans.ids]
-
-        found, cycle = ask(go)
-        ents = [_entity_json(a, cycle) for a in found]
+        # before the first cycle: What Is under the node's lock
+        ents, cycle = ask("region", shape, cls, statuses, min_confidence, level)
         return {"cycle_t_ns": cycle, "frame": "world", "entities": ents}
 
     @app.get("/v1/events")
@@ -767,10 +921,8 @@ def create_app(
             found = overlapping(snap.events, t_from_ns, t_to_ns, class_name)
             return {"cycle_t_ns": snap.cycle_t_ns, "events": [_event_json(e) for e in found]}
 
-        def go(w: Any) -> list[dict]:  # not asked for lately: What Is under the lock, once
-            return [_event_json(e) for e in w.events(t_from_ns, t_to_ns, class_name)]
-
-        evs, cycle = ask(go)
+        # not asked for lately: What Is under the node's lock, once
+        evs, cycle = ask("events", t_from_ns, t_to_ns, class_name)
         return {"cycle_t_ns": cycle, "events": evs}
 
     sql_limits = QueryLimits(timeout_s=10.0, max_rows=MAX_SQL_ROWS, max_bytes=MAX_SQL_BYTES)
@@ -782,19 +934,13 @@ def create_app(
         of more than 100 000 rows or 64 MB is refused with a 413 naming the limit (it is read
         batch by batch and stopped there, never held whole); ``truncated`` is always false,
         kept for clients of the earlier answer that cut the rows instead."""
-        if live.kd is None or live.closed:
-            raise HTTPException(503, "the KD is not open (not started, or stopped)")
-        # the views as of the node's last flush (at most a second of log time old): a reader
-        # needs only the KD's own lock, not the node's, so SQL never waits for a cycle
-        reader = live.kd.reader()
-        cycle = live.status.cycle_t_ns
         try:
-            table = query_reader(reader, req.query, sql_limits)
+            table, cycle = live.call(sql_query, req.query, sql_limits)
+        except ServeError as e:
+            raise bad(e, 503) from None
         except KDError as e:
             # too large a result is not a bad statement: 413 tells a client to narrow it
             raise bad(e, 413 if isinstance(e, ResultTooLarge) else 400) from None
-        finally:
-            reader.close()
         rows = [[_json_value(v) for v in r.values()] for r in table.to_pylist()]
         return {
             "cycle_t_ns": cycle,
@@ -826,13 +972,13 @@ def create_app(
         ``xy`` null: no plan. It does not wait for the cycle in progress: the path replaces the
         node's whole, and each cycle reads it once (``WorldModelNode.set_plan``); the cycles
         after ``cycle_t_ns`` (the newest when it was told) rank against it."""
-        node, snap = live.node, live.snapshot
-        if node is None or live.closed:
+        snap = live.snapshot
+        if not live.running:
             raise HTTPException(503, "the live node is not running (not started, or stopped)")
         try:
-            node.set_plan(None if req.xy is None else np.asarray(req.xy, np.float64))
-        except EngineError as e:
-            raise bad(e) from None
+            live.call(set_plan, None if req.xy is None else np.asarray(req.xy, np.float64))
+        except ServeError as e:
+            raise bad(e, 503) from None
         cycle = snap.cycle_t_ns if snap is not None else -1
         return {"cycle_t_ns": cycle, "frame": "world", "points": len(req.xy or ())}
 
@@ -859,7 +1005,7 @@ def create_app(
             result = wi.simulate(plans, level=req.level, horizon_s=req.horizon_s, start=start)
         except WhatIfError as e:
             raise bad(e) from None
-        vj_config = live.node.config.vj  # set once with the node, never changed
+        vj_config = live.vj_config  # set once with the node, never changed
         ev = vj.evaluate(result, req.goal_xy, vj_config)
         out = []
         for i in range(len(plans)):

@@ -71,14 +71,21 @@ class ServedDemand:
         self.ttl_s, self._clock = ttl_s, clock
         self._asked: dict[Hashable, float] = {}
         self._lock = threading.Lock()  # the server's threads and the node's: held for a dict op
+        # called (outside the lock) when a key not held is asked for: a node in another
+        # process is told at once, so that its next cycle copies it (wm.serve_proc)
+        self.on_new: Callable[[], None] | None = None
 
     def ask(self, keys: Iterable[Hashable]) -> None:
         """Note that ``keys`` were asked for now."""
         now = self._clock()
+        new = False
         with self._lock:
             for k in keys:
-                self._asked.pop(k, None)  # re-inserted last: the dict is in order of asking
-                self._asked[k] = now
+                last = self._asked.pop(k, None)  # an expired key not yet forgotten is new
+                new |= last is None or last < now - self.ttl_s
+                self._asked[k] = now  # re-inserted last: the dict is in order of asking
+        if new and self.on_new is not None:
+            self.on_new()
 
     def wanted(self) -> list[Hashable]:
         """The keys asked for within the last ``ttl_s`` seconds, most recently asked first;
@@ -155,6 +162,11 @@ class Taxonomy:
         if previous is not None and previous.library is library and previous.version == version:
             return previous
         return cls({p.name: p.is_a for p in library}, library, version)
+
+    def __reduce__(self) -> tuple:
+        # sent to the server's process without the class library (the node's KD holds it):
+        # the links and the version are what a class filter reads
+        return (Taxonomy, (self.is_a, None, self.version))
 
     def descendants(self, name: str) -> set[str]:
         """``name`` and every class whose lineage contains it, as

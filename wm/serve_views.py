@@ -41,9 +41,10 @@ request for a level works it out under the node's lock):
 * ``"hypothesis awaiting confirmation"``: it is hypothesized (SP keeps attending to the pixels
   of new and provisional hypotheses).
 
-The push stream (:class:`CycleFeed`): at the end of every node cycle the entities it created,
-changed (a new state, status, class or confidence) and ended (denied, gone, or forgotten from
-short-term memory), and the events it made, as one ``event: cycle`` of server-sent events.
+The push stream (:class:`CycleDiff` where the node runs, :class:`CycleFeed` in the server): at
+the end of every node cycle the entities it created, changed (a new state, status, class or
+confidence) and ended (denied, gone, or forgotten from short-term memory), and the events it
+made, as one ``event: cycle`` of server-sent events.
 Every client has a queue of :data:`STREAM_QUEUE_CYCLES` cycles; the node only appends to it and
 never waits for a reader: when a queue is full its oldest cycle is dropped and counted, and the
 next message the client gets says how many (``dropped``). When the replay ends, a client gets
@@ -54,6 +55,7 @@ published, cycles dropped over all clients).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import json
 import logging
@@ -174,15 +176,19 @@ class LevelRead:
 
 
 def running_node(live: Any) -> Any:
-    """The live node; HTTP 503 when it is not running (not started, or stopped)."""
-    node = live.node
-    if node is None or live.closed:
+    """The live node (None when it runs in a process of its own); HTTP 503 when it is not
+    running (not started, stopped, or its process gone)."""
+    if not live.running:
         raise HTTPException(503, "the live node is not running (not started, or stopped)")
-    return node
+    return live.node
 
 
 def read_level(
-    live: Any, key: str, layers_of: Callable[[Any], list[str]], read: Callable[[LevelRead], T]
+    live: Any,
+    key: str,
+    layers_of: Callable[[Any], list[str]],
+    read: Callable[[LevelRead], T],
+    entities: bool = False,
 ) -> T:
     """``read`` over map level ``key`` (:func:`find_level`) of the newest cycle, with the
     layers ``layers_of(level)`` names (it checks the request too; its HTTP errors pass).
@@ -190,8 +196,10 @@ def read_level(
     From the cycle's copy (:class:`wm.serve.CycleSnapshot`) when it holds every layer named:
     no lock, so the request neither waits for the cycle in progress nor holds it up. Else
     (the first request for a layer, or one beyond the copy's byte limit: :mod:`wm.serve_copy`)
-    under the node's lock from the node's own level. Either way the layers are asked for
-    (:class:`wm.serve_copy.ServedDemand`), so the cycles after copy them."""
+    under the node's lock from the node's own level; for a node in a process of its own, from
+    a copy of those layers the node makes under its lock (:func:`copy_level`; ``entities``:
+    with what What If reads of the KD, for ``read`` to check against). Either way the layers
+    are asked for (:class:`wm.serve_copy.ServedDemand`), so the cycles after copy them."""
     snap = live.snapshot  # one read: a cycle ending now replaces it whole
     running_node(live)
     if snap is not None and snap.maps is not None:
@@ -200,6 +208,20 @@ def read_level(
         live.demand.ask(layer_key(lvl.name, n) for n in names)
         if all(n in lvl.specs for n in names):
             return read(LevelRead(lvl, names, snap.cycle_t_ns, snap, None))
+    if live.process:
+        levels = snap.maps if snap is not None and snap.maps is not None else live.map_levels
+        if levels is None:
+            raise HTTPException(503, "the live node keeps no maps (its KD is in memory)")
+        lvl = find_level(levels, key)
+        names = layers_of(lvl)
+        live.demand.ask(layer_key(lvl.name, n) for n in names)
+        from wm.serve import ServeError
+
+        try:
+            copy, cycle, over = live.call(copy_level, lvl.name, names, entities)
+        except ServeError as e:
+            raise HTTPException(503, str(e)) from None
+        return read(LevelRead(copy, names, cycle, over, None))
     with live.lock:
         node = running_node(live)
         if node.stack is None:
@@ -210,6 +232,30 @@ def read_level(
         live.demand.ask(layer_key(lvl.name, n) for n in names)
         cycle = snap.cycle_t_ns if snap is not None else -1
         return read(LevelRead(lvl, names, cycle, None, node))
+
+
+def copy_level(live: Any, name: str, layers: list[str], entities: bool) -> tuple[Any, int, Any]:
+    """(the ``layers`` of map level ``name`` as a :class:`wm.whatif.LevelCopy`, the newest
+    cycle's time, a :class:`wm.serve.CycleSnapshot` holding only what What If reads of the KD
+    when ``entities``, else None), copied under the node's lock between two cycles: what
+    :func:`read_level` reads for a node in a process of its own when the cycle's copy lacks a
+    layer (a :meth:`wm.serve.LiveNode.call`)."""
+    from wm.serve import CycleSnapshot, served_config
+    from wm.whatif import LevelCopy, WhatIfCopy
+
+    with live.lock:
+        node = running_node(live)
+        if node.stack is None:
+            raise HTTPException(503, "the live node keeps no maps (its KD is in memory)")
+        snap = live.snapshot
+        cycle = snap.cycle_t_ns if snap is not None else -1
+        copy = LevelCopy(find_level(node.stack, name), tuple(layers))
+        over = None
+        if entities:  # no map level: What If's entities only
+            wi = WhatIfCopy.of(node.kd, node.stack, node.self_id, ())
+            config = served_config(node.engine_config)
+            over = CycleSnapshot(cycle, node.self_id, {}, {}, wi, config)
+    return copy, cycle, over
 
 
 def map_window(
@@ -434,6 +480,18 @@ def attention_copies(
     return out
 
 
+def attention_now(live: Any, sp_level: int) -> tuple[int, str, list[dict]]:
+    """(the newest cycle's time, the node level of SP level ``sp_level``, its
+    :func:`attention_entities`), worked out under the node's lock between two cycles: the
+    first request for a level (a :meth:`wm.serve.LiveNode.call`)."""
+    with live.lock:
+        node = running_node(live)
+        snap = live.snapshot  # set under the lock with the cycle
+        cycle = snap.cycle_t_ns if snap is not None else -1
+        ents = attention_entities(node, sp_level, cycle)
+        return cycle, node.kd.config.memory.node_of_sp_level[sp_level], ents
+
+
 def _half_size_m(f: Any) -> float:
     """Half the larger of the entity's length and width (m), 0 when it has neither."""
     sizes = [0.0]
@@ -503,18 +561,19 @@ def _stream_entity(c: dict[str, np.ndarray], k: int, why: str | None = None) -> 
 
 
 class CycleFeed:
-    """What each node cycle changed, pushed to every stream client (module docstring). It
-    listens to the node only while it has had a client (:meth:`subscribe` attaches it)."""
+    """What each node cycle changed, pushed to every stream client (module docstring), in the
+    server's process. The node makes one message per cycle (:class:`CycleDiff`, attached by
+    the first subscription, making messages only while the stream has clients) and hands it
+    to :meth:`distribute`: from its own thread, or from its process through the server's."""
 
     def __init__(self, live: Any, max_cycles: int = STREAM_QUEUE_CYCLES) -> None:
         self.live, self.max_cycles = live, max_cycles
         self._clients: set[StreamClient] = set()
         self._lock = threading.Lock()
         self._attached = False
-        self._prev: dict[str, np.ndarray] | None = None  # columns after the last cycle
-        self._next_id = 0  # the KD's next frame id after the last cycle
         self.published = 0
         self.dropped_gone = 0  # dropped by clients that have left
+        live.stream_sink = self.distribute
 
     def status(self) -> dict:
         with self._lock:
@@ -523,23 +582,64 @@ class CycleFeed:
         return {"clients": len(clients), "cycles": self.published, "dropped": dropped}
 
     def subscribe(self) -> StreamClient:
+        """A new client's queue; the first one attaches the node's :class:`CycleDiff`
+        (:class:`wm.serve.ServeError` when the node's process is gone)."""
+        if not self._attached:
+            self._attached = self.live.call(attach_stream)
         client = StreamClient(self.max_cycles)
-        with self.live.lock:  # between two cycles: the baseline is one cycle's columns
-            if not self._attached and self.live.node is not None and not self.live.closed:
-                self._baseline()
-                self.live.node.cycle_listeners.append(self._on_cycle)
-                self._attached = True
         with self._lock:
             self._clients.add(client)
+            self.live.tell_stream_clients(len(self._clients))
         return client
 
     def remove(self, client: StreamClient) -> None:
+        from wm.serve import ServeError
+
         with self._lock:
             if client in self._clients:
                 self._clients.discard(client)
                 self.dropped_gone += client.dropped
+                with contextlib.suppress(ServeError):  # a node gone has no one to tell
+                    self.live.tell_stream_clients(len(self._clients))
 
-    def _baseline(self) -> None:
+    def distribute(self, message: bytes) -> None:
+        """One cycle's message (:class:`CycleDiff`) to every client, numbered here."""
+        with self._lock:
+            clients = list(self._clients)
+            if not clients:
+                return
+            self.published += 1
+            number = self.published
+        message = b'{"cycle":%d,' % number + message[1:]
+        for c in clients:
+            c.put(message)
+
+
+def attach_stream(live: Any) -> bool:
+    """Attach a :class:`CycleDiff` to the node once, between two cycles (its baseline is one
+    cycle's columns); whether one is attached (False: the node is not running). A
+    :meth:`wm.serve.LiveNode.call`."""
+    with live.lock:
+        if live.stream_diff is None and live.node is not None and not live.closed:
+            diff = CycleDiff(live)
+            diff.baseline()
+            live.node.cycle_listeners.append(diff.on_cycle)
+            live.stream_diff = diff
+        return live.stream_diff is not None
+
+
+class CycleDiff:
+    """At the end of every node cycle, in the node's thread: what the cycle changed
+    (entities created, changed, ended; events made) as one JSON message for the stream, to
+    ``live.stream_sink`` while the stream has clients (``live.stream_clients``); with none,
+    only the baseline is kept current."""
+
+    def __init__(self, live: Any) -> None:
+        self.live = live
+        self._prev: dict[str, np.ndarray] | None = None  # columns after the last cycle
+        self._next_id = 0  # the KD's next frame id after the last cycle
+
+    def baseline(self) -> None:
         self._prev = self._sorted(self.live.kd.current_columns())
         self._next_id = int(self.live.kd.next_id)
 
@@ -548,7 +648,7 @@ class CycleFeed:
         order = np.argsort(c["id"], kind="stable")
         return {k: v[order] for k, v in c.items()}
 
-    def _on_cycle(self, result: Any) -> None:
+    def on_cycle(self, result: Any) -> None:
         """At the end of a cycle, in the node's thread: a fault here is logged, never raised,
         so a stream can not stop the node."""
         try:
@@ -561,14 +661,12 @@ class CycleFeed:
         now = self._sorted(kd.current_columns())
         prev, first_new = self._prev, self._next_id
         self._prev, self._next_id = now, int(kd.next_id)
-        with self._lock:
-            clients = list(self._clients)
-        if not clients or prev is None:  # nobody listens: keep only the baseline current
-            return
+        sink = self.live.stream_sink
+        if not self.live.stream_clients or prev is None or sink is None:
+            return  # nobody listens: keep only the baseline current
         created, changed, ended = _diff(prev, now)
-        self.published += 1
         body = {
-            "cycle": self.published, "cycle_t_ns": t_ns, "frame": "world",
+            "cycle_t_ns": t_ns, "frame": "world",
             "self_id": self.live.node.self_id,
             "created": [_stream_entity(now, k) for k in created],
             "changed": [_stream_entity(now, k) for k in changed],
@@ -576,9 +674,7 @@ class CycleFeed:
             + [_stream_entity(prev, k, "forgotten") for k in ended[1]],
             "events": _new_events(kd, first_new, self._next_id),
         }  # fmt: skip
-        message = json.dumps(body, separators=(",", ":")).encode()
-        for c in clients:
-            c.put(message)
+        sink(json.dumps(body, separators=(",", ":")).encode())
 
 
 def _diff(
@@ -636,7 +732,7 @@ async def _sse(live: Any, feed: CycleFeed, client: StreamClient) -> AsyncIterato
                 yield b"event: cycle\ndata: " + data + b"\n\n"
                 idle = 0.0
                 continue
-            if live.status.done or live.closed:
+            if live.status.done or live.closed or not live.running:  # a node gone: no more
                 end = {"cycles": live.status.cycles, "cycle_t_ns": live.status.cycle_t_ns}
                 yield b"event: end\ndata: " + json.dumps(end).encode() + b"\n\n"
                 return
@@ -713,12 +809,12 @@ def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CY
             node_level, ents = snap.attention[sp_level]
             cycle = snap.cycle_t_ns
         else:
-            with live.lock:
-                node = running_node(live)
-                snap = live.snapshot  # set under the lock with the cycle
-                cycle = snap.cycle_t_ns if snap is not None else -1
-                ents = attention_entities(node, sp_level, cycle)
-                node_level = node.kd.config.memory.node_of_sp_level[sp_level]
+            from wm.serve import ServeError
+
+            try:
+                cycle, node_level, ents = live.call(attention_now, sp_level)
+            except ServeError as e:
+                raise HTTPException(503, str(e)) from None
         return {"cycle_t_ns": cycle, "frame": "world", "level": sp_level,
                 "node_level": node_level, "entities": ents}  # fmt: skip
 
@@ -727,9 +823,14 @@ def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CY
         """Server-sent events: ``event: cycle`` per node cycle (entities created, changed,
         ended; events made; ``dropped`` cycles this client missed), ``event: end`` at the end
         of the replay."""
-        if live.closed:
-            raise HTTPException(503, "the live node is stopped")
-        client = feed.subscribe()
+        from wm.serve import ServeError
+
+        if live.closed or not live.running:
+            raise HTTPException(503, "the live node is not running (not started, or stopped)")
+        try:
+            client = feed.subscribe()
+        except ServeError as e:
+            raise HTTPException(503, str(e)) from None
         headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
         return StreamingResponse(
             _sse(live, feed, client), media_type="text/event-stream", headers=headers
