@@ -59,6 +59,17 @@ class SPConfig:
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
     max_object_range_m: float = 120.0  # farther segments are left ungrouped
     min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)
+    # an object stands out of the ground: from its foot it rises at least foot_object_deg
+    # steep over foot_rise_m, or leans back (a bush's underside). A segment rising more
+    # gently, in the median of at least foot_min_columns columns, continues the ground (a
+    # bank or a mound steeper than the ground's slope limit) and goes back to it. Only
+    # columns whose returns lie at most foot_chord_m apart count: a face is told from a
+    # dome's receding top only with two steps or more over foot_rise_m (far out, the rows
+    # lie too far apart and the segment stays an object)
+    foot_object_deg: float = 60.0
+    foot_rise_m: float = 0.4
+    foot_min_columns: int = 3
+    foot_chord_m: float = 0.25
     # a segment holding two tracked people's predicted places (each within split_near_m of
     # its returns, at least split_min_apart_m apart) is cut between them
     split_near_m: float = 0.4

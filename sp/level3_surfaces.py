@@ -439,6 +439,104 @@ def vertical_face(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:
     return upright & (a.breadth_m >= cfg.face_breadth_m) & (a.thickness_m <= cfg.face_thick_m)
 
 
+def _next_return(has: np.ndarray, step: int, gap: int) -> np.ndarray:
+    """(H, W) int64 row of the next return from each pixel along its column, ``step`` = +1
+    down or -1 up, across at most ``gap`` rows without one; -1 where there is none."""
+    H = has.shape[0]
+    rows = np.arange(H)[:, None]
+    out = np.full(has.shape, -1, dtype=np.int64)
+    for k in range(min(gap + 1, H - 1), 0, -1):  # the nearest row wins: written last
+        i = rows + step * k
+        inside = (i >= 0) & (i < H)
+        hit = np.zeros(has.shape, dtype=bool)
+        src = slice(k, None) if step > 0 else slice(None, H - k)
+        dst = slice(None, H - k) if step > 0 else slice(k, None)
+        hit[dst] = has[src]
+        out = np.where(inside & hit, np.broadcast_to(i, has.shape), out)
+    return out
+
+
+def foot_rise_deg(
+    labels: np.ndarray,
+    xyz_g: np.ndarray,
+    has_return: np.ndarray,
+    ground: np.ndarray,
+    n_segments: int,
+    row_gap: int,
+    max_chord_m: float,
+    rise_m: float,
+    max_rows: int = 8,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How steeply each segment rises from its foot (reference 001, 4.5.2: continuity).
+
+    In every column where a segment's lowest return (its foot there) has a ground return next
+    below it (across at most ``row_gap`` rows without a return), the segment's returns are
+    followed up the column from the foot until one lies ``rise_m`` above it. The column's
+    rise is the steeper of two angles above the horizontal (over 90 when the chord leans back
+    towards the sensor): the first step up from the foot, and the chord from the foot to that
+    return. A bank is gentle in both. A car's body starts above the road (its ground
+    clearance) and its lower edge is rounded, so its first step may be gentle, but its side
+    rises upright; a dome's top recedes gently, but its foot leans back over the ground (a
+    bush's underside). A column counts only where each step (ground to foot, return to
+    return) is at most ``max_chord_m`` long, so that the rows resolve the face (far out they
+    lie metres apart), and ``rise_m`` is reached within ``max_rows`` returns, or half of it
+    where the segment ends first in that column (the crest of a bank whose flank is ground).
+    labels (H, W) int64 segment per pixel (-1 none); xyz_g (H, W, 3) gravity-aligned points
+    centred on the sensor (m); has_return, ground (H, W) bool. Returns the median rise per
+    segment (K,) float64 degrees (NaN where no column qualifies) and the number of columns
+    (K,) int64.
+    """
+    H, W = labels.shape
+    below = _next_return(has_return, +1, row_gap)
+    above = _next_return(has_return, -1, row_gap)
+    cols = np.broadcast_to(np.arange(W), (H, W))
+    b = np.maximum(below, 0)
+    foot = (labels >= 0) & (below >= 0) & ground[b, cols]
+    i_f, j_f = np.nonzero(foot)
+    lab = labels[i_f, j_f]
+    hr = np.hypot(xyz_g[..., 0], xyz_g[..., 1])
+    z = xyz_g[..., 2]
+
+    def step_m(i0: np.ndarray, i1: np.ndarray) -> np.ndarray:
+        return np.hypot(hr[i1, j_f] - hr[i0, j_f], z[i1, j_f] - z[i0, j_f])
+
+    alive = step_m(below[i_f, j_f], i_f) <= max_chord_m
+    first = above[i_f, j_f]  # the walk's first step: in the segment wherever it counts
+    top = i_f.copy()
+    reached = np.zeros(i_f.size, dtype=bool)
+    ended = np.zeros(i_f.size, dtype=bool)  # the segment's top in this column came first
+    for _ in range(max_rows):
+        nxt = above[top, j_f]
+        walking = alive & ~reached & ~ended
+        own = (nxt >= 0) & (labels[np.maximum(nxt, 0), j_f] == lab)
+        ended |= walking & ~own
+        close = step_m(top, np.maximum(nxt, 0)) <= max_chord_m
+        alive &= ~(walking & own & ~close)
+        move = walking & own & close
+        top = np.where(move, nxt, top)
+        reached |= move & (z[top, j_f] - z[i_f, j_f] >= rise_m)
+    # a segment lower than rise_m above its foot (the crest of a bank whose flank is ground)
+    # counts from half of it
+    counted = alive & (reached | (ended & (z[top, j_f] - z[i_f, j_f] >= 0.5 * rise_m)))
+
+    def angle_to(i1: np.ndarray) -> np.ndarray:
+        return np.degrees(np.arctan2(z[i1, j_f] - z[i_f, j_f], hr[i1, j_f] - hr[i_f, j_f]))
+
+    # a bank is gentle in both, a dome or a rounded car body steep in one of them
+    angle = np.maximum(angle_to(np.maximum(first, 0)), angle_to(top))
+    lab, angle = lab[counted], angle[counted]
+    count = np.bincount(lab, minlength=n_segments)
+    median = np.full(n_segments, np.nan)
+    if lab.size:
+        order = np.lexsort((angle, lab))
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        has = count > 0
+        lo = start[has] + (count[has] - 1) // 2
+        hi = start[has] + count[has] // 2
+        median[has] = 0.5 * (angle[order][lo] + angle[order][hi])
+    return median, count
+
+
 def terrain_patch(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:
     """(K,) bool: segments that are a broad, thin plane tilted less than ``terrain_tilt_deg``,
     lower than ``terrain_max_height_m`` (a roof is higher) and starting within

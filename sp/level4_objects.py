@@ -32,7 +32,7 @@ from sp.computation import SegmentAttributes, ground_below, segment_attributes
 from sp.context import IMAGE_NAMES, KD_STATUS, SPContext, row_step, unit
 from sp.egosphere import EgosphereImage
 from sp.events import EventClass
-from sp.level3_surfaces import terrain_patch
+from sp.level3_surfaces import foot_rise_deg, terrain_patch
 from sp.observations import AppearanceObserved, ClassFounded, FrameChange, StatesObserved
 from sp.segments import (
     SegmentConfig,
@@ -228,9 +228,15 @@ class ObjectLevel:
         if split is not labels:
             labels = split
             attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
-        # too low to stand out of the terrain (bumps, ruts), or a gently sloping plane (a
-        # hillside seen past a gap): ground, not objects
+        # too low to stand out of the terrain (bumps, ruts), a gently sloping plane (a
+        # hillside seen past a gap) or rising from the ground as the ground does (a bank, a
+        # mound): ground, not objects
         low = (attrs.height_m < cfg.min_object_height_m) | terrain_patch(attrs, cfg)
+        rise_deg, n_cols = foot_rise_deg(
+            labels, xyz_g, valid, ground, len(attrs), seg_cfg.row_gap, cfg.foot_chord_m,
+            cfg.foot_rise_m,
+        )  # fmt: skip
+        low |= (n_cols >= cfg.foot_min_columns) & (rise_deg < cfg.foot_object_deg)
         if low.any():
             flat_low = np.isin(labels, np.flatnonzero(low))
             ground = ground | flat_low

@@ -14,7 +14,7 @@ from kd_store import Level, Status
 from logs.types import LadarScan
 from sp.classify import Classifier
 from sp.computation import ground_below, segment_attributes
-from sp.context import IMAGE_NAMES
+from sp.context import IMAGE_NAMES, SPConfig
 from sp.ground import GroundConfig, ground_mask
 from sp.groups import group_labels, match_groups
 from sp.segments import label_objects, range_edges
@@ -457,3 +457,110 @@ def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_agai
     # the denied list is no longer its owner's, and its (owner, kind) would start a new one
     assert sp.level2.lists_of[7] == [lids[0]] and sp.level2.lut[29] == -1
     assert sp.level2.lut[28] == 0
+
+
+def _height_field_scene(height, shapes=()) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast the terrain z = -SENSOR_H + height(x, y) (marched in 2 cm steps to 40 m) and
+    ``shapes``, functions (points (..., 3)) -> inside (...) bool, standing on it.
+    Returns xyz (H, W, 3) (NaN where nothing is hit) and valid (H, W)."""
+    d = _rays()
+    t = np.arange(0.5, 40.0, 0.02)
+    p = d[:, :, None, :] * t[None, None, :, None]  # (H, W, T, 3)
+    inside = p[..., 2] <= -SENSOR_H + height(p[..., 0], p[..., 1])
+    for shape in shapes:
+        inside |= shape(p)
+    hit = inside.any(axis=-1)
+    first = np.argmax(inside, axis=-1)
+    xyz = np.where(hit[..., None], d * t[first][..., None], np.nan)
+    return xyz, hit
+
+
+def _rise_of(xyz: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SP's ground, its grouping of the rest, and :func:`foot_rise_deg` of those segments."""
+    from sp.level3_surfaces import foot_rise_deg
+
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    rng = np.linalg.norm(np.nan_to_num(xyz), axis=-1)
+    labels = label_objects(
+        np.nan_to_num(xyz), np.where(valid, rng, np.inf), valid & ~ground,
+        EL[0] - EL[1], 2 * np.pi / W,
+    )  # fmt: skip
+    K = int(labels.max()) + 1
+    cfg = SPConfig()
+    return foot_rise_deg(
+        labels, np.nan_to_num(xyz), valid, ground, K, 2, cfg.foot_chord_m, cfg.foot_rise_m
+    )
+
+
+def _ridge(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A bank 0.8 m high across the way 7 m ahead, its face 45 degrees steep."""
+    return np.clip(x - 7.0, 0.0, 0.8) * (np.abs(y) < 6.0)
+
+
+def _car_at(x_m: float):
+    """Inside test of a 2 m x 2 m x 1.5 m box standing on the flat ground ``x_m`` ahead."""
+
+    def shape(p: np.ndarray) -> np.ndarray:
+        return (
+            (np.abs(p[..., 0] - x_m) < 1.0)
+            & (np.abs(p[..., 1]) < 1.0)
+            & (p[..., 2] < -SENSOR_H + 1.5)
+        )
+
+    return shape
+
+
+def test_a_bank_rises_from_the_ground_as_ground_does() -> None:
+    xyz, valid = _height_field_scene(_ridge)
+    rise, n = _rise_of(xyz, valid)
+    assert rise.size >= 1 and n.max() >= 10  # steeper than the ground's slope limit: grouped
+    biggest = int(np.argmax(n))
+    assert 35.0 < rise[biggest] < 55.0
+
+
+@pytest.mark.parametrize("kind", ["car", "bush"])
+def test_an_object_rises_steeply_from_the_ground_or_leans_over_it(kind: str) -> None:
+    flat = lambda x, y: 0.0 * x  # noqa: E731
+    if kind == "car":  # a 1.5 m box on the ground 8 m ahead
+        shape = _car_at(9.0)
+    else:  # a flat ellipsoid, 15 % of its height below the ground, as bushes and rocks stand
+
+        def shape(p):
+            q = (p - np.array([9.0, 0.0, -SENSOR_H + 0.35 * 0.9])) / np.array([1.2, 1.0, 0.45])
+            return (q**2).sum(axis=-1) <= 1.0
+
+    xyz, valid = _height_field_scene(flat, [shape])
+    rise, n = _rise_of(xyz, valid)
+    biggest = int(np.argmax(n))
+    assert n[biggest] >= SPConfig().foot_min_columns  # enough columns to be judged
+    assert rise[biggest] > 70.0
+
+
+def test_a_foot_the_beams_do_not_resolve_is_not_judged() -> None:
+    from sp.level3_surfaces import foot_rise_deg
+
+    # 32 m out the rows lie far apart: a return 1.1 m from the ground return below it and its
+    # next 1.1 m further up cannot tell a slanted face from a gentle rise, so no column counts
+    xyz = np.zeros((3, 4, 3))
+    xyz[2, :, 0], xyz[2, :, 2] = 32.1, -1.38  # ground (the lowest row)
+    xyz[1, :, 0], xyz[1, :, 2] = 33.0, -0.67  # the segment's foot ...
+    xyz[0, :, 0], xyz[0, :, 2] = 33.9, -0.07  # ... and its next return up
+    labels = np.array([[0] * 4, [0] * 4, [-1] * 4])
+    ground = labels < 0
+    valid = np.ones((3, 4), dtype=bool)
+    rise, n = foot_rise_deg(labels, xyz, valid, ground, 1, 2, 0.6, 0.4)
+    assert n[0] == 0 and np.isnan(rise[0])
+    rise, n = foot_rise_deg(labels, xyz, valid, ground, 1, 2, 2.0, 0.4)
+    assert n[0] == 4 and 33.0 < rise[0] < 35.0
+
+
+def test_a_body_above_the_ground_is_not_a_bank() -> None:
+    # a car's body 0.3 m over the road: the chord from the road to the body's lowest return
+    # is gentle (about 40 degrees at 9 m), but the body itself is upright: not terrain
+    def body(p: np.ndarray) -> np.ndarray:
+        return _car_at(9.0)(p) & (p[..., 2] > -SENSOR_H + 0.3)
+
+    xyz, valid = _height_field_scene(lambda x, y: 0.0 * x, [body])
+    rise, n = _rise_of(xyz, valid)
+    biggest = int(np.argmax(n)) if n.max() > 0 else 0
+    assert n.max() == 0 or rise[biggest] > 70.0
