@@ -238,6 +238,37 @@ def test_a_snapshot_not_taken_is_replaced_by_the_newer_and_counted() -> None:
     assert box.replaced == 2
 
 
+def test_news_of_stream_messages_alone_leave_the_status_as_it_was() -> None:
+    """A stream message wakes the sender before the node posts a new status: that news
+    carries no status, and the server keeps the one it has (it once got an empty one, and
+    its cycle count fell to 0 while a client read the stream)."""
+    from wm.serve import LiveStatus
+    from wm.serve_proc import NodeLink, NodeNews, _Outbox
+
+    class Node:
+        status = LiveStatus(cycles=7)
+        snapshot = None
+
+    box = _Outbox()
+    box.post(Node(), fresh=False, final=True)  # type: ignore[arg-type]
+    assert box.take(0.0, 0.0).status.cycles == 7
+    box.stream(b"cycle 8")
+    news = box.take(time.monotonic(), 0.0)
+    assert news.stream == [b"cycle 8"] and news.status is None
+    # the server's side installs it: the status stays, the message reaches the stream
+    got: list[bytes] = []
+
+    class Live:
+        status = LiveStatus(cycles=7)
+        snapshot = None
+        stream_sink = got.append
+
+    link = NodeLink(Live())  # type: ignore[arg-type]
+    link.alive = True
+    link._install(NodeNews(None, None, 0.0, [b"cycle 8"]))
+    assert link.live.status.cycles == 7 and got == [b"cycle 8"]
+
+
 def test_a_node_that_cannot_start_says_why(log, tmp_path: Path) -> None:  # noqa: F811
     """A KD path the node's process cannot create (below a file): start() raises a
     ServeError naming the cause, as the node in a thread does."""

@@ -141,10 +141,11 @@ def recv_message(conn: Any) -> Any:
 
 @dataclass
 class NodeNews:
-    """One message of the news pipe: the node's status, the newest cycle's snapshot (None:
-    none since the last message), the stream's messages since, and the outbox's figures."""
+    """One message of the news pipe: the node's status and the newest cycle's snapshot (each
+    None: none since the last message), the stream's messages since, and the outbox's
+    figures."""
 
-    status: LiveStatus
+    status: LiveStatus | None
     snapshot: CycleSnapshot | None
     posted_t: float  # time.monotonic() when the snapshot was posted (the clock is the host's)
     stream: list[bytes] = field(default_factory=list)
@@ -199,7 +200,7 @@ class _Outbox:
                     break
                 self._cond.wait(wait if self._status is not None else None)
             news = NodeNews(
-                self._status or LiveStatus(), self._snapshot, self._posted_t,
+                self._status, self._snapshot, self._posted_t,
                 list(self._stream), self.replaced, self.stream_dropped, send_ms, self._final,
             )  # fmt: skip
             self._status, self._snapshot = None, None
@@ -241,12 +242,10 @@ class _GivenDemand:
         pass
 
 
-class _Stop(BaseException):
-    """SIGTERM in the node's process: stop as the server would stop it."""
-
-
 def _raise_stop(signum: int, frame: Any) -> None:
-    raise _Stop
+    """SIGTERM in the node's process: stop as the server would stop it. SystemExit, like the
+    interpreter's own, passes every ``except Exception`` on its way to the loop's end."""
+    raise SystemExit(0)
 
 
 def _watch_parent(parent: int) -> None:
@@ -339,7 +338,7 @@ def _node_main(
                 live.stream_clients = int(rest[0])
             elif kind == "stop":
                 break
-    except _Stop:
+    except SystemExit:
         pass
     except Exception as e:
         if live is None or live.node is None:  # it did not start: say why, as a thread would
@@ -521,7 +520,8 @@ class NodeLink:
                 self.snapshots += 1
                 self.transfer_ms = 1e3 * (time.monotonic() - news.posted_t)
                 self._transfer_sum_ms += self.transfer_ms
-            live.status = news.status
+            if news.status is not None:  # news of stream messages alone keeps the status
+                live.status = news.status
         self.replaced, self.stream_dropped = news.replaced, news.stream_dropped
         self.send_ms = news.send_ms
         if news.snapshot is not None:
