@@ -439,20 +439,17 @@ def vertical_face(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:
     return upright & (a.breadth_m >= cfg.face_breadth_m) & (a.thickness_m <= cfg.face_thick_m)
 
 
-def _next_return(has: np.ndarray, step: int, gap: int) -> np.ndarray:
-    """(H, W) int64 row of the next return from each pixel along its column, ``step`` = +1
-    down or -1 up, across at most ``gap`` rows without one; -1 where there is none."""
+def _next_return(has: np.ndarray, i: np.ndarray, j: np.ndarray, step: int, gap: int) -> np.ndarray:
+    """(n,) int64 row of the next return from pixels (i, j) ((n,) int64 each) along their
+    column in ``has`` (H, W) bool, ``step`` = +1 down or -1 up, across at most ``gap`` rows
+    without one; -1 where there is none (or ``i`` is -1)."""
     H = has.shape[0]
-    rows = np.arange(H)[:, None]
-    out = np.full(has.shape, -1, dtype=np.int64)
-    for k in range(min(gap + 1, H - 1), 0, -1):  # the nearest row wins: written last
-        i = rows + step * k
-        inside = (i >= 0) & (i < H)
-        hit = np.zeros(has.shape, dtype=bool)
-        src = slice(k, None) if step > 0 else slice(None, H - k)
-        dst = slice(None, H - k) if step > 0 else slice(k, None)
-        hit[dst] = has[src]
-        out = np.where(inside & hit, np.broadcast_to(i, has.shape), out)
+    out = np.full(i.shape, -1, dtype=np.int64)
+    for k in range(gap + 1, 0, -1):  # the nearest row wins: written last
+        r = i + step * k
+        inside = (i >= 0) & (r >= 0) & (r < H)
+        hit = inside & has[np.clip(r, 0, H - 1), j]
+        out = np.where(hit, r, out)
     return out
 
 
@@ -486,44 +483,51 @@ def foot_rise_deg(
     segment (K,) float64 degrees (NaN where no column qualifies) and the number of columns
     (K,) int64.
     """
-    H, W = labels.shape
-    below = _next_return(has_return, +1, row_gap)
-    above = _next_return(has_return, -1, row_gap)
-    cols = np.broadcast_to(np.arange(W), (H, W))
-    b = np.maximum(below, 0)
-    foot = (labels >= 0) & (below >= 0) & ground[b, cols]
-    i_f, j_f = np.nonzero(foot)
+    i_s, j_s = np.nonzero(labels >= 0)
+    below = _next_return(has_return, i_s, j_s, +1, row_gap)
+    # the segment's feet: its pixels whose next return down is ground
+    foot = below >= 0
+    foot[foot] = ground[below[foot], j_s[foot]]
+    i_f, j_f, i_g = i_s[foot], j_s[foot], below[foot]
     lab = labels[i_f, j_f]
-    hr = np.hypot(xyz_g[..., 0], xyz_g[..., 1])
-    z = xyz_g[..., 2]
 
-    def step_m(i0: np.ndarray, i1: np.ndarray) -> np.ndarray:
-        return np.hypot(hr[i1, j_f] - hr[i0, j_f], z[i1, j_f] - z[i0, j_f])
+    def hr_z(i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = xyz_g[i, j_f]
+        return np.hypot(p[:, 0], p[:, 1]), p[:, 2]
 
-    alive = step_m(below[i_f, j_f], i_f) <= max_chord_m
-    first = above[i_f, j_f]  # the walk's first step: in the segment wherever it counts
-    top = i_f.copy()
+    def step_m(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        return np.hypot(b[0] - a[0], b[1] - a[1])
+
+    at_foot = hr_z(i_f)
+    alive = step_m(hr_z(i_g), at_foot) <= max_chord_m
+    first = _next_return(has_return, i_f, j_f, -1, row_gap)  # in the segment where it counts
+    top, at_top = i_f.copy(), at_foot
     reached = np.zeros(i_f.size, dtype=bool)
     ended = np.zeros(i_f.size, dtype=bool)  # the segment's top in this column came first
     for _ in range(max_rows):
-        nxt = above[top, j_f]
         walking = alive & ~reached & ~ended
+        if not walking.any():
+            break
+        nxt = _next_return(has_return, np.where(walking, top, -1), j_f, -1, row_gap)
         own = (nxt >= 0) & (labels[np.maximum(nxt, 0), j_f] == lab)
         ended |= walking & ~own
-        close = step_m(top, np.maximum(nxt, 0)) <= max_chord_m
+        at_next = hr_z(np.maximum(nxt, 0))
+        close = step_m(at_top, at_next) <= max_chord_m
         alive &= ~(walking & own & ~close)
         move = walking & own & close
         top = np.where(move, nxt, top)
-        reached |= move & (z[top, j_f] - z[i_f, j_f] >= rise_m)
+        at_top = (np.where(move, at_next[0], at_top[0]), np.where(move, at_next[1], at_top[1]))
+        reached |= move & (at_top[1] - at_foot[1] >= rise_m)
+    rise = at_top[1] - at_foot[1]
     # a segment lower than rise_m above its foot (the crest of a bank whose flank is ground)
     # counts from half of it
-    counted = alive & (reached | (ended & (z[top, j_f] - z[i_f, j_f] >= 0.5 * rise_m)))
+    counted = alive & (reached | (ended & (rise >= 0.5 * rise_m)))
 
-    def angle_to(i1: np.ndarray) -> np.ndarray:
-        return np.degrees(np.arctan2(z[i1, j_f] - z[i_f, j_f], hr[i1, j_f] - hr[i_f, j_f]))
+    def angle_to(at: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        return np.degrees(np.arctan2(at[1] - at_foot[1], at[0] - at_foot[0]))
 
     # a bank is gentle in both, a dome or a rounded car body steep in one of them
-    angle = np.maximum(angle_to(np.maximum(first, 0)), angle_to(top))
+    angle = np.maximum(angle_to(hr_z(np.maximum(first, 0))), angle_to(at_top))
     lab, angle = lab[counted], angle[counted]
     count = np.bincount(lab, minlength=n_segments)
     median = np.full(n_segments, np.nan)
