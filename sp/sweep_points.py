@@ -19,7 +19,12 @@ import math
 import numba
 import numpy as np
 
+from core.errors import EngineError
 from sp.egosphere import EgosphereImage
+
+
+class SweepPointsError(EngineError, ValueError):
+    """Column poses of the wrong shape for the image; names the shape."""
 
 
 def sweep_points(
@@ -41,7 +46,7 @@ def sweep_points(
     H, W = valid.shape
     T = np.ascontiguousarray(T_world_cols, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4) or T.shape[0] not in (1, W):
-        raise ValueError(f"T_world_cols has shape {T.shape}, not (1, 4, 4) or ({W}, 4, 4)")
+        raise SweepPointsError(f"T_world_cols has shape {T.shape}, not (1, 4, 4) or ({W}, 4, 4)")
     out = [np.empty((H, W, 3)) for _ in range(3)]
     row_el = np.empty(H)
     # the first return of a pixel read from the sweep's points through its index (no

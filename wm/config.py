@@ -16,6 +16,13 @@ import math
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+from core.errors import EngineError
+
+
+class NodeSettingError(EngineError, ValueError):
+    """A node, planner or What If setting out of its range; names the setting and value."""
+
+
 #: Map levels the node runs, finest first, and the period (s) of each level's slow work.
 DEFAULT_LEVEL_PERIODS_S: dict[str, float] = {
     "primitive": 0.2,
@@ -136,13 +143,13 @@ class PlannerConfig:
     def __post_init__(self) -> None:
         b = self.budget_s
         if not (isinstance(b, int | float) and 0 < b < float("inf")):  # NaN fails too
-            raise ValueError(f"PlannerConfig.budget_s must be a finite time > 0 s, got {b!r}")
+            raise NodeSettingError(f"PlannerConfig.budget_s must be a finite time > 0 s, got {b!r}")
         if not (isinstance(self.batch_size, int) and self.batch_size >= 1):
-            raise ValueError(
+            raise NodeSettingError(
                 f"PlannerConfig.batch_size must be an int >= 1, got {self.batch_size!r}"
             )
         if not self.speeds_mps or not self.curvatures_1pm:
-            raise ValueError(
+            raise NodeSettingError(
                 f"PlannerConfig needs at least one speed and one curvature, got speeds_mps="
                 f"{self.speeds_mps!r}, curvatures_1pm={self.curvatures_1pm!r}"
             )
@@ -194,22 +201,33 @@ class NodeConfig:
     compute_threads: int | None = 1
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.odometry_ahead, int) and self.odometry_ahead >= 1):
-            raise ValueError(f"NodeConfig.odometry_ahead must be an int >= 1, got "
-                             f"{self.odometry_ahead!r}")  # fmt: skip
-        if not (math.isfinite(self.snapshot_every_s) and self.snapshot_every_s >= 0):
-            raise ValueError(f"NodeConfig.snapshot_every_s must be a finite number >= 0 (s), "
-                             f"got {self.snapshot_every_s!r}")  # fmt: skip
-        if not (isinstance(self.segment_confirm_frames, int) and self.segment_confirm_frames >= 2):
-            raise ValueError(f"NodeConfig.segment_confirm_frames must be an int >= 2, got "
-                             f"{self.segment_confirm_frames!r}")  # fmt: skip
-        if not (math.isfinite(self.time_jump_gaps) and self.time_jump_gaps > 0):
-            raise ValueError(f"NodeConfig.time_jump_gaps must be a finite number > 0, got "
-                             f"{self.time_jump_gaps!r}")  # fmt: skip
-        if not (self.min_time_jump_ns > 0 and self.max_time_jump_ns > 0):
-            raise ValueError(f"NodeConfig.min_time_jump_ns and max_time_jump_ns must be > 0 (ns), "
-                             f"got {self.min_time_jump_ns!r}, "
-                             f"{self.max_time_jump_ns!r}")  # fmt: skip
+        def need(ok: bool, what: str, value: object) -> None:
+            if not ok:
+                raise NodeSettingError(f"NodeConfig.{what}, got {value!r}")
+
+        need(
+            isinstance(self.odometry_ahead, int) and self.odometry_ahead >= 1,
+            "odometry_ahead must be an int >= 1",
+            self.odometry_ahead,
+        )
+        need(
+            math.isfinite(self.snapshot_every_s) and self.snapshot_every_s >= 0,
+            "snapshot_every_s must be a finite number >= 0 (s)",
+            self.snapshot_every_s,
+        )
+        need(
+            isinstance(self.segment_confirm_frames, int) and self.segment_confirm_frames >= 2,
+            "segment_confirm_frames must be an int >= 2",
+            self.segment_confirm_frames,
+        )
+        need(
+            math.isfinite(self.time_jump_gaps) and self.time_jump_gaps > 0,
+            "time_jump_gaps must be a finite number > 0",
+            self.time_jump_gaps,
+        )
+        need(self.min_time_jump_ns > 0 and self.max_time_jump_ns > 0,
+             "min_time_jump_ns and max_time_jump_ns must be > 0 (ns)",
+             (self.min_time_jump_ns, self.max_time_jump_ns))  # fmt: skip
 
 
 @dataclass(frozen=True)

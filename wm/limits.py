@@ -17,6 +17,13 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
+from core.errors import EngineError
+
+
+class LimitsError(EngineError, ValueError):
+    """A request limit out of its range; names the limit and value."""
+
+
 MB = 2**20
 
 #: the ingest endpoints (ROS messages: a camera image or a point cloud is megabytes)
@@ -41,11 +48,11 @@ class ServeLimits:
     def __post_init__(self) -> None:
         for name in ("max_ingest_bytes", "max_json_bytes", "burst", "max_clients"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} {getattr(self, name)}: need at least 1")
+                raise LimitsError(f"{name} {getattr(self, name)}: need at least 1")
         if self.rate_per_s is not None and not (
             math.isfinite(self.rate_per_s) and self.rate_per_s > 0
         ):
-            raise ValueError(f"rate_per_s {self.rate_per_s}: need a finite number > 0 (or None)")
+            raise LimitsError(f"rate_per_s {self.rate_per_s}: need a finite number > 0 (or None)")
 
     def max_body(self, path: str) -> int:
         """The largest body (bytes) a request to ``path`` may carry."""

@@ -525,7 +525,9 @@ class StreamClient:
 
     def __init__(self, max_cycles: int = STREAM_QUEUE_CYCLES) -> None:
         if max_cycles < 1:
-            raise ValueError(f"stream queue of {max_cycles} cycles: need at least 1")
+            from wm.serve import ServeError
+
+            raise ServeError(f"stream queue of {max_cycles} cycles: need at least 1")
         self.max_cycles = max_cycles
         self._queue: deque[bytes] = deque()
         self._lock = threading.Lock()
