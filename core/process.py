@@ -4,8 +4,8 @@ A ``wm run`` killed with SIGKILL runs no cleanup, so its children (the log decod
 odometry process) must notice on their own. :func:`die_with_parent`, called first thing in a
 child, asks the Linux kernel to send the child a signal when its parent goes (``prctl
 PR_SET_PDEATHSIG``) and closes the race where the parent died before the call. Elsewhere it
-does nothing and the children's other guards (end of their pipe, a thread watching the
-parent's pid) remain the way out.
+does nothing and the children's other guards (end of their pipe, :func:`exit_with_parent`'s
+thread watching the parent's pid) remain the way out.
 
 The kernel sends the signal when the *thread* that forked the child exits, not only the
 process: start such children from a thread that lives as long as they are needed (the node's
@@ -19,6 +19,8 @@ import ctypes.util
 import os
 import signal
 import sys
+import threading
+import time
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
@@ -45,3 +47,18 @@ def _set_pdeathsig(sig: int) -> bool:
         return libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
     except (OSError, AttributeError):  # no libc to load, or one without prctl
         return False
+
+
+def exit_with_parent(parent: int, name: str, period_s: float = 0.5) -> None:
+    """Start a daemon thread ``name`` that ends this process (status 0) as soon as ``parent``
+    (its pid, taken before the fork or spawn) is no longer its parent, checking every
+    ``period_s`` s: the guard where :func:`die_with_parent` could not arm the kernel's
+    signal. A thread, since the main thread may be blocked anywhere, even on a request the
+    parent was killed while writing."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period_s)
+        os._exit(0)
+
+    threading.Thread(target=watch, name=name, daemon=True).start()

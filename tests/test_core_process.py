@@ -1,5 +1,6 @@
-"""core.process.die_with_parent: a child that called it dies with its parent (Linux), and a
-child whose parent died before the call exits at once."""
+"""core.process: a child that called die_with_parent dies with its parent (Linux), a child
+whose parent died before the call exits at once, and a child that only started
+exit_with_parent's thread (no kernel signal) exits soon after its parent."""
 
 from __future__ import annotations
 
@@ -28,6 +29,11 @@ child = (
 p = subprocess.Popen([sys.executable, "-c", child, str(os.getpid())], stdout=sys.stdout)
 time.sleep(60)
 """
+# the same with only the watching thread: the grandchild prints its pid and sleeps
+MIDDLE_WATCH = MIDDLE.replace("die_with_parent(int(sys.argv[1]))", "None").replace(
+    "from core.process import die_with_parent",
+    "from core.process import exit_with_parent; exit_with_parent(int(sys.argv[1]), 'w', 0.05)",
+)
 
 
 def _alive(pid: int) -> bool:
@@ -38,24 +44,39 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
-def test_a_child_dies_within_a_second_of_its_parents_sigkill() -> None:
+def _grandchild_outlives_sigkill(middle_code: str) -> tuple[str, bool]:
+    """Start ``middle_code``, read its grandchild's pid and second word, SIGKILL the middle
+    process: (that word, whether the grandchild still ran 1 s later)."""
     middle = subprocess.Popen(
-        [sys.executable, "-c", MIDDLE], stdout=subprocess.PIPE, text=True, env=ENV, cwd=REPO
+        [sys.executable, "-c", middle_code], stdout=subprocess.PIPE, text=True, env=ENV, cwd=REPO
     )
     try:
         assert middle.stdout is not None
-        pid, armed = middle.stdout.readline().split()
-        assert armed == "True"
+        pid, word = middle.stdout.readline().split()
         assert _alive(int(pid))
         killed = time.monotonic()
         middle.send_signal(signal.SIGKILL)
         middle.wait(timeout=5)
         while _alive(int(pid)) and time.monotonic() < killed + 1.0:
             time.sleep(0.01)
-        assert not _alive(int(pid)), "the grandchild outlived its parent by 1 s"
+        outlived = _alive(int(pid))
+        if outlived:
+            os.kill(int(pid), signal.SIGKILL)
+        return word, outlived
     finally:
         middle.kill()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_child_dies_within_a_second_of_its_parents_sigkill() -> None:
+    armed, outlived = _grandchild_outlives_sigkill(MIDDLE)
+    assert armed == "True"
+    assert not outlived, "the grandchild outlived its parent by 1 s"
+
+
+def test_a_child_watching_its_parent_exits_within_a_second_of_its_sigkill() -> None:
+    _, outlived = _grandchild_outlives_sigkill(MIDDLE_WATCH)
+    assert not outlived, "the grandchild outlived its parent by 1 s"
 
 
 def test_a_child_whose_parent_is_already_gone_exits_at_once() -> None:

@@ -21,7 +21,6 @@ import gc
 import multiprocessing as mp
 import os
 import queue
-import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
@@ -29,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from core.errors import EngineError
-from core.process import die_with_parent
+from core.process import die_with_parent, exit_with_parent
 from logs.types import LadarScan, OdometryFrame
 
 if TYPE_CHECKING:
@@ -42,20 +41,6 @@ _NO_INTENSITY = np.zeros(0, dtype=np.float32)  # registration never reads intens
 
 class OdometryWorkerError(EngineError, RuntimeError):
     """The odometry process failed or stopped answering (names the sweep and the cause)."""
-
-
-def _exit_with_parent(parent: int, period_s: float = 0.5) -> None:
-    """A thread that ends this process as soon as ``parent``, the node's process that
-    started it, is gone (killed): the main thread may be blocked anywhere, even on a request
-    the node was killed while writing, so it cannot be the one to notice. ``parent`` is taken
-    before the fork, since the node may die before this process gets here."""
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(period_s)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="wm-odometry-watch", daemon=True).start()
 
 
 @dataclass
@@ -75,7 +60,7 @@ def _serve(
 ) -> None:
     """The child's loop: feed wheel odometry, register sweeps, answer each sweep in order."""
     die_with_parent(parent)
-    _exit_with_parent(parent)  # where prctl is not there (or not allowed)
+    exit_with_parent(parent, "wm-odometry-watch")  # where prctl is not there (or not allowed)
     from sp.odometry import LadarOdometry, OdometryConfig
 
     # one registration thread unless the configuration names a number (0, as many as

@@ -68,7 +68,7 @@ from typing import Any
 import numpy as np
 from fastapi import HTTPException
 
-from core.process import die_with_parent
+from core.process import die_with_parent, exit_with_parent
 from wm.serve import CycleSnapshot, LiveNode, LiveStatus, ServeError
 
 #: threads in the node's process answering requests (SQL may take seconds: more than one)
@@ -84,7 +84,6 @@ STREAM_BACKLOG = 256
 #: may ask for): a snapshot of a few MB crosses in a few writes, not one per 64 kB
 NEWS_PIPE_BYTES = 2**20
 _COUNT = struct.Struct("<I")
-_WATCH_S = 0.5  # how often the node's process checks that the server's process still runs
 
 
 # --- framed messages: pickle protocol 5 with out-of-band buffers ------------------------------
@@ -248,18 +247,6 @@ def _raise_stop(signum: int, frame: Any) -> None:
     raise SystemExit(0)
 
 
-def _watch_parent(parent: int) -> None:
-    """End this process as soon as ``parent`` (the server's process) is gone, where the
-    kernel's death signal is not there: the main thread may be blocked anywhere."""
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(_WATCH_S)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="wm-node-watch", daemon=True).start()
-
-
 def _answer(live: LiveNode, conn: Any, lock: threading.Lock, ident: int, fn, args) -> None:
     """Run one request and send its answer: ("ok", value), ("http", (status, detail)) or
     ("error", exception); an exception that does not pickle goes as a ServeError naming it."""
@@ -302,7 +289,7 @@ def _node_main(
     not), answer requests until told to stop (or SIGTERM), then stop the node (the KD
     flushed and closed) and send the final status."""
     die_with_parent(parent)
-    _watch_parent(parent)  # where prctl is not there (or not allowed)
+    exit_with_parent(parent, "wm-node-watch")  # where prctl is not there (or not allowed)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server's process stops the node
     signal.signal(signal.SIGTERM, _raise_stop)
     reply_lock = threading.Lock()
