@@ -500,11 +500,11 @@ def foot_rise_deg(
 
     at_foot = hr_z(i_f)
     alive = step_m(hr_z(i_g), at_foot) <= max_chord_m
-    first = _next_return(has_return, i_f, j_f, -1, row_gap)  # in the segment where it counts
     top, at_top = i_f.copy(), at_foot
+    at_first = at_foot  # the walk's first step up (where it counts, the walk took one)
     reached = np.zeros(i_f.size, dtype=bool)
     ended = np.zeros(i_f.size, dtype=bool)  # the segment's top in this column came first
-    for _ in range(max_rows):
+    for step in range(max_rows):
         walking = alive & ~reached & ~ended
         if not walking.any():
             break
@@ -517,6 +517,8 @@ def foot_rise_deg(
         move = walking & own & close
         top = np.where(move, nxt, top)
         at_top = (np.where(move, at_next[0], at_top[0]), np.where(move, at_next[1], at_top[1]))
+        if step == 0:
+            at_first = at_top
         reached |= move & (at_top[1] - at_foot[1] >= rise_m)
     rise = at_top[1] - at_foot[1]
     # a segment lower than rise_m above its foot (the crest of a bank whose flank is ground)
@@ -527,7 +529,7 @@ def foot_rise_deg(
         return np.degrees(np.arctan2(at[1] - at_foot[1], at[0] - at_foot[0]))
 
     # a bank is gentle in both, a dome or a rounded car body steep in one of them
-    angle = np.maximum(angle_to(hr_z(np.maximum(first, 0))), angle_to(at_top))
+    angle = np.maximum(angle_to(at_first), angle_to(at_top))
     lab, angle = lab[counted], angle[counted]
     count = np.bincount(lab, minlength=n_segments)
     median = np.full(n_segments, np.nan)

@@ -165,10 +165,17 @@ def _refine_grounds(param: tuple[int, float]) -> Iterator[tuple[np.ndarray, ...]
     """x, y, z, valid, ground, r: the scene with the walk's mask (last height), a random
     mask, none and every valid pixel as ground."""
     seed, p_invalid = param
-    cfg = GroundConfig()
     x, y, z, valid = _ground_scene(seed, p_invalid=p_invalid)
+    yield from _with_grounds(seed, x, y, z, valid)
+
+
+def _with_grounds(
+    seed: int, x: np.ndarray, y: np.ndarray, z: np.ndarray, valid: np.ndarray
+) -> Iterator[tuple[np.ndarray, ...]]:
+    """x, y, z, valid, ground, r of one scene under four ground masks: the walk's (last
+    height), a random one, none and every valid pixel."""
     r = np.hypot(x, y)
-    walk = column_walk(r, z, valid, WALK_HEIGHTS_M[-1], cfg)
+    walk = column_walk(r, z, valid, WALK_HEIGHTS_M[-1], GroundConfig())
     rng = np.random.default_rng(seed)
     for ground in (walk, rng.random(valid.shape) < 0.5, np.zeros_like(valid), valid):
         yield x, y, z, valid, ground, r
@@ -1313,14 +1320,8 @@ def _sweep_grounds(param: tuple[int, str]) -> Iterator[tuple[np.ndarray, ...]]:
     """x, y, z, valid, ground, r: a sweep with the walk's mask (last height), a random mask,
     none and every valid pixel as ground."""
     seed, fill = param
-    cfg = GroundConfig()
     xyz, valid = ground_sweep(seed, fill=fill)
-    x, y, z = (xyz[..., k] for k in range(3))
-    r = np.hypot(x, y)
-    walk = column_walk(r, z, valid, WALK_HEIGHTS_M[-1], cfg)
-    rng = np.random.default_rng(seed)
-    for ground in (walk, rng.random(valid.shape) < 0.5, np.zeros_like(valid), valid):
-        yield x, y, z, valid, ground, r
+    yield from _with_grounds(seed, xyz[..., 0], xyz[..., 1], xyz[..., 2], valid)
 
 
 def _refine_sweep_inputs(param: tuple[int, str]) -> Iterator[Args]:
