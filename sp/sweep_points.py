@@ -2,7 +2,7 @@
 elevation of each image row: the level-1 geometry every later SP level reads.
 
 Each column of the egosphere image is moved to the world with the sensor pose at its own
-firing time (``T_world_cols``, see :func:`sp.pipeline.column_poses`), so a static object does
+firing time (``T_world_cols``, see :func:`sp.level1.column_poses`), so a static object does
 not smear over a moving vehicle's sweep (reference 001, 4.5.6 level 1: "range images ...
 transformed into ... world coordinates"). The gravity-aligned frame is the sensor frame turned
 by the sweep's orientation (no translation): heights above the sensor, for the ground.
