@@ -3,15 +3,22 @@ in real time, once alone (the baseline) and once while a load generator in proce
 sends a bounded mix of requests at a fixed rate (entity lookups, circle queries, What If with
 10 plans, small SQL).
 Figures: p50 / p99 latency per endpoint, the node's mean wall time per cycle under load against
-alone, and the staleness of answers (lag of the newest cycle behind the newest frame read).
+alone, the staleness of answers (lag of the newest cycle behind the newest frame read) and of
+SQL answers apart (``staleness_ns`` of each: SQL reads a copy of the KD made every 2 s, as of
+the node's last flush), and the requests per second sent: the load follows an absolute
+schedule (request i due at start + i / rate, a late worker catching up at once), counted over
+the time the loaded replay ran from the moment every worker was ready, with how late the sends
+were against the schedule (p50, p99), so a generator that falls behind shows as such.
 Targets (the network API's): p99 <= 20 ms for lookups and region queries, <= 60 ms for What
-If of 10 plans, cycle time at most 10 % longer under load.
+If of 10 plans, cycle time at most 10 % longer under load, 200 requests/s.
 
 The node runs in a process of its own (``LiveNode(..., process=True)``, as ``wm serve`` runs
 it), its cycle time measured there; ``--in-process`` (``python -m bench.bench_serve
 --in-process``) runs it in a thread of the server's process instead, as before. Also
 recorded: the wall time of a cycle's copy crossing to the server (``transfer_ms``) and the
-node process's share of it (``send_ms``)."""
+node process's share of it (``send_ms``); with the node in a process of its own SQL is
+answered in the server's process from the copy of the KD (wm.serve_sql), in a thread from the
+KD itself."""
 
 from __future__ import annotations
 
@@ -33,6 +40,9 @@ CMD = "make bench (python -m bench serve)"
 LOG_SECONDS = 12.0
 RATE_PER_S = 200.0  # requests per second, all workers together
 WORKERS = 4
+# the most requests the load sends, whatever the replay's pace: the log's length at the rate,
+# and as much again for a replay that runs late
+MAX_REQUESTS = int(2 * RATE_PER_S * LOG_SECONDS)
 
 
 def _free_port() -> int:
@@ -74,10 +84,17 @@ def _requests(me: dict, ids: list[int]) -> list[tuple[str, str, str, dict | None
     return mix
 
 
-def _load(port: int, live, lat: dict[str, list[float]], errors: list[str]) -> None:
+def _load(port: int, live, lat: dict[str, list[float]], errors: list[str]) -> dict:
     """Send the mix at RATE_PER_S in all until the replay ends (bounded by the log's length),
     from WORKERS processes of their own: the server's process runs only the server (and the
-    node), so its figures are not its clients' Python competing for its interpreter lock."""
+    node), so its figures are not its clients' Python competing for its interpreter lock.
+    Request i (of all workers) is due at ``t_start + i / RATE_PER_S``, an absolute schedule,
+    so a slow answer delays the requests after it but does not lower the rate: a worker
+    behind its schedule sends at once until it is on time again. ``t_start`` is set once every
+    worker is ready (imports done, connected), so start-up is not counted as time sending.
+    Returns the load's figures: requests sent while the replay ran, over that time
+    (``achieved_per_s``), how late the sends were against the schedule (``late_ms_p50``,
+    ``late_ms_p99``) and the SQL answers' staleness (``sql_staleness_ms``, one per answer)."""
     import multiprocessing
 
     c = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
@@ -91,56 +108,103 @@ def _load(port: int, live, lat: dict[str, list[float]], errors: list[str]) -> No
     _, me = call("GET", "/v1/self", None)
     _, reg = call("GET", "/v1/entities?x_min=-1e4&y_min=-1e4&x_max=1e4&y_max=1e4&level=4", None)
     mix = _requests(me, [e["entity_id"] for e in reg["entities"]] or [me["entity_id"]])
+    # a client that uses SQL: the node in a process of its own copies its KD for SQL once it
+    # is asked for, and answers 503 until the first copy is open (a second or so)
+    sql = next(body for name, _, _, body in mix if name == "sql")
+    deadline = time.monotonic() + 60
+    while call("POST", "/v1/sql", sql)[0] == 503 and time.monotonic() < deadline:
+        time.sleep(0.1)
     c.close()
 
     # spawn, not fork: the server's process has threads (uvicorn, the node) a fork would copy
     # in whatever state they are in
     ctx = multiprocessing.get_context("spawn")
-    stop, results = ctx.Event(), ctx.Queue()
-    procs = [ctx.Process(target=_worker, args=(port, mix, k, stop, results), daemon=True)
+    stop, results, ready = ctx.Event(), ctx.Queue(), ctx.Queue()
+    t_start = ctx.Value("d", math.nan)  # time.monotonic(): one clock for every process
+    procs = [ctx.Process(target=_worker, args=(port, mix, k, stop, results, ready, t_start),
+                         daemon=True)
              for k in range(WORKERS)]  # fmt: skip
     for p in procs:
         p.start()
+    for _ in procs:
+        ready.get(timeout=120)
+    t_start.value = time.monotonic() + 0.05
     while not live.status.done:
         time.sleep(0.05)
+    t_stop = time.monotonic()
     stop.set()
+    sent: list[float] = []
+    late: list[float] = []
+    stale: list[float] = []
     for _ in procs:  # before joining: a process ends only once its queue is drained
-        got_lat, got_errors = results.get(timeout=120)
+        got_lat, got_errors, got_sent, got_late, got_stale = results.get(timeout=120)
         for name, ms in got_lat.items():
             lat.setdefault(name, []).extend(ms)
         errors.extend(got_errors)
+        sent += got_sent
+        late += got_late
+        stale += got_stale
     for p in procs:
         p.join(30)
+    window = t_stop - t_start.value
+    in_window = sum(1 for t in sent if t <= t_stop)
+    return {
+        "achieved_per_s": in_window / window if window > 0 else math.nan,
+        "window_s": window,
+        "sent": len(sent),
+        "late_ms_p50": float(np.percentile(late, 50)) if late else math.nan,
+        "late_ms_p99": float(np.percentile(late, 99)) if late else math.nan,
+        "sql_staleness_ms": stale,
+    }
 
 
-def _worker(port: int, mix: list, k: int, stop: Any, results: Any) -> None:
-    """One load process: every WORKERS-th request of ``mix`` from the ``k``-th on, paced at
-    RATE_PER_S / WORKERS, until ``stop`` is set; puts (latencies ms by endpoint, errors) on
-    ``results``."""
+def _worker(
+    port: int, mix: list, k: int, stop: Any, results: Any, ready: Any, t_start: Any
+) -> None:
+    """One load process: requests k, k + WORKERS, k + 2 WORKERS, ... of ``mix`` (cycled),
+    request i sent at ``t_start + i / RATE_PER_S`` (time.monotonic(), s; set by the parent
+    once every worker put its name on ``ready``), or at once when behind, until ``stop`` is
+    set or :data:`MAX_REQUESTS` are due; puts (latencies ms by endpoint, errors, send times,
+    lateness of each send ms, staleness of each SQL answer ms) on ``results``."""
     lat: dict[str, list[float]] = {}
     errors: list[str] = []
+    sent: list[float] = []
+    late: list[float] = []
+    stale: list[float] = []
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
-    period = WORKERS / RATE_PER_S
-    t_next, n = time.perf_counter(), k
-    while not stop.is_set():
-        name, method, path, body = mix[n % len(mix)]
-        n += WORKERS
-        t0 = time.perf_counter()
+    conn.connect()
+    ready.put(k)
+    while math.isnan(t_start.value) and not stop.is_set():
+        time.sleep(0.005)
+    t0 = t_start.value
+    for i in range(k, MAX_REQUESTS, WORKERS):
+        due = t0 + i / RATE_PER_S
+        ahead = due - time.monotonic()
+        if ahead > 0 and stop.wait(ahead):
+            break
+        if stop.is_set():
+            break
+        name, method, path, body = mix[i % len(mix)]
+        t = time.monotonic()
+        sent.append(t)
+        late.append(1e3 * max(0.0, t - due))
         try:
             data = None if body is None else json.dumps(body)
             conn.request(method, path, body=data, headers={"Content-Type": "application/json"})
             r = conn.getresponse()
-            r.read()
+            raw = r.read()
             if r.status >= 500:
                 errors.append(f"{name}: HTTP {r.status}")
+            elif name == "sql":
+                staleness = json.loads(raw).get("staleness_ns")
+                if staleness is not None:
+                    stale.append(staleness / 1e6)
         except OSError as e:
             errors.append(f"{name}: {e}")
             conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
-        lat.setdefault(name, []).append(1e3 * (time.perf_counter() - t0))
-        t_next = max(t_next + period, time.perf_counter() - period)  # no catch-up bursts
-        time.sleep(max(0.0, t_next - time.perf_counter()))
+        lat.setdefault(name, []).append(1e3 * (time.monotonic() - t))
     conn.close()
-    results.put((lat, errors))
+    results.put((lat, errors, sent, late, stale))
 
 
 def _run(
@@ -150,13 +214,14 @@ def _run(
     lat: dict[str, list[float]] = {}
     errors: list[str] = []
     lags: list[int] = []
+    load: dict = {}
     while live.status.cycles < 3:
         time.sleep(0.05)
     t0 = time.perf_counter()
     if loaded:
         sampler = threading.Thread(target=_sample_lag, args=(live, lags))
         sampler.start()
-        _load(port, live, lat, errors)
+        load = _load(port, live, lat, errors)
         sampler.join()
     else:
         _sample_lag(live, lags)
@@ -170,6 +235,8 @@ def _run(
         "transfer_ms": proc.get("mean_transfer_ms") or math.nan,
         "send_ms": proc.get("send_ms") or math.nan,
         "replaced": proc.get("replaced", 0),
+        "load": load,
+        "sql": live.sql_status(),
     }
     srv.should_exit = True
     thread.join(10)
@@ -195,11 +262,25 @@ def main(process: bool = True) -> None:
         alone, _, _ = _run(log, tmp, loaded=False, process=process)
         loaded, lat, errors = _run(log, tmp, loaded=True, process=process)
     n = sum(len(v) for v in lat.values())
+    load = loaded["load"]
     where = "a process of its own" if process else "a thread of the server's process"
     print(
         f"{n} requests in {loaded['wall_s']:.1f} s (a {LOG_SECONDS:g} s log; alone it took "
         f"{alone['wall_s']:.1f} s), {len(errors)} server errors; the node in {where}"
     )
+    print(
+        f"load: {load['achieved_per_s']:.1f} requests/s sent over the {load['window_s']:.1f} s "
+        f"the replay ran (scheduled {RATE_PER_S:g}/s); sends late against the schedule by "
+        f"{load['late_ms_p50']:.1f} ms p50, {load['late_ms_p99']:.1f} ms p99"
+    )
+    stale = load["sql_staleness_ms"]
+    if stale:
+        sql = loaded["sql"]
+        print(
+            f"SQL staleness (newest cycle - the cycle SQL read): {np.percentile(stale, 50):.0f}"
+            f" ms p50, {max(stale):.0f} ms max; source {sql.get('source')}, node's copy "
+            f"{sql.get('copy_ms')} ms, server's open {sql.get('open_ms')} ms (the last)"
+        )
     print(
         f"mean cycle {alone['mean_cycle_ms']:.1f} ms alone, {loaded['mean_cycle_ms']:.1f} ms "
         f"under load ({loaded['mean_cycle_ms'] / alone['mean_cycle_ms']:.3f}x)"
@@ -227,8 +308,13 @@ def main(process: bool = True) -> None:
     )  # fmt: skip
     record(f"serve_max_lag_ms_under_load{suffix}", loaded["max_lag_ms"], "ms",
            baseline="no requests", baseline_value=alone["max_lag_ms"], command=CMD)  # fmt: skip
-    record(f"serve_requests_per_s{suffix}", n / loaded["wall_s"], "1/s",
+    record(f"serve_requests_per_s{suffix}", load["achieved_per_s"], "1/s",
            target=f">= {RATE_PER_S:g}", command=CMD)  # fmt: skip
+    record(f"serve_load_late_ms_p99{suffix}", load["late_ms_p99"], "ms", command=CMD)
+    if stale:
+        record(f"serve_sql_staleness_ms_p50{suffix}", float(np.percentile(stale, 50)), "ms",
+               command=CMD)  # fmt: skip
+        record(f"serve_sql_staleness_ms_max{suffix}", float(max(stale)), "ms", command=CMD)
     record(f"serve_replay_wall_s_under_load{suffix}", loaded["wall_s"], "s",
            baseline="the same replay with no requests", baseline_value=alone["wall_s"],
            target="ratio <= 1.0 (real time)", command=CMD)  # fmt: skip

@@ -167,6 +167,20 @@ class KnowledgeDatabase:
             persist.copy_snapshot(Path(self.path), target)
         return target
 
+    def copy_committed(self, path: str | Path) -> tuple[int, int]:
+        """Copy what the KD file holds as of its last flush (the file and its write-ahead log,
+        no flush, no CHECKPOINT, no fsync) to ``path`` and ``path.wal``, under the KD's lock
+        so that no commit lands mid-copy; returns (file bytes, log bytes). A read-only open of
+        the pair (:func:`kd_store.query.open_copy`) sees the KD as of that flush. Cheaper for
+        the writer than :meth:`publish_snapshot` (no checkpoint, nothing waits for the disk)
+        but no durable snapshot: for readers on this host, each copy to a new ``path``
+        (:func:`kd_store.persist.copy_with_wal`). KDError for a throwaway KD or a failed
+        copy."""
+        if str(self.path) == ":memory:" or self._read_only:
+            raise KDError(f"KD copy {path}: only a KD file open for writing is copied this way")
+        with self._lock:
+            return persist.copy_with_wal(Path(self.path), Path(path))
+
     def _load(self, s: persist.Stored) -> None:
         """Recall long-term memory: frames, relations and classes (histories stay on disk)."""
         stored = {p.name: p for p in s.classes}

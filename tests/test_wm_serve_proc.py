@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from serving import served, start_live
+from serving import acquire_node_lock, served, start_live
 
 pytest.importorskip("fastapi")
 pytest.importorskip("uvicorn")
@@ -95,10 +95,9 @@ def test_a_node_in_its_own_process_answers_as_one_in_a_thread(log, tmp_path) -> 
         assert proc[key] == thread[key], key
 
 
-def _slow_sql(base: str, out: list) -> None:
+def _waiting_lookup(base: str, path: str, out: list) -> None:
     t0 = time.perf_counter()
-    query = "SELECT count(*) FROM range(100000) a, range(100000) b WHERE a.range + b.range < 0"
-    code, ans = call(base, "/v1/sql", {"query": query})
+    code, ans = call(base, path)
     out.append((code, ans, time.perf_counter() - t0))
 
 
@@ -119,14 +118,19 @@ def test_a_killed_node_process_is_an_error_and_503s_never_a_hang(log, tmp_path) 
             assert live.status.cycles >= 3 and not live.status.done
             code, me = call(base, "/v1/self")
             assert code == 200
-            flight: list = []
-            slow = threading.Thread(target=_slow_sql, args=(base, flight))
-            slow.start()
             events: list = []
             client = Client(base, token=TOKEN)
             reader = threading.Thread(target=lambda: events.extend(client.stream(timeout_s=60)))
             reader.start()
-            time.sleep(0.5)  # the query is in the node's process now, the stream subscribed
+            time.sleep(0.5)  # subscribed (which takes the node's lock once)
+            flight: list = []
+            # a lookup of another time waits in the node's process for the node's lock, held
+            # here as a long cycle would hold it (SQL no longer goes there: wm.serve_sql)
+            live.call(acquire_node_lock)
+            then = f"/v1/entities/{me['entity_id']}?t_ns={me['t_ns']}"
+            slow = threading.Thread(target=_waiting_lookup, args=(base, then, flight))
+            slow.start()
+            time.sleep(0.5)  # the lookup waits in the node's process
             os.kill(live.process_status()["pid"], signal.SIGKILL)
             t0 = time.perf_counter()
             slow.join(ANSWER_S + 5)

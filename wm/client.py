@@ -14,6 +14,7 @@ with the server's ``detail``, which names the offending value.
 from __future__ import annotations
 
 import json
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -21,6 +22,9 @@ from collections.abc import Iterator
 from typing import Any
 
 from core.errors import EngineError
+
+#: words of the 503 a server answers SQL with before its first copy of the KD (wm.serve_sql)
+NO_COPY = "no read-only copy of the KD for SQL yet"
 
 
 class ClientError(EngineError, RuntimeError):
@@ -226,11 +230,20 @@ class Client:
         with resp:
             yield from _sse_events(resp)
 
-    def sql(self, query: str) -> dict:
-        """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns"}``
-        (``truncated`` always false: a result over the server's row or byte limit raises
-        ClientError with status 413 and the limit in its words)."""
-        return self._call("/v1/sql", body={"query": query})
+    def sql(self, query: str, wait_s: float = 10.0) -> dict:
+        """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns",
+        "newest_cycle_t_ns", "staleness_ns"}`` (``truncated`` always false: a result over the
+        server's row or byte limit raises ClientError with status 413 and the limit in its
+        words). A server whose node has made no copy of its KD for SQL yet answers 503 the
+        first time SQL is asked for: asked again every 0.25 s for up to ``wait_s`` s."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                return self._call("/v1/sql", body={"query": query})
+            except ClientError as e:
+                if e.status != 503 or NO_COPY not in str(e) or time.monotonic() > deadline:
+                    raise
+            time.sleep(0.25)
 
 
 def _polygon_stamped(points: list[tuple[float, ...]]) -> dict:

@@ -29,15 +29,22 @@ lookups at another time or in another frame (they read state and pose histories)
 request for a map layer, the events or a level's attention (and a layer beyond the copy's
 byte limit), which also asks the cycles after to copy it; anything before the first cycle;
 a stream client's subscription (once per client: the node's listener list). SQL reads the
-KD file as of the node's last flush (each second of log time), under the KD's own lock only.
+KD file as of the node's last flush (each second of log time): with the node in a process of
+its own, from a read-only copy of the KD the node's process makes every few seconds while SQL
+is asked for, opened and queried in the server's process (:mod:`wm.serve_sql`; a 503 before
+the first copy); in a thread, on the KD itself under the KD's own lock only. Either way SQL
+never waits for the node's lock.
 
 :func:`create_app` is the HTTP API (FastAPI; OpenAPI schema at ``/openapi.json``), versioned
 under ``/v1``. Every answer carries the time of the cycle it comes from (``cycle_t_ns``, int64
-ns, log time) and the frame its positions are in. Bad parameters (an unknown entity, frame or
-region, an interval that ends before it starts, a statement that is not one read-only SELECT or
-reaches outside the KD) get a 4xx whose ``detail`` names the value. SQL runs on the KD's own
-database, opened with DuckDB's external access off and its configuration locked
-(:func:`kd_store.query.served_settings`), with a time limit. The server binds to 127.0.0.1
+ns, log time) and the frame its positions are in; a SQL answer, the cycle whose flush it
+reads, and how far that is behind the newest cycle (``staleness_ns``). Bad parameters (an
+unknown entity, frame or region, an interval that ends before it starts, a statement that is
+not one read-only SELECT or reaches outside the KD) get a 4xx whose ``detail`` names the
+value. SQL runs on a copy of the KD (or, with the node in a thread, the KD's own database)
+opened with DuckDB's external access off and its configuration locked
+(:func:`kd_store.query.open_copy`, :func:`kd_store.query.served_settings`), with a time
+limit. The server binds to 127.0.0.1
 unless told otherwise; a bearer token, when set, is required on every request. Bodies are
 limited in size (413) and, if asked, each client's request rate (429): :mod:`wm.limits`.
 With ``--ingest`` the node has no log: clients post ROS 2 messages to ``/v1/ingest``
@@ -65,6 +72,7 @@ This module imports FastAPI; the command line imports it only for ``wm serve``.
 from __future__ import annotations
 
 import math
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Hashable, Sequence
@@ -268,6 +276,13 @@ class LiveNode:
         self.stream_clients = 0
         self.stream_diff: Any | None = None  # wm.serve_views.CycleDiff, once a client came
         self._link: Any | None = None  # wm.serve_proc.NodeLink when ``process``
+        # with ``process`` and a KD file: the copies of the KD SQL is answered from in this
+        # process (wm.serve_sql.SQLCopies), made at most every ``sql_copy_period_s`` s of wall
+        # time (settable before start)
+        from wm.serve_sql import SQL_COPY_PERIOD_S
+
+        self.sql_copies: Any | None = None
+        self.sql_copy_period_s = SQL_COPY_PERIOD_S
         self._ready = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="live-node", daemon=True)
@@ -281,8 +296,15 @@ class LiveNode:
         """Open the log and the KD and start replaying; returns once queries can be served."""
         if self.process:
             from wm.serve_proc import NodeLink
+            from wm.serve_sql import SQLCopies
 
-            self._link = NodeLink.start(self, timeout_s)
+            if self.kd_path != ":memory:":  # a throwaway KD has no file to copy
+                self.sql_copies = SQLCopies(tempfile.mkdtemp(prefix="wm-sql-copies-"))
+            try:
+                self._link = NodeLink.start(self, timeout_s)
+            except BaseException:
+                self._close_sql_copies()
+                raise
             return self
         self._thread.start()
         if not self._ready.wait(timeout_s):
@@ -298,6 +320,7 @@ class LiveNode:
             self._link.stop(timeout_s)
             self.closed = True
             self.snapshot = None
+            self._close_sql_copies()
             return
         self._stop.set()
         if self._thread.ident is not None:  # started (a start that failed in a process: not)
@@ -307,6 +330,11 @@ class LiveNode:
                 self.kd.close()
             self.closed = True
             self.snapshot = None
+
+    def _close_sql_copies(self) -> None:
+        if self.sql_copies is not None:
+            self.sql_copies.close()
+            self.sql_copies = None
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Wait for the end of the log; True when the replay is done."""
@@ -369,6 +397,16 @@ class LiveNode:
         from wm.serve_copy import copy_levels
 
         return copy_levels(self.node.stack, {})
+
+    def sql_status(self) -> dict:
+        """What ``/v1/status`` says of SQL (``sql``): ``source`` ``"copy"`` (a copy of the KD in
+        this process, :meth:`wm.serve_sql.SQLCopies.figures`) or ``"node"`` (the KD itself,
+        with the node: in a thread, or a throwaway KD)."""
+        copies = self.sql_copies
+        if copies is None:
+            return {"source": "node"}
+        snap = self.snapshot
+        return copies.figures(snap.cycle_t_ns if snap is not None else self.status.cycle_t_ns)
 
     def process_status(self) -> dict | None:
         """What ``/v1/status`` says of the node's process (None for a node in a thread):
@@ -509,16 +547,20 @@ def what_is_query(live: LiveNode, query: str, *args: Any) -> tuple[Any, int]:
 
 
 def sql_query(live: LiveNode, query: str, limits: Any) -> tuple[Any, int]:
-    """(Arrow table, the newest cycle's time) of one read-only SELECT over the KD's views as
-    of the node's last flush (:func:`kd_store.query.query_reader` within ``limits``). A
-    reader needs only the KD's own lock, not the node's, so SQL never waits for a cycle."""
+    """(Arrow table, the time of the cycle whose flush it reads) of one read-only SELECT over
+    the KD's views as of the node's last flush (:func:`kd_store.query.query_reader` within
+    ``limits``), on the KD itself: the node in a thread, or a throwaway KD. A reader needs
+    only the KD's own lock, not the node's, so SQL never waits for a cycle; a flush landing
+    between the time read and the query's start makes the answer up to one flush newer."""
     from kd_store.query import query_reader
+    from wm.serve_sql import flushed_cycle
 
     kd = live.kd
     if kd is None or live.closed:
         raise HTTPException(503, "the KD is not open (not started, or stopped)")
     reader = kd.reader()
-    cycle = live.status.cycle_t_ns
+    cycle = flushed_cycle(live)
+    cycle = -1 if cycle is None else cycle
     try:
         return query_reader(reader, query, limits), cycle
     finally:
@@ -765,6 +807,7 @@ def create_app(
     import kd_store
     from kd_store.errors import KDError, ResultTooLarge
     from kd_store.query import QueryLimits
+    from wm.serve_sql import SQL_KEY, NoCopyYet
     from wm.whatis import WhatIsError
 
     def authorised(request: Request) -> None:
@@ -805,7 +848,8 @@ def create_app(
         """Cycles run, the newest cycle's sweep time, the lag of the answers behind the newest
         frame read, the newest cycle's wall time and that of its copy for the lock-free answers
         (``snapshot_ms``, part of the cycle's) with the bytes of map layers it holds
-        (``snapshot_map_bytes``), frames read and skipped."""
+        (``snapshot_map_bytes``), frames read and skipped; where SQL is answered from and, for
+        a copy of the KD, its cycle, staleness and costs (``sql``: :mod:`wm.serve_sql`)."""
         s = live.status
         lag = s.newest_frame_t_ns - s.cycle_t_ns if s.cycle_t_ns >= 0 else None
         return {
@@ -824,6 +868,7 @@ def create_app(
             **live.status_extra(),
             "stream": feed.status(),
             "node_process": live.process_status(),
+            "sql": live.sql_status(),
         }
 
     def present(entity_id: int | None, t_ns: int | None, frame: str) -> dict | None:
@@ -929,21 +974,43 @@ def create_app(
 
     @app.post("/v1/sql")
     def sql(req: SQLRequest) -> dict:
-        """One read-only SELECT over the KD's views (docs/kd.md) as of the node's last flush
-        (at most a second of log time before ``cycle_t_ns``); JSON columns and rows. A result
-        of more than 100 000 rows or 64 MB is refused with a 413 naming the limit (it is read
-        batch by batch and stopped there, never held whole); ``truncated`` is always false,
-        kept for clients of the earlier answer that cut the rows instead."""
+        """One read-only SELECT over the KD's views (docs/kd.md); JSON columns and rows, as of
+        the cycle ``cycle_t_ns`` (int64 ns, log time), the last the KD file held when read,
+        which is ``staleness_ns`` behind the newest cycle ``newest_cycle_t_ns``. With the node
+        in a process of its own (``wm serve``'s default) the query reads a read-only copy of
+        the KD the node makes at most every 2 s of wall time while SQL is asked for (its last
+        flush, each second of log time): a few seconds behind, more than other answers' one
+        cycle; a 503 with Retry-After before the first copy. With the node in a thread it
+        reads the KD itself, as of the last flush (at most a second behind). A result of more
+        than 100 000 rows or 64 MB is refused with a 413 naming the limit (it is read batch by
+        batch and stopped there, never held whole); ``truncated`` is always false, kept for
+        clients of the earlier answer that cut the rows instead."""
+        copies = live.sql_copies
         try:
-            table, cycle = live.call(sql_query, req.query, sql_limits)
+            if copies is None:
+                table, cycle = live.call(sql_query, req.query, sql_limits)
+            else:
+                if not live.running:
+                    raise ServeError("the live node is not running (not started, or stopped)")
+                live.demand.ask([SQL_KEY])  # the node copies its KD while SQL is asked for
+                try:
+                    table, copy = copies.query(req.query, sql_limits)
+                except NoCopyYet as e:
+                    retry = str(max(1, math.ceil(live.sql_copy_period_s)))
+                    raise HTTPException(503, str(e), headers={"Retry-After": retry}) from None
+                cycle = copy.cycle_t_ns
         except ServeError as e:
             raise bad(e, 503) from None
         except KDError as e:
             # too large a result is not a bad statement: 413 tells a client to narrow it
             raise bad(e, 413 if isinstance(e, ResultTooLarge) else 400) from None
         rows = [[_json_value(v) for v in r.values()] for r in table.to_pylist()]
+        snap = live.snapshot
+        newest = max(cycle, snap.cycle_t_ns if snap is not None else live.status.cycle_t_ns)
         return {
             "cycle_t_ns": cycle,
+            "newest_cycle_t_ns": newest,
+            "staleness_ns": newest - cycle if cycle >= 0 else None,
             "columns": table.column_names,
             "rows": rows,
             "truncated": False,

@@ -24,6 +24,9 @@ process keeps a :class:`NodeLink` to it over two pipes:
   tells the node, without an answer: the views clients asked for lately
   (:class:`~wm.serve_copy.ServedDemand`; at once when a key is new, else after each snapshot
   when the list changed), and how many stream clients there are.
+* SQL (a KD file only): while clients ask for it, a thread of the node's process copies the KD
+  for the server every few seconds and the news names each copy; the server answers SQL from
+  the newest itself, costing the node's process only the copy (:mod:`wm.serve_sql`).
 
 Frames posted to ``/v1/ingest`` are decoded in the server's process and cross in a bounded
 :class:`multiprocessing.Queue` (full: dropped and counted, :mod:`wm.ingest`).
@@ -70,6 +73,7 @@ from fastapi import HTTPException
 
 from core.process import die_with_parent, exit_with_parent
 from wm.serve import CycleSnapshot, LiveNode, LiveStatus, ServeError
+from wm.serve_sql import CopyPublisher, SQLCopy
 
 #: threads in the node's process answering requests (SQL may take seconds: more than one)
 CALL_THREADS = 4
@@ -152,6 +156,7 @@ class NodeNews:
     stream_dropped: int = 0
     send_ms: float = float("nan")  # the node's process's pickling and writing of the last one
     final: bool = False
+    sql_copy: SQLCopy | None = None  # the newest copy of the KD for SQL, since the last message
 
 
 class _Outbox:
@@ -166,6 +171,8 @@ class _Outbox:
         self._posted_t = 0.0
         self._stream: deque[bytes] = deque()
         self._final = False
+        self._sql_copy: SQLCopy | None = None
+        self._closed = False
         self.replaced = 0
         self.stream_dropped = 0
 
@@ -180,6 +187,12 @@ class _Outbox:
             self._final |= final
             self._cond.notify()
 
+    def post_sql(self, copy: SQLCopy) -> None:
+        """The SQL copy thread: a new copy of the KD (a newer one replaces one not sent)."""
+        with self._cond:
+            self._sql_copy = copy
+            self._cond.notify()
+
     def stream(self, message: bytes) -> None:
         with self._cond:
             if len(self._stream) >= STREAM_BACKLOG:
@@ -188,40 +201,53 @@ class _Outbox:
             self._stream.append(message)
             self._cond.notify()
 
+    def close(self) -> None:
+        """Nothing more will be posted: :meth:`take` returns None once all is taken."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+
     def take(self, last_sent: float, send_ms: float) -> NodeNews | None:
-        """The news to send: waits until there is a snapshot, stream messages or the final
-        status, or a status and :data:`STATUS_PERIOD_S` s since ``last_sent``."""
+        """The news to send: waits until there is a snapshot, stream messages, a copy of the
+        KD for SQL or the final status, or a status and :data:`STATUS_PERIOD_S` s since
+        ``last_sent``; None when closed (:meth:`close`) with nothing left to send."""
         with self._cond:
             while True:
                 urgent = self._snapshot is not None or self._stream or self._final
+                urgent = urgent or self._sql_copy is not None
                 wait = last_sent + STATUS_PERIOD_S - time.monotonic()
-                if urgent or (self._status is not None and wait <= 0):
+                if urgent or (self._status is not None and (wait <= 0 or self._closed)):
                     break
+                if self._closed:
+                    return None
                 self._cond.wait(wait if self._status is not None else None)
             news = NodeNews(
                 self._status, self._snapshot, self._posted_t,
                 list(self._stream), self.replaced, self.stream_dropped, send_ms, self._final,
+                self._sql_copy,
             )  # fmt: skip
-            self._status, self._snapshot = None, None
+            self._status, self._snapshot, self._sql_copy = None, None, None
             self._stream.clear()
+            self._final = False  # sent: the news after (copies for SQL) are no final ones
             return news
 
 
 def _send_news(outbox: _Outbox, conn: Any) -> None:
-    """The sender thread of the node's process: news until the final status, or until the
+    """The sender thread of the node's process: news until the outbox is closed (the node
+    stopped; a node done with its log still sends copies of its KD for SQL), or until the
     server's end of the pipe is closed."""
     lock = threading.Lock()
     last, send_ms = 0.0, float("nan")
     while True:
         news = outbox.take(last, send_ms)
+        if news is None:
+            return
         t = time.perf_counter()
         try:
             send_message(conn, news, lock)
         except OSError:  # the server's process is gone: nobody to tell
             return
         last, send_ms = time.monotonic(), 1e3 * (time.perf_counter() - t)
-        if news.final:
-            return
 
 
 class _GivenDemand:
@@ -284,10 +310,12 @@ def _node_main(
     request_conn: Any,
     parent: int,
     start_timeout_s: float,
+    sql_copies: tuple[str, float] | None = None,
 ) -> None:
     """The node's process: build and start the node, tell the server it is ready (or why
     not), answer requests until told to stop (or SIGTERM), then stop the node (the KD
-    flushed and closed) and send the final status."""
+    flushed and closed) and send the final status. ``sql_copies``: (the server's folder for
+    copies of the KD for SQL, their period in s of wall time), None: SQL goes to the node."""
     die_with_parent(parent)
     exit_with_parent(parent, "wm-node-watch")  # where prctl is not there (or not allowed)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server's process stops the node
@@ -295,6 +323,7 @@ def _node_main(
     reply_lock = threading.Lock()
     outbox = _Outbox()
     live: LiveNode | None = None
+    publisher: CopyPublisher | None = None
     try:
         live = cls(**kwargs)
         if ingest_queue is not None:
@@ -307,6 +336,9 @@ def _node_main(
         sender.start()
         live.start(start_timeout_s)
         info = {"vj_config": live.vj_config, "levels": live.map_levels, "pid": os.getpid()}
+        if sql_copies is not None:
+            publisher = CopyPublisher(live, sql_copies[0], sql_copies[1], outbox.post_sql)
+            publisher.start()
         send_message(request_conn, ("ready", info, ""), reply_lock)
         calls: queue.Queue = queue.Queue()
         for k in range(CALL_THREADS):
@@ -337,9 +369,12 @@ def _node_main(
         live.status.error = live.status.error or f"{type(e).__name__}: {e}"
     # a second SIGTERM while the KD is flushed must not cut the flush short
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if publisher is not None:  # no copy of a KD being closed
+        publisher.stop()
     if live is not None:
         live.stop()
         outbox.post(live, False, True)  # the final status, whatever the replay had sent
+        outbox.close()
         sender.join(10.0)
     if ingest_queue is not None:  # frames the node did not take must not hold up the exit
         ingest_queue.cancel_join_thread()
@@ -389,12 +424,14 @@ class NodeLink:
         link._conn, child_conn = ctx.Pipe()
         link._news = news_recv
         queue_ = live.queue if hasattr(live, "queue") else None
+        copies = live.sql_copies
+        sql_copies = None if copies is None else (str(copies.folder), live.sql_copy_period_s)
         # a spawned child imports the caller's main module again (as __mp_main__): scripts
         # that make a process-backed node need a ``if __name__ == "__main__"`` guard
         link.proc = ctx.Process(
             target=_node_main,
             args=(type(live), live.spawn_args(), queue_, news_send, child_conn, os.getpid(),
-                  timeout_s),
+                  timeout_s, sql_copies),
             # not a daemon: the node starts the odometry process of its own
             daemon=False, name="wm-node",
         )  # fmt: skip
@@ -509,6 +546,8 @@ class NodeLink:
                 self._transfer_sum_ms += self.transfer_ms
             if news.status is not None:  # news of stream messages alone keeps the status
                 live.status = news.status
+        if news.sql_copy is not None and live.sql_copies is not None:
+            live.sql_copies.offer(news.sql_copy)
         self.replaced, self.stream_dropped = news.replaced, news.stream_dropped
         self.send_ms = news.send_ms
         if news.snapshot is not None:

@@ -52,7 +52,13 @@ from kd_store.persist.schema import (
     latest_run,
     run_ids,
 )
-from kd_store.persist.snapshots import SNAPSHOT_KEY, copy_snapshot, mark_snapshot, snapshot_target
+from kd_store.persist.snapshots import (
+    SNAPSHOT_KEY,
+    copy_snapshot,
+    copy_with_wal,
+    mark_snapshot,
+    snapshot_target,
+)
 from kd_store.persist.sql import cursor, read_only_query
 from kd_store.persist.tile_rows import read_tile, read_tile_keys, tiles_to_arrow
 
@@ -72,6 +78,7 @@ __all__ = [
     "classes_to_arrow",
     "connect",
     "copy_snapshot",
+    "copy_with_wal",
     "current_states_to_arrow",
     "cursor",
     "entities_from_arrow",

@@ -1,6 +1,8 @@
 """Read-only snapshots of a KD file: a byte copy published atomically beside it after a
 checkpoint, for other processes to open while the node writes the KD, and the rule for
-where one may be published (never over the KD, the log or any file that is no snapshot).
+where one may be published (never over the KD, the log or any file that is no snapshot);
+and the cheaper copy of a KD file with its write-ahead log (:func:`copy_with_wal`) that a
+live node's server reads SQL from.
 """
 
 from __future__ import annotations
@@ -101,6 +103,28 @@ def copy_snapshot(kd_path: Path, target: Path) -> None:
     except OSError as e:
         partial.unlink(missing_ok=True)
         raise KDError(f"snapshot {target}: cannot publish ({e})") from None
+
+
+def copy_with_wal(kd_path: Path, target: Path) -> tuple[int, int]:
+    """Copy the KD file ``kd_path`` and its write-ahead log, as they lie between two commits
+    (the caller holds the KD's lock), to ``target`` and ``target.wal``; returns (file bytes,
+    log bytes). No CHECKPOINT and no fsync: a read-only open of the pair replays the log into
+    its own memory, so the copy costs the writer only the bytes copied, and it is a working
+    copy for readers on this host that the next one replaces, not a durable one. ``target``
+    must be a new name (a reader may hold the one before open); a ``target.wal`` there is
+    removed when the KD has no log, so that it is not replayed into the copy."""
+    wal, target_wal = Path(f"{kd_path}.wal"), Path(f"{target}.wal")
+    try:
+        shutil.copyfile(kd_path, target)
+        if wal.exists():
+            shutil.copyfile(wal, target_wal)
+        else:
+            target_wal.unlink(missing_ok=True)
+        return target.stat().st_size, target_wal.stat().st_size if wal.exists() else 0
+    except OSError as e:
+        target.unlink(missing_ok=True)
+        target_wal.unlink(missing_ok=True)
+        raise KDError(f"KD copy {target}: cannot write it ({e})") from None
 
 
 def _fsync_dir(folder: Path) -> None:
