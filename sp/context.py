@@ -22,6 +22,7 @@ from sp.classify import ClassifyConfig
 from sp.egosphere import EgosphereConfig
 from sp.events import EventClass
 from sp.ground import GroundConfig
+from sp.ground_prior import GroundPriorConfig
 from sp.groups import GroupConfig
 from sp.images import ClassTable
 from sp.lists import ListConfig
@@ -50,6 +51,7 @@ class SPConfig:
         default_factory=lambda: EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1)
     )
     ground: GroundConfig = field(default_factory=GroundConfig)
+    ground_prior: GroundPriorConfig = field(default_factory=GroundPriorConfig)
     segments: SegmentConfig = field(default_factory=SegmentConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)

@@ -29,6 +29,7 @@ from sp.classify import Classifier
 from sp.computation import SegmentAttributes, ground_plane
 from sp.context import IMAGE_NAMES, KD_STATUS, SPConfig, SPContext, row_step, unit
 from sp.ground import ground_mask
+from sp.ground_prior import GroundPrior, not_ground
 from sp.level2_lists import ListLevel
 from sp.lists import PatchGrid, patch_grid
 from sp.observations import FrameChange, Related, StateObserved, StateRule
@@ -76,10 +77,22 @@ class SurfaceLevel:
 
     # ------------------------------------------------------------------ grouping: the ground
 
-    def ground_pixels(self, xyz_g: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    def ground_pixels(
+        self,
+        xyz_g: np.ndarray,
+        valid: np.ndarray,
+        xyz_w: np.ndarray | None = None,
+        prior: GroundPrior | None = None,
+    ) -> np.ndarray:
         """(H, W) bool ground pixels of the gravity-aligned points ``xyz_g`` (H, W, 3) m
-        (:func:`ground_mask`)."""
-        ground, _h = ground_mask(xyz_g, valid, self.ctx.config.ground)
+        (:func:`ground_mask`); with the world model's ground ``prior`` and the world points
+        ``xyz_w`` (H, W, 3) m, far returns well above the ground it expects are not ground
+        (:mod:`sp.ground_prior`)."""
+        cfg = self.ctx.config
+        ground, _h = ground_mask(xyz_g, valid, cfg.ground)
+        if prior is not None and xyz_w is not None and cfg.ground_prior.enabled:
+            range_m = np.hypot(xyz_g[..., 0], xyz_g[..., 1])
+            ground &= ~not_ground(xyz_w, range_m, ground, prior, cfg.ground_prior)
         return ground
 
     # ------------------------------------------------------------------ the cycle

@@ -52,6 +52,7 @@ from core.geometry import check_pose
 from kd_store import ClassLibrary
 from logs.types import CameraFrame, LadarScan
 from sp.context import SPConfig, SPContext
+from sp.ground_prior import GroundPrior
 from sp.images import ClassTable
 from sp.level1 import PixelLevel, PixelsObserved, column_poses
 from sp.level1 import PixelLevelError as PipelineError
@@ -165,6 +166,7 @@ class SensoryProcessor:
         attention_world_xyz: np.ndarray | None = None,
         pose_t_ns: int | None = None,
         points_world: np.ndarray | None = None,
+        ground_prior: GroundPrior | None = None,
     ) -> SPResult:
         """One cycle on one sweep (points in the sensor frame, ``T_world_ladar`` the sensor pose
         at ``pose_t_ns``, by default ``scan.t_ns``). ``points_world`` (N, 3) float m: the
@@ -173,11 +175,13 @@ class SensoryProcessor:
         column itself (module docstring). A sweep that fails is logged and skipped;
         the tracks are kept. With a camera frame and its pose, each confirmed object's returns
         are projected into it for its camera intensity and coverage (:mod:`sp.appearance`); a
-        camera frame that fails is logged and skipped, the sweep's result kept."""
+        camera frame that fails is logged and skipped, the sweep's result kept. ``ground_prior``:
+        the ground the world model expects (its terrain map, :mod:`sp.ground_prior`), for the
+        ground of far returns."""
         try:
             T = check_pose(np.asarray(T_world_ladar, dtype=np.float64), "T_world_ladar")
             t_pose = int(scan.t_ns if pose_t_ns is None else pose_t_ns)
-            result = self._process(scan, T, t_pose, attention_world_xyz, points_world)
+            result = self._process(scan, T, t_pose, attention_world_xyz, points_world, ground_prior)
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as e:
             return self._failed(scan, e)
         if camera is not None and T_world_camera is not None:
@@ -205,6 +209,7 @@ class SensoryProcessor:
         pose_t_ns: int,
         attention_world_xyz: np.ndarray | None,
         points_world: np.ndarray | None = None,
+        ground_prior: GroundPrior | None = None,
     ) -> SPResult:
         """The cycle's levels in order (module docstring), each stage timed."""
         l3, l4, T = self.level3, self.level4, T_world_ladar
@@ -212,7 +217,7 @@ class SensoryProcessor:
         t_ns = int(scan.t_ns)
         px = self.level1.step(scan, T, pose_t_ns, points_world)
         clock.lap("egosphere")
-        ground = l3.ground_pixels(px.xyz_g, px.valid)
+        ground = l3.ground_pixels(px.xyz_g, px.valid, px.xyz_w, ground_prior)
         clock.lap("ground")
 
         # level 4: the five SP functions in turn

@@ -173,6 +173,9 @@ class NodeConfig:
     vj: VJConfig = field(default_factory=VJConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)  # What If's vehicle model too
     use_sp: bool = True  # run SP levels 2..5 (off: maps, odometry and predictions only)
+    # the map level whose ground heights SP is given as the ground it should expect
+    # (sp.ground_prior; None: none)
+    ground_prior_level: str | None = "subsystem"
     odometry_process: bool = True  # register sweeps in a child process, one sweep ahead
     # sweeps the odometry process may have in hand: with two, a registration that runs late
     # (the process shares its core with the log's decoder) does not stall the node, for one

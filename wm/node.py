@@ -81,6 +81,7 @@ from logs.types import (
 )
 from maps.stack import MapStack
 from maps.terrain import update_terrain
+from sp.ground_prior import GroundPrior
 from sp.odometry import OdometryError
 from sp.pipeline import SensoryProcessor, SPResult
 from wm import predict, vj
@@ -247,6 +248,8 @@ class WorldModelNode:
             else None
         )
         self.entities = EntityUpdater(kd)
+        if self.config.ground_prior_level is not None:  # names the levels when it is none
+            self.stack.level(self.config.ground_prior_level)
         if self.sp is None:
             self.stats.notes.append("SP levels 2..5 off (NodeConfig.use_sp)")
         self.T_body_ladar: np.ndarray | None = None
@@ -819,6 +822,7 @@ class WorldModelNode:
             attention_world_xyz=self.attention_world_xyz,
             pose_t_ns=t_pose_ns,
             points_world=points_world,
+            ground_prior=self._ground_prior(),
         )
         if len(result.points_world):
             self.stack.fuse_labels(
@@ -827,6 +831,17 @@ class WorldModelNode:
         for name, s in getattr(result, "timings_s", {}).items():
             self.stats.stage_s[f"sp.{name}"] += float(s)
         return result
+
+    def _ground_prior(self) -> GroundPrior | None:
+        """The ground SP should expect: the ground heights of the map level
+        ``ground_prior_level``, fused from earlier sweeps and this one (a view of the level's
+        storage, read during SP's call only)."""
+        name = self.config.ground_prior_level
+        if name is None:
+            return None
+        lvl = self.stack.level(name)
+        ix0, iy0 = (int(v) for v in lvl.origin_cell)
+        return GroundPrior(lvl.storage("elevation"), (ix0, iy0), lvl.resolution_m)
 
     def _update_entities(self, sp_result: SPResult | None) -> None:
         """Step 4, the world model's part: SP's observations into the KD (entity and event

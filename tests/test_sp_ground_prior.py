@@ -1,0 +1,164 @@
+"""The world model's ground as SP's prior for far returns (sp.ground_prior): the expected
+ground on a map grid, far returns over a car judged against it, and the node's prior against
+the simulator's terrain."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sp.ground import GroundConfig, ground_mask
+from sp.ground_prior import GroundPrior, GroundPriorConfig, GroundPriorError, not_ground
+
+RES = 0.4
+SLOPE = math.tan(math.radians(15.0))
+
+
+def _prior(heights: dict[tuple[int, int], float], n: int = 64, origin=(-20, 35)) -> GroundPrior:
+    """A toroidal grid holding ``heights`` at global cells (ix, iy), NaN elsewhere."""
+    z = np.full((n, n), np.nan, dtype=np.float32)
+    for (ix, iy), h in heights.items():
+        z[iy % n, ix % n] = h
+    return GroundPrior(z, origin, RES)
+
+
+def _block(x0: int, x1: int, y0: int, y1: int, h: float) -> dict[tuple[int, int], float]:
+    return {(ix, iy): h for ix in range(x0, x1) for iy in range(y0, y1)}
+
+
+def test_expected_ground_is_the_lowest_known_nearby_raised_by_the_slope() -> None:
+    # ground at 0 m around a 2 m x 2 m roof the map took for ground (1.4 m), window at
+    # cells -20..43 x 35..98
+    cells = _block(-10, 10, 40, 60, 0.0) | _block(-2, 3, 48, 53, 1.4)
+    prior = _prior(cells)
+    centre = (np.array([[0, 50]]) + 0.5) * RES  # the roof's middle cell
+    # the nearest ground cell is 3 cells (1.2 m) away
+    assert prior.expected(centre, 2.0, SLOPE)[0] == pytest.approx(3 * RES * SLOPE, abs=1e-6)
+    # a smaller radius sees only the roof
+    assert prior.expected(centre, 0.8, SLOPE)[0] == pytest.approx(1.4, abs=1e-6)
+    # no slope allowance: the ground itself
+    assert prior.expected(centre, 2.0, 0.0)[0] == pytest.approx(0.0, abs=1e-6)
+    # unknown within the radius, and outside the window (whose storage cell holds ground)
+    far_xy = (np.array([[-15, 80], [-10 + 64, 45]]) + 0.5) * RES
+    assert np.isnan(prior.expected(far_xy, 2.0, SLOPE)).all()
+
+
+def test_a_prior_grid_that_is_not_square_is_refused() -> None:
+    with pytest.raises(GroundPriorError, match=r"\(4, 5\)"):
+        GroundPrior(np.zeros((4, 5)), (0, 0), RES)
+    with pytest.raises(GroundPriorError, match="resolution_m -1"):
+        GroundPrior(np.zeros((4, 4)), (0, 0), -1.0)
+    with pytest.raises(GroundPriorError, match="slope_deg 85"):
+        GroundPriorConfig(slope_deg=85.0)
+
+
+SENSOR_H = 1.8
+
+
+def _column(profile: list[tuple[float, float]], n_cols: int = 90) -> tuple[np.ndarray, ...]:
+    """An image whose every column holds ``profile`` ((range m, height m) below the sensor,
+    bottom row first) at azimuths around the sensor at the world origin; (xyz, valid,
+    horizontal range)."""
+    az = np.linspace(-np.pi, np.pi, n_cols, endpoint=False)
+    r = np.array([p[0] for p in profile])[::-1, None]
+    z = np.array([p[1] for p in profile])[::-1, None]
+    xyz = np.stack(np.broadcast_arrays(r * np.cos(az), r * np.sin(az), z), axis=-1)
+    valid = np.ones((len(profile), n_cols), dtype=bool)
+    return np.ascontiguousarray(xyz, dtype=np.float64), valid, np.hypot(xyz[..., 0], xyz[..., 1])
+
+
+def _flat_prior(z_m: float, n: int = 256) -> GroundPrior:
+    return GroundPrior(np.full((n, n), z_m, dtype=np.float32), (-n // 2, -n // 2), RES)
+
+
+# the ground every 2.5 m out to 25 m, as the low beams see it far out
+FAR_GROUND = [(2.0 + 2.5 * k, -SENSOR_H) for k in range(10)]
+
+
+def test_a_far_return_over_flat_ground_is_not_ground_with_the_prior() -> None:
+    # one return 0.9 m up at 30 m (a car's roof over nearer cars, a low rock's top): from the
+    # last ground return 7.5 m before it, a gentle rise the column walk takes for ground
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, -SENSOR_H + 0.9)])
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert ground[0].all()  # without the prior
+    off = not_ground(xyz, rng, ground, _flat_prior(-SENSOR_H), GroundPriorConfig())
+    assert off[0].all() and not off[1:].any()
+    # ... unless the map knows nothing there
+    unknown = _flat_prior(np.nan)
+    assert not not_ground(xyz, rng, ground, unknown, GroundPriorConfig()).any()
+
+
+def test_a_far_slope_the_prior_knows_stays_ground() -> None:
+    # the ground rises at 10 degrees from 20 m; the map holds the slope (its cells' heights)
+    rise = math.tan(math.radians(10.0))
+    profile = FAR_GROUND[:8] + [(r, -SENSOR_H + (r - 20.0) * rise) for r in (22.0, 26.0, 30.0)]
+    xyz, valid, rng = _column(profile)
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert ground.all()
+    n = 256
+    ix = (np.arange(n) + n // 2) % n - n // 2  # the global cell each storage column holds
+    x_centre = (ix + 0.5) * RES
+    z = np.broadcast_to(-SENSOR_H + np.clip(np.hypot(x_centre, 0.0) - 20.0, 0, None) * rise, (n, n))
+    # a radial slope along x only at the azimuth 0 columns; judge those columns
+    prior = GroundPrior(np.ascontiguousarray(z, dtype=np.float32), (-n // 2, -n // 2), RES)
+    col0 = np.argmin(np.abs(np.arctan2(xyz[0, :, 1], xyz[0, :, 0])))
+    off = not_ground(xyz, rng, ground, prior, GroundPriorConfig())
+    assert not off[:, col0].any()
+    # the same returns over a flat map 1 m lower are judged objects
+    off_low = not_ground(xyz, rng, ground, _flat_prior(-SENSOR_H - 1.0), GroundPriorConfig())
+    assert off_low[:3, col0].all()
+
+
+def test_near_returns_are_left_to_the_column_walk() -> None:
+    xyz, valid, rng = _column(FAR_GROUND)
+    ground = np.ones(valid.shape, dtype=bool)
+    below = _flat_prior(-SENSOR_H - 1.0)  # a prior a metre too low
+    off = not_ground(xyz, rng, ground, below, GroundPriorConfig(min_range_m=15.0))
+    assert off[rng >= 15.0].all() and not off[rng < 15.0].any()
+
+
+@pytest.fixture(scope="module")
+def node_and_world(tmp_path_factory):
+    """A node run with the true poses over a 3 s default-scenario log, and the log's world."""
+    from fixtures.simulate import Simulator, simulate_to_log
+    from wm.config import NodeConfig, PoseSource
+    from wm.run import run_node
+
+    path = tmp_path_factory.mktemp("prior") / "default.mcap"
+    simulate_to_log("default", path, seconds=3.0, seed=7, progress=False)
+    node = run_node(path, ":memory:", NodeConfig(pose_source=PoseSource.TRUTH))
+    yield node, Simulator("default", seed=7).world
+    node.kd.close()
+
+
+def test_the_node_gives_sp_the_terrain(node_and_world) -> None:
+    node, world = node_and_world
+    prior = node._ground_prior()
+    lvl = node.stack.level(node.config.ground_prior_level)
+    rows, cols = np.mgrid[0 : lvl.size, 0 : lvl.size]
+    xy = lvl.window_to_world(rows.ravel(), cols.ravel())
+    body = node.track.at(node.last_sweep_t_ns)[:2, 3]
+    xy = xy[np.hypot(*(xy - body).T) <= 35.0]
+    own = prior.expected(xy, 0.0, 0.0)  # the map's own cells
+    known = np.isfinite(own)
+    assert known.mean() > 0.4  # the map knows much of the ground within 35 m
+    cfg = GroundPriorConfig()
+    expected = prior.expected(xy[known], cfg.radius_m, math.tan(math.radians(cfg.slope_deg)))
+    err = expected - np.asarray(world.height(xy[known, 0], xy[known, 1]))
+    # the expected ground is the simulator's terrain: to a few cm in the median, and never
+    # far above it (a building's roof, wider than the radius, is the exception)
+    assert np.median(np.abs(err)) < 0.05
+    lo, hi = np.quantile(err, [0.01, 0.99])
+    assert lo > -0.35 and hi < 0.15
+
+
+def test_a_node_refuses_a_ground_prior_level_it_has_not() -> None:
+    import kd_store
+    from maps.stack import StackError
+    from wm.config import NodeConfig
+    from wm.node import WorldModelNode
+
+    with kd_store.open(":memory:") as kd, pytest.raises(StackError, match=r"'nowhere'.*subsystem"):
+        WorldModelNode(kd, NodeConfig(ground_prior_level="nowhere"))
