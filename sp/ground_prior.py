@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from core.errors import EngineError
@@ -31,7 +32,7 @@ class GroundPriorError(EngineError, ValueError):
 class GroundPriorConfig:
     """How SP uses the world model's ground (metres, degrees).
 
-    min_range_m:  only returns at least this far (horizontal range from the sensor) are checked;
+    min_range_m:  only returns at least this far (range from the sensor) are checked;
                   nearer, the rows lie close enough for the column walk alone.
     above_m:      a ground return more than this above the expected ground is not ground:
                   above a curb, a bank or the envelope's slope allowance, below a car's roof
@@ -81,34 +82,70 @@ class GroundPrior:
         if not self.resolution_m > 0:
             raise GroundPriorError(f"ground prior resolution_m {self.resolution_m} is not > 0")
 
+    def lowest_around(self, radius_m: float) -> np.ndarray:
+        """(n, n) float32 toroidal grid: the lowest known height in the square of (2k + 1)^2
+        cells around each cell (k = ``radius_m`` // resolution), wrapping over the storage's
+        edge (+inf where none known). For a cell at least k cells inside the window it is a
+        lower bound of :meth:`expected` there."""
+        k = int(radius_m // self.resolution_m)
+        z = np.asarray(self.z_m, dtype=np.float32)
+        z = np.where(np.isnan(z), np.float32(np.inf), z)
+        if k == 0:
+            return z
+        import cv2
+
+        padded = np.pad(z, k, mode="wrap")
+        low = cv2.erode(padded, np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+        return low[k:-k, k:-k]
+
     def expected(self, xy_m: np.ndarray, radius_m: float, slope_tan: float) -> np.ndarray:
         """(N,) float64 expected ground height (world z, m) at world points ``xy_m`` (N, 2):
         the minimum over known cells whose centre lies within ``radius_m`` of the point's cell
         centre of (height + ``slope_tan`` x distance); NaN where no such cell is known."""
-        xy = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
-        out = np.full(len(xy), np.nan)
-        if not len(xy):
-            return out
-        n, res = self.z_m.shape[0], float(self.resolution_m)
-        cell = np.floor(xy / res).astype(np.int64)
-        # the same cell is asked for by many returns: work per distinct cell
-        cells, inverse = np.unique(cell, axis=0, return_inverse=True)
-        best = np.full(len(cells), np.inf)
-        k = int(radius_m // res)
-        ix0, iy0 = self.origin_cell
-        for dy in range(-k, k + 1):
-            for dx in range(-k, k + 1):
-                d = res * float(np.hypot(dx, dy))
-                if d > radius_m:
-                    continue
-                cx, cy = cells[:, 0] + dx, cells[:, 1] + dy
-                inside = (cx >= ix0) & (cx < ix0 + n) & (cy >= iy0) & (cy < iy0 + n)
-                z = np.full(len(cells), np.nan)
-                z[inside] = self.z_m[cy[inside] % n, cx[inside] % n]
-                np.fmin(best, z + slope_tan * d, out=best)
-        best[~np.isfinite(best)] = np.nan
-        out[:] = best[inverse.reshape(-1)]
-        return out
+        xy = np.ascontiguousarray(np.asarray(xy_m, dtype=np.float64).reshape(-1, 2))
+        ix0, iy0 = (int(v) for v in self.origin_cell)
+        res = float(self.resolution_m)
+        off = _offsets(res, radius_m, slope_tan)
+        return _expected_kernel(xy, np.asarray(self.z_m), ix0, iy0, res, *off)
+
+
+@numba.njit(cache=True, nogil=True)
+def _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise):  # pragma: no cover
+    """The lowest of (height + rise) over the window's known cells at cell (cx, cy) plus each
+    offset (K,): z (n, n) toroidal heights, NaN unknown; NaN when none is known."""
+    n = z.shape[0]
+    best = np.nan
+    for q in range(off_x.shape[0]):
+        nx, ny = cx + off_x[q], cy + off_y[q]
+        if ix0 <= nx < ix0 + n and iy0 <= ny < iy0 + n:
+            v = z[ny % n, nx % n] + rise[q]
+            if v == v and not v >= best:
+                best = v
+    return best
+
+
+@numba.njit(cache=True, nogil=True)
+def _expected_kernel(xy, z, ix0, iy0, res, off_x, off_y, rise):  # pragma: no cover
+    """:meth:`GroundPrior.expected` point by point: xy (N, 2) float64 m, z (n, n) toroidal
+    heights, the window's lowest cell (ix0, iy0), cell edge ``res`` m, the offsets (K,) int64
+    within the radius and the rise (K,) m allowed over each. A cell asked for again (returns of
+    one cell) is looked up in a memo of the window's cells."""
+    n = z.shape[0]
+    memo = np.full((n, n), np.inf)  # inf: not computed yet
+    out = np.empty(xy.shape[0])
+    for i in range(xy.shape[0]):
+        cx = np.int64(np.floor(xy[i, 0] / res))
+        cy = np.int64(np.floor(xy[i, 1] / res))
+        if not (ix0 <= cx < ix0 + n and iy0 <= cy < iy0 + n):
+            # a point outside may still have cells inside
+            out[i] = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
+            continue
+        m = memo[cy % n, cx % n]
+        if m == np.inf:
+            m = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
+            memo[cy % n, cx % n] = m
+        out[i] = m
+    return out
 
 
 def not_ground(
@@ -118,14 +155,72 @@ def not_ground(
     prior: GroundPrior,
     config: GroundPriorConfig,
 ) -> np.ndarray:
-    """(H, W) bool: the ``ground`` pixels (H, W) bool at horizontal range ``range_m`` (H, W) m
-    of at least ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m lies more than
-    ``above_m`` above the ground ``prior`` expects there."""
-    far = ground & (range_m >= config.min_range_m)
-    out = np.zeros(ground.shape, dtype=bool)
-    if not far.any():
-        return out
-    p = xyz_w[far]
-    z0 = prior.expected(p[:, :2], config.radius_m, float(np.tan(np.radians(config.slope_deg))))
-    out[far] = p[:, 2] - z0 > config.above_m  # NaN (no prior) compares False
+    """(H, W) bool: the ``ground`` pixels (H, W) bool at range ``range_m`` (H, W) m of at
+    least ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m lies more than ``above_m``
+    above the ground ``prior`` expects there (:meth:`GroundPrior.expected`)."""
+    res = float(prior.resolution_m)
+    slope_tan = float(np.tan(np.radians(config.slope_deg)))
+    return _not_ground_kernel(
+        np.ascontiguousarray(xyz_w, dtype=np.float64),
+        np.ascontiguousarray(range_m),
+        np.ascontiguousarray(ground, dtype=np.bool_),
+        prior.lowest_around(config.radius_m),
+        np.asarray(prior.z_m),
+        int(prior.origin_cell[0]),
+        int(prior.origin_cell[1]),
+        res,
+        float(config.min_range_m),
+        float(config.above_m),
+        int(config.radius_m // res),
+        *_offsets(res, config.radius_m, slope_tan),
+    )
+
+
+def _offsets(
+    res_m: float, radius_m: float, slope_tan: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cell offsets (K,) int64 x and y whose centres lie within ``radius_m`` of a cell's
+    centre (cells of ``res_m``), and the rise (K,) m allowed over each (``slope_tan`` x its
+    distance)."""
+    k = int(radius_m // res_m)
+    dx, dy = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1))
+    d = res_m * np.hypot(dx, dy).ravel()
+    near = d <= radius_m
+    return dx.ravel()[near].astype(np.int64), dy.ravel()[near].astype(np.int64), slope_tan * d[near]
+
+
+@numba.njit(cache=True, nogil=True)
+def _not_ground_kernel(  # pragma: no cover
+    xyz_w, range_m, ground, low, z, ix0, iy0, res, min_range, above, k, off_x, off_y, rise
+):
+    """:func:`not_ground` pixel by pixel. Most far ground is ground: where no known cell of
+    the square around a pixel's cell (``low``, :meth:`GroundPrior.lowest_around`) lies low
+    enough to make it an object, the exact minimum is not needed; cells within ``k`` of the
+    window's edge, whose square wraps onto other cells, are always computed exactly."""
+    H, W = ground.shape
+    n = z.shape[0]
+    out = np.zeros((H, W), dtype=np.bool_)
+    memo = np.empty((0, 0))
+    for i in range(H):
+        for j in range(W):
+            if not ground[i, j] or not range_m[i, j] >= min_range:
+                continue
+            zp = xyz_w[i, j, 2] - above
+            cx = np.int64(np.floor(xyz_w[i, j, 0] / res))
+            cy = np.int64(np.floor(xyz_w[i, j, 1] / res))
+            inner = ix0 + k <= cx < ix0 + n - k and iy0 + k <= cy < iy0 + n - k
+            if inner and not zp > low[cy % n, cx % n]:
+                continue
+            inside = ix0 <= cx < ix0 + n and iy0 <= cy < iy0 + n
+            if inside:
+                if memo.shape[0] == 0:
+                    memo = np.full((n, n), np.inf)  # inf: not computed yet
+                e = memo[cy % n, cx % n]
+            else:
+                e = np.inf
+            if e == np.inf:
+                e = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
+                if inside:
+                    memo[cy % n, cx % n] = e
+            out[i, j] = zp > e  # NaN (nothing known near) compares False
     return out

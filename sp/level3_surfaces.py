@@ -82,16 +82,17 @@ class SurfaceLevel:
         xyz_g: np.ndarray,
         valid: np.ndarray,
         xyz_w: np.ndarray | None = None,
+        range_m: np.ndarray | None = None,
         prior: GroundPrior | None = None,
     ) -> np.ndarray:
         """(H, W) bool ground pixels of the gravity-aligned points ``xyz_g`` (H, W, 3) m
-        (:func:`ground_mask`); with the world model's ground ``prior`` and the world points
-        ``xyz_w`` (H, W, 3) m, far returns well above the ground it expects are not ground
-        (:mod:`sp.ground_prior`)."""
+        (:func:`ground_mask`); with the world model's ground ``prior``, the world points
+        ``xyz_w`` (H, W, 3) m and the returns' ranges ``range_m`` (H, W) m, far returns well
+        above the ground it expects are not ground (:mod:`sp.ground_prior`)."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)
-        if prior is not None and xyz_w is not None and cfg.ground_prior.enabled:
-            range_m = np.hypot(xyz_g[..., 0], xyz_g[..., 1])
+        use = prior is not None and xyz_w is not None and range_m is not None
+        if use and cfg.ground_prior.enabled:
             ground &= ~not_ground(xyz_w, range_m, ground, prior, cfg.ground_prior)
         return ground
 

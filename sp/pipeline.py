@@ -217,7 +217,7 @@ class SensoryProcessor:
         t_ns = int(scan.t_ns)
         px = self.level1.step(scan, T, pose_t_ns, points_world)
         clock.lap("egosphere")
-        ground = l3.ground_pixels(px.xyz_g, px.valid, px.xyz_w, ground_prior)
+        ground = l3.ground_pixels(px.xyz_g, px.valid, px.xyz_w, px.range_m, ground_prior)
         clock.lap("ground")
 
         # level 4: the five SP functions in turn

@@ -162,3 +162,24 @@ def test_a_node_refuses_a_ground_prior_level_it_has_not() -> None:
 
     with kd_store.open(":memory:") as kd, pytest.raises(StackError, match=r"'nowhere'.*subsystem"):
         WorldModelNode(kd, NodeConfig(ground_prior_level="nowhere"))
+
+
+def test_the_pruned_test_equals_the_expected_ground_everywhere() -> None:
+    # not_ground skips points the square's lowest cell cannot make objects: the same answer
+    # as comparing each point with its expected ground, at the window's edges and outside too
+    rng = np.random.default_rng(3)
+    n, origin = 40, (-25, 10)
+    z = rng.normal(0.0, 0.6, (n, n)).astype(np.float32)
+    z[rng.random((n, n)) < 0.4] = np.nan
+    prior = GroundPrior(z, origin, RES)
+    xyz = np.zeros((50, 60, 3))
+    xyz[..., 0] = (origin[0] + rng.uniform(-6, n + 6, (50, 60))) * RES
+    xyz[..., 1] = (origin[1] + rng.uniform(-6, n + 6, (50, 60))) * RES
+    xyz[..., 2] = rng.normal(0.5, 1.0, (50, 60))
+    rng_m = rng.uniform(0.0, 40.0, (50, 60))
+    ground = rng.random((50, 60)) < 0.8
+    cfg = GroundPriorConfig()
+    got = not_ground(xyz, rng_m, ground, prior, cfg)
+    e = prior.expected(xyz[..., :2].reshape(-1, 2), cfg.radius_m, SLOPE).reshape(50, 60)
+    want = ground & (rng_m >= cfg.min_range_m) & (xyz[..., 2] - e > cfg.above_m)
+    assert want.sum() > 50 and np.array_equal(got, want)
