@@ -121,6 +121,36 @@ def test_the_copys_connection_has_external_access_off(finished) -> None:
     assert ans["rows"] == [[False, True]]
 
 
+def test_sql_answers_an_arrow_stream_when_asked(finished) -> None:
+    """``Accept: application/vnd.apache.arrow.stream``: the same rows as the JSON answer of
+    the same cycle, as an Arrow IPC stream whose metadata and headers carry the cycle."""
+    import pyarrow as pa
+
+    _, base, _, _ = finished
+    newest = call(base, "/v1/status")[1]["cycle_t_ns"]
+    as_json = _sql_at(base, QUERY, newest)
+    req = urllib.request.Request(
+        base + "/v1/sql",
+        data=json.dumps({"query": QUERY}).encode(),
+        headers={
+            "Content-Type": "application/json",
+            "Authorization": f"Bearer {TOKEN}",
+            "Accept": "application/vnd.apache.arrow.stream",
+        },
+    )
+    with urllib.request.urlopen(req, timeout=30) as r:
+        assert r.headers["content-type"] == "application/vnd.apache.arrow.stream"
+        cycle = int(r.headers["x-cycle-t-ns"])
+        table = pa.ipc.open_stream(r.read()).read_all()
+    assert cycle == as_json["cycle_t_ns"] == json.loads(table.schema.metadata[b"cycle_t_ns"])
+    assert table.column_names == ["id", "status"]
+    assert [list(row.values()) for row in table.to_pylist()] == as_json["rows"]
+    from wm.client import Client
+
+    by_client = Client(base, TOKEN).sql_table(QUERY)
+    assert by_client.equals(table) and by_client.schema.metadata == table.schema.metadata
+
+
 def test_sql_reads_a_copy_equal_to_the_kd_at_its_cycle(finished) -> None:
     """(Last of the tests over ``finished``: it stops the node.) At the end of the log the
     answer comes from a copy of the last cycle (staleness 0,

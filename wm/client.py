@@ -25,6 +25,8 @@ from core.errors import EngineError
 
 #: words of the 503 a server answers SQL with before its first copy of the KD (wm.serve_sql)
 NO_COPY = "no read-only copy of the KD for SQL yet"
+#: the media type of an Arrow IPC stream (what /v1/sql and map windows answer when asked)
+ARROW_STREAM = "application/vnd.apache.arrow.stream"
 
 
 class ClientError(EngineError, RuntimeError):
@@ -49,17 +51,24 @@ class Client:
             headers["Authorization"] = f"Bearer {self.token}"
         return headers
 
-    def _call(self, path: str, params: dict | None = None, body: dict | None = None) -> Any:
+    def _call(
+        self,
+        path: str,
+        params: dict | None = None,
+        body: dict | None = None,
+        accept: str | None = None,
+    ) -> Any:
+        """The JSON answer of ``path``; with ``accept`` (a media type), the answer's bytes."""
         query = urllib.parse.urlencode(
             {k: v for k, v in (params or {}).items() if v is not None}, doseq=True
         )
         url = f"{self.base_url}{path}" + (f"?{query}" if query else "")
-        headers = self._headers()
+        headers = self._headers() | ({"Accept": accept} if accept else {})
         data = None if body is None else json.dumps(body).encode()
         req = urllib.request.Request(url, data=data, headers=headers)
         try:
             with urllib.request.urlopen(req, timeout=self.timeout_s) as r:
-                return json.loads(r.read())
+                return r.read() if accept else json.loads(r.read())
         except urllib.error.HTTPError as e:
             try:
                 detail = json.loads(e.read() or b"null")
@@ -230,16 +239,26 @@ class Client:
         with resp:
             yield from _sse_events(resp)
 
+    def sql_table(self, query: str, wait_s: float = 10.0) -> Any:
+        """:meth:`sql` as a ``pyarrow.Table`` (the server's Arrow IPC answer): its schema's
+        metadata holds ``cycle_t_ns``, ``newest_cycle_t_ns`` and ``staleness_ns`` (JSON)."""
+        import pyarrow as pa
+
+        return pa.ipc.open_stream(self._sql(query, wait_s, ARROW_STREAM)).read_all()
+
     def sql(self, query: str, wait_s: float = 10.0) -> dict:
         """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns",
         "newest_cycle_t_ns", "staleness_ns"}`` (``truncated`` always false: a result over the
         server's row or byte limit raises ClientError with status 413 and the limit in its
         words). A server whose node has made no copy of its KD for SQL yet answers 503 the
         first time SQL is asked for: asked again every 0.25 s for up to ``wait_s`` s."""
+        return self._sql(query, wait_s)
+
+    def _sql(self, query: str, wait_s: float, accept: str | None = None) -> Any:
         deadline = time.monotonic() + wait_s
         while True:
             try:
-                return self._call("/v1/sql", body={"query": query})
+                return self._call("/v1/sql", body={"query": query}, accept=accept)
             except ClientError as e:
                 if e.status != 503 or NO_COPY not in str(e) or time.monotonic() > deadline:
                     raise

@@ -71,6 +71,7 @@ This module imports FastAPI; the command line imports it only for ``wm serve``.
 
 from __future__ import annotations
 
+import json
 import math
 import tempfile
 import threading
@@ -83,7 +84,7 @@ from typing import Annotated, Any, TypeVar
 import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from core.errors import EngineError
@@ -96,7 +97,12 @@ from wm.serve_copy import (
     layers_to_copy,
     map_bytes,
 )
-from wm.serve_views import STREAM_QUEUE_CYCLES, add_view_routes, attention_copies
+from wm.serve_views import (
+    ARROW_STREAM,
+    STREAM_QUEUE_CYCLES,
+    add_view_routes,
+    attention_copies,
+)
 
 NS_PER_S = 1_000_000_000
 MAX_SQL_CHARS = 10_000
@@ -546,6 +552,22 @@ def what_is_query(live: LiveNode, query: str, *args: Any) -> tuple[Any, int]:
     raise ServeError(f"What Is query {query!r}: unknown (entity, region or events)")
 
 
+def _sql_arrow(table: Any, when: dict[str, int | None]) -> Response:
+    """A SQL result as one Arrow IPC stream; ``when`` (cycle, newest cycle, staleness, int64
+    ns or None) in its schema's metadata and in ``X-`` headers."""
+    import pyarrow as pa
+
+    meta = {k: json.dumps(v) for k, v in when.items()}
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema) as writer:
+        writer.write_table(table)
+    headers = {
+        "X-" + "-".join(w.capitalize() for w in k.split("_")): str(v) for k, v in when.items()
+    }
+    return Response(sink.getvalue().to_pybytes(), media_type=ARROW_STREAM, headers=headers)
+
+
 def sql_query(live: LiveNode, query: str, limits: Any) -> tuple[Any, int]:
     """(Arrow table, the time of the cycle whose flush it reads) of one read-only SELECT over
     the KD's views as of the node's last flush (:func:`kd_store.query.query_reader` within
@@ -972,9 +994,15 @@ def create_app(
 
     sql_limits = QueryLimits(timeout_s=10.0, max_rows=MAX_SQL_ROWS, max_bytes=MAX_SQL_BYTES)
 
-    @app.post("/v1/sql")
-    def sql(req: SQLRequest) -> dict:
-        """One read-only SELECT over the KD's views (docs/kd.md); JSON columns and rows, as of
+    @app.post(
+        "/v1/sql",
+        responses={200: {"content": {ARROW_STREAM: {}}, "description": "rows (JSON or Arrow)"}},
+    )
+    def sql(req: SQLRequest, request: Request) -> Any:
+        """One read-only SELECT over the KD's views (docs/kd.md); JSON columns and rows (with
+        ``Accept: application/vnd.apache.arrow.stream``, an Arrow IPC stream of the result,
+        its cycle, newest cycle and staleness in the schema's metadata and in the headers
+        ``X-Cycle-T-Ns``, ``X-Newest-Cycle-T-Ns``, ``X-Staleness-Ns``), as of
         the cycle ``cycle_t_ns`` (int64 ns, log time), the last the KD file held when read,
         which is ``staleness_ns`` behind the newest cycle ``newest_cycle_t_ns``. With the node
         in a process of its own (``wm serve``'s default) the query reads a read-only copy of
@@ -1004,17 +1032,17 @@ def create_app(
         except KDError as e:
             # too large a result is not a bad statement: 413 tells a client to narrow it
             raise bad(e, 413 if isinstance(e, ResultTooLarge) else 400) from None
-        rows = [[_json_value(v) for v in r.values()] for r in table.to_pylist()]
         snap = live.snapshot
         newest = max(cycle, snap.cycle_t_ns if snap is not None else live.status.cycle_t_ns)
-        return {
+        when = {
             "cycle_t_ns": cycle,
             "newest_cycle_t_ns": newest,
             "staleness_ns": newest - cycle if cycle >= 0 else None,
-            "columns": table.column_names,
-            "rows": rows,
-            "truncated": False,
         }
+        if ARROW_STREAM in request.headers.get("accept", ""):
+            return _sql_arrow(table, when)
+        rows = [[_json_value(v) for v in r.values()] for r in table.to_pylist()]
+        return {**when, "columns": table.column_names, "rows": rows, "truncated": False}
 
     @app.get("/v1/whatif/start")
     def whatif_start() -> dict:
