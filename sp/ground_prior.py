@@ -30,7 +30,8 @@ class GroundPriorError(EngineError, ValueError):
 
 @dataclass(frozen=True)
 class GroundPriorConfig:
-    """How SP uses the world model's ground (metres, degrees).
+    """How SP uses the world model's ground (metres, degrees); SP given none (the node's
+    ``ground_prior_level`` None, or SP called alone) keeps the column walk's ground.
 
     min_range_m:  only returns at least this far (range from the sensor) are checked;
                   nearer, the rows lie close enough for the column walk alone.
@@ -46,7 +47,6 @@ class GroundPriorConfig:
                   nothing lower).
     """
 
-    enabled: bool = True
     min_range_m: float = 15.0
     above_m: float = 0.8
     radius_m: float = 2.0
@@ -86,7 +86,7 @@ class GroundPrior:
         """(n, n) float32 toroidal grid: the lowest known height in the square of (2k + 1)^2
         cells around each cell (k = ``radius_m`` // resolution), wrapping over the storage's
         edge (+inf where none known). For a cell at least k cells inside the window it is a
-        lower bound of :meth:`expected` there."""
+        lower bound of the ground expected there (:func:`not_ground`)."""
         k = int(radius_m // self.resolution_m)
         z = np.asarray(self.z_m, dtype=np.float32)
         z = np.where(np.isnan(z), np.float32(np.inf), z)
@@ -97,16 +97,6 @@ class GroundPrior:
         padded = np.pad(z, k, mode="wrap")
         low = cv2.erode(padded, np.ones((2 * k + 1, 2 * k + 1), np.uint8))
         return low[k:-k, k:-k]
-
-    def expected(self, xy_m: np.ndarray, radius_m: float, slope_tan: float) -> np.ndarray:
-        """(N,) float64 expected ground height (world z, m) at world points ``xy_m`` (N, 2):
-        the minimum over known cells whose centre lies within ``radius_m`` of the point's cell
-        centre of (height + ``slope_tan`` x distance); NaN where no such cell is known."""
-        xy = np.ascontiguousarray(np.asarray(xy_m, dtype=np.float64).reshape(-1, 2))
-        ix0, iy0 = (int(v) for v in self.origin_cell)
-        res = float(self.resolution_m)
-        off = _offsets(res, radius_m, slope_tan)
-        return _expected_kernel(xy, np.asarray(self.z_m), ix0, iy0, res, *off)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -124,30 +114,6 @@ def _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise):  # pragma: no cover
     return best
 
 
-@numba.njit(cache=True, nogil=True)
-def _expected_kernel(xy, z, ix0, iy0, res, off_x, off_y, rise):  # pragma: no cover
-    """:meth:`GroundPrior.expected` point by point: xy (N, 2) float64 m, z (n, n) toroidal
-    heights, the window's lowest cell (ix0, iy0), cell edge ``res`` m, the offsets (K,) int64
-    within the radius and the rise (K,) m allowed over each. A cell asked for again (returns of
-    one cell) is looked up in a memo of the window's cells."""
-    n = z.shape[0]
-    memo = np.full((n, n), np.inf)  # inf: not computed yet
-    out = np.empty(xy.shape[0])
-    for i in range(xy.shape[0]):
-        cx = np.int64(np.floor(xy[i, 0] / res))
-        cy = np.int64(np.floor(xy[i, 1] / res))
-        if not (ix0 <= cx < ix0 + n and iy0 <= cy < iy0 + n):
-            # a point outside may still have cells inside
-            out[i] = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
-            continue
-        m = memo[cy % n, cx % n]
-        if m == np.inf:
-            m = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
-            memo[cy % n, cx % n] = m
-        out[i] = m
-    return out
-
-
 def not_ground(
     xyz_w: np.ndarray,
     range_m: np.ndarray,
@@ -157,7 +123,8 @@ def not_ground(
 ) -> np.ndarray:
     """(H, W) bool: the ``ground`` pixels (H, W) bool at range ``range_m`` (H, W) m of at
     least ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m lies more than ``above_m``
-    above the ground ``prior`` expects there (:meth:`GroundPrior.expected`)."""
+    above the ground ``prior`` expects there (module docstring): the lowest known
+    cell within ``radius_m``, raised by ``slope_deg`` over its distance."""
     res = float(prior.resolution_m)
     slope_tan = float(np.tan(np.radians(config.slope_deg)))
     return _not_ground_kernel(

@@ -91,8 +91,7 @@ class SurfaceLevel:
         above the ground it expects are not ground (:mod:`sp.ground_prior`)."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)
-        use = prior is not None and xyz_w is not None and range_m is not None
-        if use and cfg.ground_prior.enabled:
+        if prior is not None and xyz_w is not None and range_m is not None:
             ground &= ~not_ground(xyz_w, range_m, ground, prior, cfg.ground_prior)
         return ground
 

@@ -32,6 +32,7 @@ from kernel_reference.computation_reference import (
 )
 from kernel_reference.covariance_reference import psd_mask_reference
 from kernel_reference.egosphere_reference import to_egosphere_reference
+from kernel_reference.ground_prior_reference import not_ground_reference
 from kernel_reference.ground_reference import (
     column_walk_reference,
     ground_mask_reference,
@@ -79,6 +80,7 @@ from sp.ground import (
     ground_mask,
     refine,
 )
+from sp.ground_prior import GroundPrior, GroundPriorConfig, not_ground
 from sp.lists import (
     brightness_edges,
     list_slots,
@@ -212,6 +214,32 @@ def _degenerate_refine_inputs(_: None) -> Iterator[Args]:
         walk = column_walk(np.hypot(x, y), z, valid, 1.8, DEGENERATE_GROUND)
         for ground in (walk, valid, ~valid):
             yield x, y, z, valid, ground, DEGENERATE_GROUND
+
+
+# --- sp.ground_prior: far ground against the map's (the same pixels) ----------------------
+
+
+def _prior_inputs(param: tuple[int, float]) -> Iterator[Args]:
+    """A toroidal height grid, 40 % unknown, and far and near returns over and beyond its
+    window (its edges, where the pruning's square wraps, included)."""
+    seed, res = param
+    rng = np.random.default_rng(seed)
+    n, origin = 40, (int(rng.integers(-60, 60)), int(rng.integers(-60, 60)))
+    z = rng.normal(0.0, 0.6, (n, n)).astype(np.float32)
+    z[rng.random((n, n)) < 0.4] = np.nan
+    prior = GroundPrior(z, origin, res)
+    xyz = np.zeros((50, 60, 3))
+    for a in range(2):
+        xyz[..., a] = (origin[a] + rng.uniform(-6, n + 6, (50, 60))) * res
+    xyz[..., 2] = rng.normal(0.5, 1.0, (50, 60))
+    range_m = rng.uniform(0.0, 40.0, (50, 60)).astype(np.float32)
+    ground = rng.random((50, 60)) < 0.8
+    yield xyz, range_m, ground, prior, GroundPriorConfig()
+
+
+def _prior_check(param: tuple[int, float], calls: list[Call]) -> None:
+    for args, got, _ in calls:
+        assert 20 < int(got.sum()) < int(args[2].sum())  # objects flagged, ground kept
 
 
 # --- sp.computation: ground below each pixel, ground plane ------------------------------------
@@ -1995,6 +2023,8 @@ CASES = [
          marks=[pytest.mark.filterwarnings("ignore:invalid value encountered")]),
     Case("refine_degenerate", [None], _degenerate_refine_inputs, refine, refine_reference,
          _equal, marks=[pytest.mark.filterwarnings("ignore:invalid value encountered")]),
+    Case("not_ground", _product(range(3), [0.4, 1.0]), _prior_inputs, not_ground,
+         not_ground_reference, _equal, _prior_check),
     Case("ground_below", [(0, 0.5), (1, 0.05), (2, 1.0), (3, 0.0)], _ground_below_inputs,
          ground_below, ground_below_reference, _equal, _ground_below_check),
     Case("ground_below_degenerate", [None], _ground_below_degenerate_inputs, ground_below,
