@@ -71,7 +71,6 @@ This module imports FastAPI; the command line imports it only for ``wm serve``.
 
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 import threading
@@ -84,7 +83,7 @@ from typing import Annotated, Any, TypeVar
 import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
 from core.errors import EngineError
@@ -101,6 +100,7 @@ from wm.serve_views import (
     ARROW_STREAM,
     STREAM_QUEUE_CYCLES,
     add_view_routes,
+    arrow_response,
     attention_copies,
 )
 
@@ -550,22 +550,6 @@ def what_is_query(live: LiveNode, query: str, *args: Any) -> tuple[Any, int]:
         if query == "events":
             return [_event_json(e) for e in w.events(*args)], cycle
     raise ServeError(f"What Is query {query!r}: unknown (entity, region or events)")
-
-
-def _sql_arrow(table: Any, when: dict[str, int | None]) -> Response:
-    """A SQL result as one Arrow IPC stream; ``when`` (cycle, newest cycle, staleness, int64
-    ns or None) in its schema's metadata and in ``X-`` headers."""
-    import pyarrow as pa
-
-    meta = {k: json.dumps(v) for k, v in when.items()}
-    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
-    sink = pa.BufferOutputStream()
-    with pa.ipc.new_stream(sink, table.schema) as writer:
-        writer.write_table(table)
-    headers = {
-        "X-" + "-".join(w.capitalize() for w in k.split("_")): str(v) for k, v in when.items()
-    }
-    return Response(sink.getvalue().to_pybytes(), media_type=ARROW_STREAM, headers=headers)
 
 
 def sql_query(live: LiveNode, query: str, limits: Any) -> tuple[Any, int]:
@@ -1040,7 +1024,9 @@ def create_app(
             "staleness_ns": newest - cycle if cycle >= 0 else None,
         }
         if ARROW_STREAM in request.headers.get("accept", ""):
-            return _sql_arrow(table, when)
+            names = ("X-Cycle-T-Ns", "X-Newest-Cycle-T-Ns", "X-Staleness-Ns")
+            headers = {h: str(v) for h, v in zip(names, when.values(), strict=True)}
+            return arrow_response(table, when, headers)
         rows = [[_json_value(v) for v in r.values()] for r in table.to_pylist()]
         return {**when, "columns": table.column_names, "rows": rows, "truncated": False}
 

@@ -351,12 +351,21 @@ def _arrow_response(w: MapWindow, cycle_t_ns: int, renamed: dict[str, str]) -> R
         "x": w.origin_xy[0] + (col.reshape(-1) + 0.5) * w.resolution_m,
         "y": w.origin_xy[1] + (row.reshape(-1) + 0.5) * w.resolution_m,
     } | {name: v.reshape(-1) for name, v in w.values.items()}
-    meta = {k: json.dumps(v) for k, v in _window_meta(w, cycle_t_ns, renamed).items()}
-    table = pa.table(cols).replace_schema_metadata(meta)
+    return arrow_response(pa.table(cols), _window_meta(w, cycle_t_ns, renamed),
+                          renamed_headers(renamed))  # fmt: skip
+
+
+def arrow_response(table: Any, meta: dict[str, Any], headers: dict[str, str]) -> Response:
+    """``table`` (a ``pyarrow.Table``) as one Arrow IPC stream, ``meta`` (JSON values) added
+    to its schema's metadata, with ``headers``."""
+    import pyarrow as pa
+
+    table = table.replace_schema_metadata(
+        {**(table.schema.metadata or {}), **{k: json.dumps(v) for k, v in meta.items()}}
+    )
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, table.schema) as writer:
         writer.write_table(table)
-    headers = renamed_headers(renamed)
     return Response(sink.getvalue().to_pybytes(), media_type=ARROW_STREAM, headers=headers)
 
 
