@@ -320,8 +320,7 @@ class ObjectLevel:
                 )
             )
         # frames: status, confidence, attributes
-        seg_of_track = np.full(len(tr), -1, dtype=np.int64)
-        seg_of_track[track_of[track_of >= 0]] = np.flatnonzero(track_of >= 0)
+        seg_of_track = largest_segment_of_track(track_of, a.n_pixels, len(tr))
         for k in np.flatnonzero(framed):
             tid = int(tr.id[k])
             status = KD_STATUS[TrackStatus(int(tr.status[k]))]
@@ -574,6 +573,21 @@ def _drop_small(
     out = np.full_like(flat, -1)
     out[has] = new[flat[has]]
     return out.reshape(labels.shape)
+
+
+def largest_segment_of_track(
+    track_of: np.ndarray, n_pixels: np.ndarray, n_tracks: int
+) -> np.ndarray:
+    """(n_tracks,) int64: for each track the segment that speaks for its observed attributes
+    and shape this sweep, -1 for none. ``track_of`` (K,) int64 is each segment's track (< 0
+    none), ``n_pixels`` (K,) its returns. Pieces that joined a track's footprint (a sliver of
+    a car's far side, a strip of a face) are parts of its object, not views of it: the
+    track's largest segment is taken (ties: the later segment)."""
+    out = np.full(n_tracks, -1, dtype=np.int64)
+    mine = np.flatnonzero(track_of >= 0)
+    mine = mine[np.argsort(n_pixels[mine], kind="stable")]  # the largest is assigned last
+    out[track_of[mine]] = mine
+    return out
 
 
 def _attributes(

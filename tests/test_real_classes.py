@@ -202,15 +202,17 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
     # each car's own entity: 8 of 10 (car 209, in the shadow of 210 and 504, is mostly part of
     # 504's entity; car 219 is never confirmed)
     assert s["recall_alone"] >= 0.8, s
-    # targets missed, recorded above: 5 of the 9 cars found classified vehicle (0.56; 0.8
-    # wanted: three partly seen cars, 1.5-2.3 m of them in view, are called rock and one
-    # wall), and 2 objects called person where the labels have none (the prototypes fitted
-    # on the simulator's sensors take real clutter of person size, such as trunks and poles
-    # thicker than the simulated posts, for persons); no crowd or convoy. The vehicle share
-    # was 0.78 while three cars parked nose to tail were one entity and that one "vehicle"
-    # counted for each (a grouping link across the returns between them, since removed).
-    # These bounds guard against worse
-    assert s["vehicle_of_found"] >= 0.55, s
+    # targets missed, recorded above: 6 of the 9 cars found classified vehicle (0.67; 0.8
+    # wanted: two partly seen cars 26-34 m out, 1.5-2.3 m of them in view, are called rock
+    # and one bush), and 2 objects called person where the labels have none (the prototypes
+    # fitted on the simulator's sensors take real clutter of person size, such as trunks and
+    # poles thicker than the simulated posts, for persons); no crowd or convoy. Car 213 was
+    # called a wall while a sliver of it that had joined its track gave the track its shape
+    # (sp.level4_objects.largest_segment_of_track). The vehicle share was 0.78 while three
+    # cars parked nose to tail were one entity and that one "vehicle" counted for each (a
+    # grouping link across the returns between them, since removed). These bounds guard
+    # against worse
+    assert s["vehicle_of_found"] >= 0.65, s
     assert s["person"] <= 2 and s["crowd"] == 0 and s["convoy"] == 0, s
 
 

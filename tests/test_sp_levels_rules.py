@@ -16,6 +16,7 @@ from sp.appearance import object_appearance
 from sp.computation import ground_below, segment_attributes
 from sp.egosphere import EgosphereConfig
 from sp.level3_surfaces import terrain_patch
+from sp.level4_objects import largest_segment_of_track
 from sp.pipeline import SPConfig
 from sp.segments import merge_collinear
 from sp.tracking import (
@@ -153,6 +154,20 @@ def test_piece_inside_a_footprint_is_a_part_and_a_duplicate_goes() -> None:
     )
     track_of, _ = tr.step(pieces, t)
     assert len(tr.tracks) == 1 and track_of.tolist() == [0, 0]
+
+
+def test_a_tracks_largest_segment_speaks_for_it_not_a_sliver_that_joined_it() -> None:
+    # segments 0 (a car's side, 500 returns) and 2 (a sliver of its far edge, 6) went to
+    # track 1; segment 1 to track 0; segment 3 to none
+    track_of = np.array([1, 0, 1, -1])
+    n_pixels = np.array([500, 40, 6, 90])
+    assert largest_segment_of_track(track_of, n_pixels, 3).tolist() == [1, 0, -1]
+    # in the other order, the same answer: the sliver never speaks for the car
+    assert largest_segment_of_track(track_of[[2, 1, 0, 3]], n_pixels[[2, 1, 0, 3]], 3).tolist() == [
+        1,
+        2,
+        -1,
+    ]
 
 
 def _status_after_hits(n_points: int | None, hits: int) -> TrackStatus:
