@@ -96,7 +96,10 @@ class SPConfig:
     # classification, since a wrong scale would mislead it; the camera's grey is 0..1 always
     intensity_per_reflectance: float | None = None
     appearance_gain: float = 0.3  # running-mean gain of an object's observed appearance
-    terrain_tilt_deg: float = 25.0  # a broad thin plane tilted less than this is ground ...
+    # a broad thin plane tilted less than this is ground ... : the steepest bank loose soil
+    # stands at (its angle of repose, 30-45 degrees), as a ditch's side or a cut slope do;
+    # the column walk (max_slope_deg) gives up on such banks past a step, this takes them back
+    terrain_tilt_deg: float = 45.0
     terrain_breadth_m: float = 0.25  # ... when its points spread this far along its middle axis
     terrain_thick_m: float = 0.12  # ... and this little across its plane (std, m)
     terrain_max_height_m: float = 1.2  # ... and it rises less than this over the ground

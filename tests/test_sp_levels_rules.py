@@ -107,6 +107,16 @@ def test_terrain_patch_is_a_low_gentle_plane_not_a_wall_or_roof() -> None:
     assert flags == [True, False, False]
 
 
+def test_a_bank_as_steep_as_loose_soil_stands_is_terrain_a_steeper_face_is_not() -> None:
+    u, v = np.meshgrid(np.linspace(0, 1.2, 8), np.linspace(0, 2, 8))
+    u, v = u.ravel(), v.ravel()
+    cfg = SPConfig()
+    bank = np.stack([u, v, np.tan(np.radians(40.0)) * u], axis=1)  # a ditch's side, 1 m high
+    face = np.stack([0.65 * u, v, np.tan(np.radians(55.0)) * 0.65 * u], axis=1)  # as high
+    flags = [bool(terrain_patch(_attrs_of(p), cfg)[0]) for p in (bank, face)]
+    assert flags == [True, False]
+
+
 def test_line_continuity_joins_pieces_of_a_wall_not_a_row_of_cars() -> None:
     # a wall along x cut into three pieces with 1 m gaps, a post 3 m off its line
     centers = np.array([[0.0, 0.0], [6.0, 0.0], [11.0, 0.0], [6.0, 3.0]])
