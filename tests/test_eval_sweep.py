@@ -38,11 +38,12 @@ def test_a_cached_log_without_return_counts_is_simulated_again(tmp_path):
     older rule (returns in the grown box): the sweep simulates it again."""
     import numpy as np
 
+    from fixtures import SIMULATOR_VERSION
     from logs import McapLogWriter
     from logs.types import ObjectBoxes
     from wm.eval_sweep import counts_returns, simulate_cached
 
-    stale = tmp_path / "default-seed3-0.3s.mcap"
+    stale = tmp_path / f"default-seed3-0.3s-sim{SIMULATOR_VERSION}.mcap"
     with McapLogWriter(stale) as w:
         w.write(ObjectBoxes(0, "world", np.array([1]), ["rock"], np.zeros((1, 3)),
                             np.ones((1, 3)), np.zeros(1), np.zeros((1, 3))))  # fmt: skip

@@ -203,8 +203,8 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
     # 504's entity; car 219 is never confirmed)
     assert s["recall_alone"] >= 0.8, s
     # targets missed, recorded above: 6 of the 9 cars found classified vehicle (0.67; 0.8
-    # wanted: two partly seen cars 26-34 m out, 1.5-2.3 m of them in view, are called rock
-    # and one bush), and 2 objects called person where the labels have none (the prototypes
+    # wanted: two partly seen cars 26-34 m out, 1.5-2.3 m of them in view, and a third are
+    # called rock or bush), and 2 objects called person where the labels have none (the prototypes
     # fitted on the simulator's sensors take real clutter of person size, such as trunks and
     # poles thicker than the simulated posts, for persons); no crowd or convoy. Car 213 was
     # called a wall while a sliver of it that had joined its track gave the track its shape

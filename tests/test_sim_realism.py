@@ -78,12 +78,17 @@ def test_intensity_varies_within_a_class_and_overlaps_other_classes(parking_swee
     assert vehicles.min() < np.median(persons) < vehicles.max()
 
 
+FOLIAGE = (CLASS_INDEX[ObjectClass.BUSH], CLASS_INDEX[ObjectClass.TREE])
+
+
 def test_range_noise_matches_its_model_against_the_cast_truth(parking_sweeps) -> None:
     cfg = LadarConfig()
     residuals, ranges = [], []
     for scan, truth in parking_sweeps:
-        residuals.append(np.linalg.norm(scan.points_xyz.astype(np.float64), axis=1) - truth.range_m)
-        ranges.append(truth.range_m)
+        hard = ~np.isin(truth.cls, FOLIAGE)  # leaves have a model of their own (below)
+        r_meas = np.linalg.norm(scan.points_xyz.astype(np.float64), axis=1)
+        residuals.append((r_meas - truth.range_m)[hard])
+        ranges.append(truth.range_m[hard])
     res, r = np.concatenate(residuals), np.concatenate(ranges)
     assert abs(res.mean()) < 0.002
     # points are float32: ~1e-6 relative, far below the noise
@@ -96,6 +101,39 @@ def test_range_noise_matches_its_model_against_the_cast_truth(parking_sweeps) ->
         assert res[sel].std() == pytest.approx(expected, rel=0.1), (lo, hi)
     near, far = (r < 10.0), (r >= 40.0)
     assert res[far].std() > 1.1 * res[near].std()  # the range-proportional part shows
+
+
+def test_foliage_returns_come_from_inside_the_leaves() -> None:
+    """A bush's and a tree crown's returns lie behind the cast surface, on average by the
+    configured depth and scattered as much (exponential), where a trunk's, a wall's and the
+    ground's only carry the range noise: vegetation is rough to a LADAR, a hard shell is not."""
+    cfg = LadarConfig()
+    sim = Simulator("default", seed=8)
+    depth: dict[str, list[np.ndarray]] = {"leaf": [], "hard": []}
+    for k in range(8):
+        t_ns = sim.world.t0_ns + int((10.0 + k) * NS_PER_S)
+        scan, truth = sim.ladar.sweep_with_truth(t_ns)
+        r_meas = np.linalg.norm(scan.points_xyz.astype(np.float64), axis=1)
+        _, origins, dirs = sim.ladar.rays_world(t_ns)
+        z = origins[truth.ray // cfg.n_beams, 2] + dirs.reshape(-1, 3)[truth.ray, 2] * truth.range_m
+        leaf = sim.world.is_foliage(truth.object_id, z)
+        depth["leaf"].append((r_meas - truth.range_m)[leaf])
+        depth["hard"].append((r_meas - truth.range_m)[~leaf])
+    leaf, hard = np.concatenate(depth["leaf"]), np.concatenate(depth["hard"])
+    assert leaf.size > 300, leaf.size
+    assert np.mean(leaf) == pytest.approx(cfg.foliage_depth_m, rel=0.15)
+    assert np.std(leaf) == pytest.approx(cfg.foliage_depth_m, rel=0.2)  # exponential
+    assert np.mean(leaf < 0.0) < 0.15  # mostly behind the surface, not noise about it
+    assert abs(np.mean(hard)) < 0.003 and np.std(hard) < 0.05
+    # tree trunks are hard: only a tree's crown is leaves
+    world = sim.world
+    tree = next(o for o in world.statics if o.cls is ObjectClass.TREE)
+    base = tree.center[2] - tree.size[2] / 2
+    ids = np.array([tree.object_id, tree.object_id])
+    assert world.is_foliage(ids, np.array([base + 0.1, base + 0.9 * tree.size[2]])).tolist() == [
+        False,
+        True,
+    ]
 
 
 def test_dropouts_are_a_few_percent_and_more_on_dark_and_grazing_surfaces() -> None:

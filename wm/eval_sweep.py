@@ -123,8 +123,12 @@ def simulate_cached(
     scenario: str, seed: int, seconds: float, cache: Path, timeout_s: float
 ) -> Path:
     """The cached log of (scenario, seed, seconds), simulated by this tree when missing or
-    when it predates the per-object return counts the scorer reads (:func:`counts_returns`)."""
-    log = cache / f"{scenario}-seed{seed}-{seconds:g}s.mcap"
+    when it predates the per-object return counts the scorer reads (:func:`counts_returns`).
+    Its name carries the simulator's version (``fixtures.SIMULATOR_VERSION``), so a log an
+    older simulator wrote is never taken for this one's."""
+    from fixtures import SIMULATOR_VERSION
+
+    log = cache / f"{scenario}-seed{seed}-{seconds:g}s-sim{SIMULATOR_VERSION}.mcap"
     if log.exists() and counts_returns(log):
         return log
     cache.mkdir(parents=True, exist_ok=True)
