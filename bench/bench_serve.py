@@ -4,8 +4,9 @@ sends a bounded mix of requests at a fixed rate (entity lookups, circle queries,
 10 plans, small SQL).
 Figures: p50 / p99 latency per endpoint, the node's mean wall time per cycle under load against
 alone, the staleness of answers (lag of the newest cycle behind the newest frame read) and of
-SQL answers apart (``staleness_ns`` of each: SQL reads a copy of the KD made every 2 s, as of
-the node's last flush), and the requests per second sent: the load follows an absolute
+SQL answers apart (``staleness_ns`` of each, against the newest cycle the server holds: SQL
+reads the server's replica of the KD, which each cycle's changes keep current, at most one
+cycle behind), and the requests per second sent: the load follows an absolute
 schedule (request i due at start + i / rate, a late worker catching up at once), counted over
 the time the loaded replay ran from the moment every worker was ready, with how late the sends
 were against the schedule (p50, p99), so a generator that falls behind shows as such.
@@ -16,9 +17,8 @@ The node runs in a process of its own (``LiveNode(..., process=True)``, as ``wm 
 it), its cycle time measured there; ``--in-process`` (``python -m bench.bench_serve
 --in-process``) runs it in a thread of the server's process instead, as before. Also
 recorded: the wall time of a cycle's copy crossing to the server (``transfer_ms``) and the
-node process's share of it (``send_ms``); with the node in a process of its own SQL is
-answered in the server's process from the copy of the KD (wm.serve_sql), in a thread from the
-KD itself."""
+node process's share of it (``send_ms``), and the replica's cost (the server's apply of a
+cycle's changes, ``apply_ms``: the last and the longest; wm.serve_sql)."""
 
 from __future__ import annotations
 
@@ -108,11 +108,13 @@ def _load(port: int, live, lat: dict[str, list[float]], errors: list[str]) -> di
     _, me = call("GET", "/v1/self", None)
     _, reg = call("GET", "/v1/entities?x_min=-1e4&y_min=-1e4&x_max=1e4&y_max=1e4&level=4", None)
     mix = _requests(me, [e["entity_id"] for e in reg["entities"]] or [me["entity_id"]])
-    # a client that uses SQL: the node in a process of its own copies its KD for SQL once it
-    # is asked for, and answers 503 until the first copy is open (a second or so)
+    # a client that uses SQL: until the server's replica of the KD, seeded once SQL is asked
+    # for, is open (a few tenths of a second) the node answers SQL itself, as of its last
+    # flush; the load starts once the replica answers
     sql = next(body for name, _, _, body in mix if name == "sql")
     deadline = time.monotonic() + 60
-    while call("POST", "/v1/sql", sql)[0] == 503 and time.monotonic() < deadline:
+    call("POST", "/v1/sql", sql)
+    while live.sql_status().get("cycle_t_ns") is None and time.monotonic() < deadline:
         time.sleep(0.1)
     c.close()
 
@@ -278,8 +280,11 @@ def main(process: bool = True) -> None:
         sql = loaded["sql"]
         print(
             f"SQL staleness (newest cycle - the cycle SQL read): {np.percentile(stale, 50):.0f}"
-            f" ms p50, {max(stale):.0f} ms max; source {sql.get('source')}, node's copy "
-            f"{sql.get('copy_ms')} ms, server's open {sql.get('open_ms')} ms (the last)"
+            f" ms p50, {max(stale):.0f} ms max; source {sql.get('source')}, "
+            f"{sql.get('seeds_opened')} seed(s) (node's copy {sql.get('copy_ms')} ms, "
+            f"server's open {sql.get('open_ms')} ms), {sql.get('deltas_applied')} cycles' "
+            f"changes applied (last {sql.get('apply_ms')} ms, longest {sql.get('apply_ms_max')}"
+            f" ms), {sql.get('deltas_dropped')} dropped"
         )
     print(
         f"mean cycle {alone['mean_cycle_ms']:.1f} ms alone, {loaded['mean_cycle_ms']:.1f} ms "

@@ -18,7 +18,7 @@ and orders promotion, forgetting and flushes across the parts.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -75,6 +75,14 @@ class KnowledgeDatabase:
         self._events = EventTable()
         self._pointers = FramePointers(self.graph, self._kind_of, self._now)
         self._next_id = 0
+        # rows collected (stage, flush) that the file does not hold yet, oldest first, and the
+        # map tiles among them (marked written once the file holds them)
+        self._unflushed: list[persist.Rows] = []
+        self._unflushed_tiles: list[MapTile] = []
+        #: called with every :class:`~kd_store.persist.Rows` as it is collected (by
+        #: :meth:`stage`, :meth:`flush` or a batch of map tiles), in the order the file gets
+        #: them: what a replica of the file needs (wm.serve_sql); None: nobody listens
+        self.on_rows: Callable[[persist.Rows], None] | None = None
         self._snapshot_targets: dict[str, Path] = {}  # publish_snapshot paths, checked
         self._snapshot_marked: set[Path] = set()  # ... and recorded in kd_meta
         self.tiles = TileMemory(
@@ -467,21 +475,64 @@ class KnowledgeDatabase:
     def flush(self, tiles: bool = True) -> int:
         """Promote what the rule admits and write every change of long-term frames since the
         last flush, in one transaction, with the pending map tiles unless ``tiles`` is False
-        (they then wait for a later flush). Returns the number of state rows written."""
+        (they then wait for a later flush); the rows :meth:`stage` held go in the same
+        transaction. Returns the number of state rows written."""
         if self._read_only:
             return 0
         with self._lock:
-            self._promote()
-            w = self._collect(tiles)
-            if not w:
-                return 0
-            persist.write(self._con, w)  # on failure nothing is cleared: the next flush retries
-            self._entities.written()
-            self._events.written()
-            self.graph.dirty.clear()
-            self.classes.dirty.clear()
-            self.tiles.written(w.tiles)
-            return sum(len(c) for c in w.states)
+            self._take(tiles)
+            return self._write_unflushed()
+
+    def stage(self) -> persist.Rows | None:
+        """Collect every change of long-term frames since the last :meth:`stage` or
+        :meth:`flush` now (promotion first, no map tiles), as the rows a flush now would
+        write, and hold them for the next flush of the file, which writes them with its own
+        in one transaction (:func:`~kd_store.persist.merge_rows`): the file keeps its cadence
+        while :attr:`on_rows` gets each call's changes, for a writer that keeps a replica of
+        the file current (a live node serving SQL, once per cycle: wm.serve_sql). Returns
+        the rows (None: nothing changed)."""
+        if self._read_only:
+            return None
+        with self._lock:
+            return self._take(tiles=False)
+
+    @property
+    def unflushed(self) -> list[persist.Rows]:
+        """The rows collected (:meth:`stage`) that the file does not hold yet, oldest first:
+        a copy of the file (:meth:`copy_committed`) with these written over it in order is the
+        KD as of the last :meth:`stage`. Call it under the writer's lock."""
+        return list(self._unflushed)
+
+    def _take(self, tiles: bool) -> persist.Rows | None:
+        """Promote, collect and convert what changed (map tiles only if ``tiles``) into rows
+        held for the file, told to :attr:`on_rows`; the frames' change marks are cleared (the
+        rows hold their values now), the tiles' once the file holds them."""
+        self._promote()
+        w = self._collect(tiles)
+        if not w:
+            return None
+        rows = w.rows()
+        self._entities.written()
+        self._events.written()
+        self.graph.dirty.clear()
+        self.classes.dirty.clear()
+        self._unflushed.append(rows)
+        self._unflushed_tiles += w.tiles
+        if self.on_rows is not None:
+            self.on_rows(rows)
+        return rows
+
+    def _write_unflushed(self) -> int:
+        """Write every row held for the file in one transaction, merged; returns the state
+        rows written. On failure the rows stay held: the next flush retries them."""
+        if not self._unflushed:
+            return 0
+        rows = persist.merge_rows(self._unflushed)
+        persist.write_rows(self._con, rows)
+        self._unflushed = []
+        tiles, self._unflushed_tiles = self._unflushed_tiles, []
+        self.tiles.written(tiles)
+        return rows.state_rows
 
     def _promote(self) -> None:
         """Move the frames the promotion rule admits into long-term memory (in RAM; the next
@@ -512,12 +563,16 @@ class KnowledgeDatabase:
         )
 
     def _write_tiles(self, tiles: list[MapTile]) -> bool:
-        """Write ``tiles`` on their own (one transaction); False in a read-only KD."""
+        """Write ``tiles`` now, with the rows held for the file before them (one transaction);
+        False in a read-only KD."""
         if self._read_only:
             return False
-        persist.write(
-            self._con, persist.Write(tiles=tiles, next_id=self._next_id, run_id=self.run_id)
-        )
+        with self._lock:
+            rows = persist.Write(tiles=tiles, next_id=self._next_id, run_id=self.run_id).rows()
+            self._unflushed.append(rows)
+            if self.on_rows is not None:
+                self.on_rows(rows)
+            self._write_unflushed()
         return True
 
     # ================================================================ map tiles

@@ -46,11 +46,22 @@ def served(app) -> Iterator[str]:
 MODES = ("process", "thread")
 
 
-def start_live(log, kd_path, config=None, rate: float = 1.0, mode: str = "process"):
-    """A started :class:`wm.serve.LiveNode` replaying ``log`` in ``mode`` (:data:`MODES`)."""
+def start_live(
+    log,
+    kd_path,
+    config=None,
+    rate: float = 1.0,
+    mode: str = "process",
+    seed_period_s: float | None = None,
+):
+    """A started :class:`wm.serve.LiveNode` replaying ``log`` in ``mode`` (:data:`MODES`);
+    ``seed_period_s``: the least time between two seeds of its SQL replica (None: default)."""
     from wm.serve import LiveNode
 
-    return LiveNode(log, kd_path, config, rate, process=mode == "process").start()
+    live = LiveNode(log, kd_path, config, rate, process=mode == "process")
+    if seed_period_s is not None:
+        live.sql_seed_period_s = seed_period_s
+    return live.start()
 
 
 def acquire_node_lock(live) -> None:

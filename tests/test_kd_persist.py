@@ -195,3 +195,61 @@ def test_checkpoint_context_manager_and_read_only(tmp_path: Path) -> None:
     duckdb.connect(str(tmp_path / "other.duckdb")).execute("CREATE TABLE t (a INT)").close()
     with pytest.raises(KDError, match=r"other\.duckdb: not a KD file"):
         kd_store.open(tmp_path / "other.duckdb", read_only=True)
+
+
+def _tables(con: duckdb.DuckDBPyConnection) -> dict[str, str]:
+    """Every base table's rows in a fixed order, as text (NaN compares equal so)."""
+    out = {}
+    for table in kd_store.persist.TABLES:
+        if table == "run_rows":  # its start time is the wall clock's
+            continue
+        cols = [r[0] for r in con.execute(f"DESCRIBE {table}").fetchall()]
+        order = ", ".join(f'"{c}"' for c in cols if c not in ("attributes", "weights", "data"))
+        out[table] = repr(con.execute(f"SELECT * FROM {table} ORDER BY {order}").fetchall())
+    return out
+
+
+def test_staged_rows_keep_the_file_and_rebuild_it_elsewhere(tmp_path: Path) -> None:
+    """Changes collected in steps (``stage``, as a live node serving SQL does each cycle) and
+    written by the next flush, merged in one transaction, leave the file as one flush of them
+    all does; the same rows, handed to ``on_rows`` in order, written over a copy of the file
+    taken before them rebuild it: the KD as of the last stage (a replica, wm.serve_sql)."""
+    from kd_store import persist
+
+    staged = kd_store.open(tmp_path / "staged.duckdb")
+    plain = kd_store.open(tmp_path / "plain.duckdb")
+    for kd in (staged, plain):
+        build_full_kd(kd)
+        kd.flush()
+    staged.copy_committed(tmp_path / "replica.duckdb")
+    shipped: list[persist.Rows] = []
+    staged.on_rows = shipped.append
+
+    def change(kd: kd_store.KnowledgeDatabase, k: int) -> None:
+        tree = next(f.id for f in kd.entities() if f.name == "oak-7")
+        kd.observe(tree, _state(5_000 + 100 * k, 10 + k))
+        kd.update_entity(tree, confidence=0.5 + 0.1 * k, map_cells=((4, k, k),))
+        kd.expect(tree, [_state(9_000 + 100 * k, 20 + k)])
+        kd.add_entity(f"new-{k}", Level.OBJECT, noteworthy=True, state=_state(5_000, 30 + k))
+        kd.put_tile("subsystem", k % 2, 0, {"elevation": np.full((4, 4), k, np.float32)})
+
+    for k in range(4):
+        change(staged, k)
+        change(plain, k)
+        staged.stage()
+    assert len(staged.unflushed) == 4 and len(shipped) == 4
+    assert all(r.tiles is None for r in shipped)  # tiles go with the file's own writes
+    replica = persist.connect(tmp_path / "replica.duckdb")
+    for rows in shipped:  # one at a time, as a server applies each cycle's changes
+        persist.write_rows(replica, rows)
+    staged_file = staged._con  # before the flush: the file lacks what was staged
+    assert _tables(staged_file)["entity_state_rows"] != _tables(replica)["entity_state_rows"]
+    assert staged.flush() > 0 and plain.flush() > 0
+    assert staged.unflushed == [] and shipped[-1].tiles is not None  # the flush's own rows
+    persist.write_rows(replica, shipped[-1])
+    assert _tables(staged._con) == _tables(plain._con) == _tables(replica)
+    merged = persist.merge_rows(shipped)
+    assert merged.state_rows == sum(r.state_rows for r in shipped)
+    for kd in (staged, plain):
+        kd.close()
+    replica.close()

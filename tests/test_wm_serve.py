@@ -47,15 +47,8 @@ def server(log: Path, tmp_path_factory, request):
 
 
 def call(base: str, path: str, body: dict | None = None, token: str | None = TOKEN):
-    """(status, JSON) of one request; SQL is asked again while a node in a process of its own
-    has no copy of its KD for SQL yet (a 503 saying so: wm.serve_sql), for up to 60 s."""
-    deadline = time.time() + 60
-    while True:
-        code, ans = _call_once(base, path, body, token)
-        no_copy = code == 503 and "no read-only copy" in str(ans)
-        if not (no_copy and path == "/v1/sql" and time.time() < deadline):
-            return code, ans
-        time.sleep(0.1)
+    """(status, JSON) of one request."""
+    return _call_once(base, path, body, token)
 
 
 def _call_once(base: str, path: str, body: dict | None, token: str | None):

@@ -266,6 +266,7 @@ def test_news_of_stream_messages_alone_leave_the_status_as_it_was() -> None:
         status = LiveStatus(cycles=7)
         snapshot = None
         stream_sink = got.append
+        sql_replica = None
 
     link = NodeLink(Live())  # type: ignore[arg-type]
     link.alive = True

@@ -14,7 +14,6 @@ with the server's ``detail``, which names the offending value.
 from __future__ import annotations
 
 import json
-import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -23,8 +22,6 @@ from typing import Any
 
 from core.errors import EngineError
 
-#: words of the 503 a server answers SQL with before its first copy of the KD (wm.serve_sql)
-NO_COPY = "no read-only copy of the KD for SQL yet"
 #: the media type of an Arrow IPC stream (what /v1/sql and map windows answer when asked)
 ARROW_STREAM = "application/vnd.apache.arrow.stream"
 
@@ -239,30 +236,20 @@ class Client:
         with resp:
             yield from _sse_events(resp)
 
-    def sql_table(self, query: str, wait_s: float = 10.0) -> Any:
+    def sql_table(self, query: str) -> Any:
         """:meth:`sql` as a ``pyarrow.Table`` (the server's Arrow IPC answer): its schema's
         metadata holds ``cycle_t_ns``, ``newest_cycle_t_ns`` and ``staleness_ns`` (JSON)."""
         import pyarrow as pa
 
-        return pa.ipc.open_stream(self._sql(query, wait_s, ARROW_STREAM)).read_all()
+        return pa.ipc.open_stream(self._call("/v1/sql", body={"query": query},
+                                             accept=ARROW_STREAM)).read_all()  # fmt: skip
 
-    def sql(self, query: str, wait_s: float = 10.0) -> dict:
+    def sql(self, query: str) -> dict:
         """One read-only SELECT: ``{"columns", "rows", "truncated", "cycle_t_ns",
         "newest_cycle_t_ns", "staleness_ns"}`` (``truncated`` always false: a result over the
         server's row or byte limit raises ClientError with status 413 and the limit in its
-        words). A server whose node has made no copy of its KD for SQL yet answers 503 the
-        first time SQL is asked for: asked again every 0.25 s for up to ``wait_s`` s."""
-        return self._sql(query, wait_s)
-
-    def _sql(self, query: str, wait_s: float, accept: str | None = None) -> Any:
-        deadline = time.monotonic() + wait_s
-        while True:
-            try:
-                return self._call("/v1/sql", body={"query": query}, accept=accept)
-            except ClientError as e:
-                if e.status != 503 or NO_COPY not in str(e) or time.monotonic() > deadline:
-                    raise
-            time.sleep(0.25)
+        words)."""
+        return self._call("/v1/sql", body={"query": query})
 
 
 def _polygon_stamped(points: list[tuple[float, ...]]) -> dict:

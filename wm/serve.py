@@ -28,23 +28,26 @@ no lock either (the node reads the plan once per cycle). Under the lock, between
 lookups at another time or in another frame (they read state and pose histories); the first
 request for a map layer, the events or a level's attention (and a layer beyond the copy's
 byte limit), which also asks the cycles after to copy it; anything before the first cycle;
-a stream client's subscription (once per client: the node's listener list). SQL reads the
-KD file as of the node's last flush (each second of log time): with the node in a process of
-its own, from a read-only copy of the KD the node's process makes every few seconds while SQL
-is asked for, opened and queried in the server's process (:mod:`wm.serve_sql`; a 503 before
-the first copy); in a thread, on the KD itself under the KD's own lock only. Either way SQL
-never waits for the node's lock.
+a stream client's subscription (once per client: the node's listener list). SQL reads a
+replica of the KD in the server's process, seeded from a copy of the KD file once SQL is
+asked for and kept current by each cycle's changes, which the node collects at the end of the
+cycle and ships while its file keeps its own flush cadence (:mod:`wm.serve_sql`; until the
+replica is open the node answers, as of its last flush): as of the newest cycle, or at most
+one cycle behind while that cycle's changes are applied (with the node in a process of its
+own the server installs a cycle's copy once its replica holds it). SQL never waits for the
+node's lock and costs the node only the changes shipped; a throwaway KD (``":memory:"``, no
+file to seed from) is read by the node itself, as of its last flush.
 
 :func:`create_app` is the HTTP API (FastAPI; OpenAPI schema at ``/openapi.json``), versioned
 under ``/v1``. Every answer carries the time of the cycle it comes from (``cycle_t_ns``, int64
-ns, log time) and the frame its positions are in; a SQL answer, the cycle whose flush it
-reads, and how far that is behind the newest cycle (``staleness_ns``). Bad parameters (an
+ns, log time) and the frame its positions are in; a SQL answer, the cycle it reads and how
+far that is behind the newest cycle (``staleness_ns``). Bad parameters (an
 unknown entity, frame or region, an interval that ends before it starts, a statement that is
 not one read-only SELECT or reaches outside the KD) get a 4xx whose ``detail`` names the
-value. SQL runs on a copy of the KD (or, with the node in a thread, the KD's own database)
-opened with DuckDB's external access off and its configuration locked
-(:func:`kd_store.query.open_copy`, :func:`kd_store.query.served_settings`), with a time
-limit. The server binds to 127.0.0.1
+value. SQL runs on the replica (or, for a throwaway KD, the KD's own database) opened with
+DuckDB's external access off and its configuration locked
+(:func:`kd_store.query.sandbox_settings`, :func:`kd_store.query.served_settings`), with a
+time limit. The server binds to 127.0.0.1
 unless told otherwise; a bearer token, when set, is required on every request. Bodies are
 limited in size (413) and, if asked, each client's request rate (429): :mod:`wm.limits`.
 With ``--ingest`` the node has no log: clients post ROS 2 messages to ``/v1/ingest``
@@ -282,13 +285,17 @@ class LiveNode:
         self.stream_clients = 0
         self.stream_diff: Any | None = None  # wm.serve_views.CycleDiff, once a client came
         self._link: Any | None = None  # wm.serve_proc.NodeLink when ``process``
-        # with ``process`` and a KD file: the copies of the KD SQL is answered from in this
-        # process (wm.serve_sql.SQLCopies), made at most every ``sql_copy_period_s`` s of wall
-        # time (settable before start)
-        from wm.serve_sql import SQL_COPY_PERIOD_S
+        # with a KD file: the replica of the KD SQL is answered from in this process
+        # (wm.serve_sql.SQLReplica), seeded at most every ``sql_seed_period_s`` s of wall time
+        # after the first seed (settable before start); ``kd_feed`` ships the KD's seeds and
+        # changes where the node runs (wm.serve_sql.ReplicaFeed); ``local_sql`` False: this
+        # LiveNode is the node's side in a process of its own, the server keeps the replica
+        from wm.serve_sql import SEED_PERIOD_S
 
-        self.sql_copies: Any | None = None
-        self.sql_copy_period_s = SQL_COPY_PERIOD_S
+        self.sql_replica: Any | None = None
+        self.kd_feed: Any | None = None
+        self.sql_seed_period_s = SEED_PERIOD_S
+        self.local_sql = True
         self._ready = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="live-node", daemon=True)
@@ -300,16 +307,20 @@ class LiveNode:
 
     def start(self, timeout_s: float = 60.0) -> LiveNode:
         """Open the log and the KD and start replaying; returns once queries can be served."""
+        from wm.serve_sql import ReplicaFeed, SQLReplica
+
+        # a throwaway KD has no file to seed a replica from: its SQL goes to the node
+        replicated = self.kd_path != ":memory:" and self.local_sql
         if self.process:
             from wm.serve_proc import NodeLink
-            from wm.serve_sql import SQLCopies
 
-            if self.kd_path != ":memory:":  # a throwaway KD has no file to copy
-                self.sql_copies = SQLCopies(tempfile.mkdtemp(prefix="wm-sql-copies-"))
+            if replicated:
+                folder = tempfile.mkdtemp(prefix="wm-sql-replica-")
+                self.sql_replica = SQLReplica(folder, self._ask_seed)
             try:
                 self._link = NodeLink.start(self, timeout_s)
             except BaseException:
-                self._close_sql_copies()
+                self._close_sql()
                 raise
             return self
         self._thread.start()
@@ -317,7 +328,20 @@ class LiveNode:
             raise ServeError(f"the live node did not start within {timeout_s} s")
         if self.status.error and self.node is None:
             raise ServeError(f"the live node could not start: {self.status.error}")
+        if replicated:
+            folder = tempfile.mkdtemp(prefix="wm-sql-replica-")
+            self.sql_replica = replica = SQLReplica(folder, self._ask_seed)
+            feed = ReplicaFeed(self, folder, lambda item: replica.offer([item]),
+                               self.sql_seed_period_s)  # fmt: skip
+            self.kd_feed = feed.start()
         return self
+
+    def _ask_seed(self) -> None:
+        """The replica lost a delta or fell behind: ask the feed for a new seed."""
+        if self._link is not None:
+            self._link.tell("sql_seed", None)
+        elif self.kd_feed is not None:
+            self.kd_feed.reseed()
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Stop replaying, finish the node and close the KD (what it committed stays); the
@@ -326,8 +350,10 @@ class LiveNode:
             self._link.stop(timeout_s)
             self.closed = True
             self.snapshot = None
-            self._close_sql_copies()
+            self._close_sql()
             return
+        if self.kd_feed is not None and self.local_sql:  # no seed of a KD being closed
+            self.kd_feed.stop()
         self._stop.set()
         if self._thread.ident is not None:  # started (a start that failed in a process: not)
             self._thread.join(timeout_s)
@@ -336,11 +362,12 @@ class LiveNode:
                 self.kd.close()
             self.closed = True
             self.snapshot = None
+        self._close_sql()
 
-    def _close_sql_copies(self) -> None:
-        if self.sql_copies is not None:
-            self.sql_copies.close()
-            self.sql_copies = None
+    def _close_sql(self) -> None:
+        if self.sql_replica is not None:
+            self.sql_replica.close()
+            self.sql_replica = None
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Wait for the end of the log; True when the replay is done."""
@@ -405,14 +432,14 @@ class LiveNode:
         return copy_levels(self.node.stack, {})
 
     def sql_status(self) -> dict:
-        """What ``/v1/status`` says of SQL (``sql``): ``source`` ``"copy"`` (a copy of the KD in
-        this process, :meth:`wm.serve_sql.SQLCopies.figures`) or ``"node"`` (the KD itself,
-        with the node: in a thread, or a throwaway KD)."""
-        copies = self.sql_copies
-        if copies is None:
+        """What ``/v1/status`` says of SQL (``sql``): ``source`` ``"replica"`` (a replica of
+        the KD in this process, :meth:`wm.serve_sql.SQLReplica.figures`) or ``"node"`` (the
+        KD itself, as of its last flush: a throwaway KD)."""
+        replica = self.sql_replica
+        if replica is None:
             return {"source": "node"}
         snap = self.snapshot
-        return copies.figures(snap.cycle_t_ns if snap is not None else self.status.cycle_t_ns)
+        return replica.figures(snap.cycle_t_ns if snap is not None else self.status.cycle_t_ns)
 
     def process_status(self) -> dict | None:
         """What ``/v1/status`` says of the node's process (None for a node in a thread):
@@ -452,6 +479,8 @@ class LiveNode:
             with self.lock:
                 self.node.close()
                 self.kd.flush()
+                if self.kd_feed is not None:  # the last changes reach the replica too
+                    self.kd_feed.cycle_end(self.status.cycle_t_ns)
             self.status.done = True
             if self.on_publish is not None:
                 self.on_publish(False, True)
@@ -490,7 +519,9 @@ class LiveNode:
 
     def _cycle(self, step: Any) -> list:
         """Run ``step()`` (feed or finish) under the lock; when it ran cycles, copy what the
-        last one left for the answers that do not take the lock (:class:`CycleSnapshot`)."""
+        last one left for the answers that do not take the lock (:class:`CycleSnapshot`);
+        while SQL is served from a replica of the KD, ship what the step changed in the KD
+        (:meth:`wm.serve_sql.ReplicaFeed.cycle_end`)."""
         with self.lock:
             cycles = step()
             if cycles:
@@ -503,6 +534,9 @@ class LiveNode:
                 )  # fmt: skip
                 self.status.snapshot_ms = 1e3 * (time.perf_counter() - t)
                 self.status.snapshot_map_bytes = map_bytes(self.snapshot.maps)
+            if self.kd_feed is not None:
+                snap = self.snapshot
+                self.kd_feed.cycle_end(snap.cycle_t_ns if snap is not None else -1, bool(cycles))
         return cycles
 
     def _account(self, cycles: list, wall_s: float) -> None:
@@ -555,8 +589,9 @@ def what_is_query(live: LiveNode, query: str, *args: Any) -> tuple[Any, int]:
 def sql_query(live: LiveNode, query: str, limits: Any) -> tuple[Any, int]:
     """(Arrow table, the time of the cycle whose flush it reads) of one read-only SELECT over
     the KD's views as of the node's last flush (:func:`kd_store.query.query_reader` within
-    ``limits``), on the KD itself: the node in a thread, or a throwaway KD. A reader needs
-    only the KD's own lock, not the node's, so SQL never waits for a cycle; a flush landing
+    ``limits``), on the KD itself: a throwaway KD, which has no file to seed a replica from,
+    or any KD while its replica is being seeded (:mod:`wm.serve_sql`). A reader needs only
+    the KD's own lock, not the node's, so SQL never waits for a cycle; a flush landing
     between the time read and the query's start makes the answer up to one flush newer."""
     from kd_store.query import query_reader
     from wm.serve_sql import flushed_cycle
@@ -810,10 +845,13 @@ def create_app(
     every request must carry (None: none needed); ``limits``: body sizes and request rates
     (:class:`wm.limits.ServeLimits`; None: its defaults); ``stream_queue``: cycles a
     ``/v1/stream`` client may fall behind before its oldest are dropped."""
+    from wm.limits import LimitsMiddleware, ServeLimits
+
+    limits = limits or ServeLimits()
     import kd_store
     from kd_store.errors import KDError, ResultTooLarge
     from kd_store.query import QueryLimits
-    from wm.serve_sql import SQL_KEY, NoCopyYet
+    from wm.serve_sql import SQL_KEY, NoReplicaYet
     from wm.whatis import WhatIsError
 
     def authorised(request: Request) -> None:
@@ -855,7 +893,7 @@ def create_app(
         frame read, the newest cycle's wall time and that of its copy for the lock-free answers
         (``snapshot_ms``, part of the cycle's) with the bytes of map layers it holds
         (``snapshot_map_bytes``), frames read and skipped; where SQL is answered from and, for
-        a copy of the KD, its cycle, staleness and costs (``sql``: :mod:`wm.serve_sql`)."""
+        the replica of the KD, its cycle, staleness and costs (``sql``: :mod:`wm.serve_sql`)."""
         s = live.status
         lag = s.newest_frame_t_ns - s.cycle_t_ns if s.cycle_t_ns >= 0 else None
         return {
@@ -986,31 +1024,31 @@ def create_app(
         """One read-only SELECT over the KD's views (docs/kd.md); JSON columns and rows (with
         ``Accept: application/vnd.apache.arrow.stream``, an Arrow IPC stream of the result,
         its cycle, newest cycle and staleness in the schema's metadata and in the headers
-        ``X-Cycle-T-Ns``, ``X-Newest-Cycle-T-Ns``, ``X-Staleness-Ns``), as of
-        the cycle ``cycle_t_ns`` (int64 ns, log time), the last the KD file held when read,
-        which is ``staleness_ns`` behind the newest cycle ``newest_cycle_t_ns``. With the node
-        in a process of its own (``wm serve``'s default) the query reads a read-only copy of
-        the KD the node makes at most every 2 s of wall time while SQL is asked for (its last
-        flush, each second of log time): a few seconds behind, more than other answers' one
-        cycle; a 503 with Retry-After before the first copy. With the node in a thread it
-        reads the KD itself, as of the last flush (at most a second behind). A result of more
-        than 100 000 rows or 64 MB is refused with a 413 naming the limit (it is read batch by
+        ``X-Cycle-T-Ns``, ``X-Newest-Cycle-T-Ns``, ``X-Staleness-Ns``), as of the cycle
+        ``cycle_t_ns`` (int64 ns, log time), which is ``staleness_ns`` behind the newest cycle
+        ``newest_cycle_t_ns``. With a KD file the query reads a replica of the KD in the
+        server's process, kept current by each cycle's changes while SQL is asked for
+        (:mod:`wm.serve_sql`): as of the newest cycle, or at most one cycle behind while the
+        newest cycle's changes are applied, unless the replica falls behind (then it is
+        reseeded, and ``staleness_ns`` says how far it is). Until the replica is open (a few
+        tenths of a second after the first request, or after one following 30 s without SQL)
+        and for a throwaway KD (``--kd :memory:``), the node answers itself, from the KD as
+        of its last flush (at most a second of log time behind). A result of more than
+        100 000 rows or 64 MB is refused with a 413 naming the limit (it is read batch by
         batch and stopped there, never held whole); ``truncated`` is always false, kept for
         clients of the earlier answer that cut the rows instead."""
-        copies = live.sql_copies
+        replica = live.sql_replica
         try:
-            if copies is None:
+            if replica is None:
                 table, cycle = live.call(sql_query, req.query, sql_limits)
             else:
                 if not live.running:
                     raise ServeError("the live node is not running (not started, or stopped)")
-                live.demand.ask([SQL_KEY])  # the node copies its KD while SQL is asked for
+                live.demand.ask([SQL_KEY])  # the node feeds the replica while SQL is asked for
                 try:
-                    table, copy = copies.query(req.query, sql_limits)
-                except NoCopyYet as e:
-                    retry = str(max(1, math.ceil(live.sql_copy_period_s)))
-                    raise HTTPException(503, str(e), headers={"Retry-After": retry}) from None
-                cycle = copy.cycle_t_ns
+                    table, cycle = replica.query(req.query, sql_limits)
+                except NoReplicaYet:  # being seeded: the node answers meanwhile
+                    table, cycle = live.call(sql_query, req.query, sql_limits)
         except ServeError as e:
             raise bad(e, 503) from None
         except KDError as e:
@@ -1114,12 +1152,11 @@ def create_app(
         return answer
 
     from wm.ingest import add_ingest_routes
-    from wm.limits import LimitsMiddleware, ServeLimits
     from wm.serve_ros import add_ros_routes
 
     add_ingest_routes(app, live)  # POST /v1/ingest, for a node fed by clients
     add_ros_routes(app, live)  # GetGridMap, CheckSafety and IsPathValid shapes
-    app.add_middleware(LimitsMiddleware, limits=limits or ServeLimits())
+    app.add_middleware(LimitsMiddleware, limits=limits)
     return app
 
 

@@ -24,9 +24,14 @@ process keeps a :class:`NodeLink` to it over two pipes:
   tells the node, without an answer: the views clients asked for lately
   (:class:`~wm.serve_copy.ServedDemand`; at once when a key is new, else after each snapshot
   when the list changed), and how many stream clients there are.
-* SQL (a KD file only): while clients ask for it, a thread of the node's process copies the KD
-  for the server every few seconds and the news names each copy; the server answers SQL from
-  the newest itself, costing the node's process only the copy (:mod:`wm.serve_sql`).
+* SQL (a KD file only): while clients ask for it, the news carries a seed of a replica of the
+  KD (a copy of the file, when the feed starts and when the server asks: ``sql_seed``) and
+  each cycle's changes of the KD after it, in order and never replaced by newer ones (at most
+  :data:`~wm.serve_sql.MAX_BEHIND_CYCLES` held; beyond, they are dropped and the replica
+  reseeded); the server keeps its replica current with them and answers SQL from it itself,
+  costing the node's process only the changes and the seeds (:mod:`wm.serve_sql`). The server
+  installs a cycle's snapshot once its replica holds that cycle's changes (waiting at most
+  :data:`~wm.serve_sql.APPLY_WAIT_S` s).
 
 Frames posted to ``/v1/ingest`` are decoded in the server's process and cross in a bounded
 :class:`multiprocessing.Queue` (full: dropped and counted, :mod:`wm.ingest`).
@@ -44,7 +49,9 @@ Figures (``/v1/status``, ``node_process``): ``transfer_ms``, wall time from the 
 a snapshot to its install in the server (pickling, the pipe, unpickling, and the wait for the
 sender while it sent the one before); ``send_ms``, the node's process's share (pickling and
 writing), which is what the transfer costs the node; ``replaced``, snapshots replaced before
-the server took them.
+the server took them; ``replica_dropped``, cycles' changes of the KD dropped before they were
+sent (the server fell behind: its replica is reseeded). ``transfer_ms`` includes the wait
+for the replica to apply the cycle's changes while SQL is served.
 """
 
 from __future__ import annotations
@@ -73,7 +80,7 @@ from fastapi import HTTPException
 
 from core.process import die_with_parent, exit_with_parent
 from wm.serve import CycleSnapshot, LiveNode, LiveStatus, ServeError
-from wm.serve_sql import CopyPublisher, SQLCopy
+from wm.serve_sql import APPLY_WAIT_S, MAX_BEHIND_CYCLES, KDDelta, KDSeed, ReplicaFeed
 
 #: threads in the node's process answering requests (SQL may take seconds: more than one)
 CALL_THREADS = 4
@@ -156,13 +163,18 @@ class NodeNews:
     stream_dropped: int = 0
     send_ms: float = float("nan")  # the node's process's pickling and writing of the last one
     final: bool = False
-    sql_copy: SQLCopy | None = None  # the newest copy of the KD for SQL, since the last message
+    # seeds and deltas of the server's replica of the KD for SQL since the last message, in
+    # the order they were made (wm.serve_sql)
+    replica: list[KDDelta | KDSeed] = field(default_factory=list)
+    replica_dropped: int = 0  # deltas dropped before they were sent, since the start
 
 
 class _Outbox:
     """What the node's thread posts for the server: one slot for the newest snapshot (a newer
-    one replaces it, counted), the newest status, the stream's messages. The sender thread
-    takes it all at once."""
+    one replaces it, counted), the newest status, the stream's messages, the replica's seeds
+    and deltas (all kept, in order, at most :data:`~wm.serve_sql.MAX_BEHIND_CYCLES` deltas:
+    beyond, the deltas are dropped, counted, and ``on_replica_dropped`` is called, so that
+    the feed makes a new seed). The sender thread takes it all at once."""
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
@@ -171,10 +183,12 @@ class _Outbox:
         self._posted_t = 0.0
         self._stream: deque[bytes] = deque()
         self._final = False
-        self._sql_copy: SQLCopy | None = None
+        self._replica: list[KDDelta | KDSeed] = []
         self._closed = False
         self.replaced = 0
         self.stream_dropped = 0
+        self.replica_dropped = 0
+        self.on_replica_dropped: Callable[[], None] | None = None
 
     def post(self, live: LiveNode, fresh: bool, final: bool) -> None:
         """The node's thread, after a frame: its status and, when ``fresh``, its snapshot."""
@@ -187,11 +201,22 @@ class _Outbox:
             self._final |= final
             self._cond.notify()
 
-    def post_sql(self, copy: SQLCopy) -> None:
-        """The SQL copy thread: a new copy of the KD (a newer one replaces one not sent)."""
+    def post_replica(self, item: KDDelta | KDSeed) -> None:
+        """The replica's feed (:class:`~wm.serve_sql.ReplicaFeed`), under the node's lock: a
+        seed, or a cycle's delta. A delta wakes no sender: the node's thread posts the cycle's
+        status right after, and both go in one message."""
+        dropped = False
         with self._cond:
-            self._sql_copy = copy
-            self._cond.notify()
+            self._replica.append(item)
+            deltas = sum(isinstance(i, KDDelta) for i in self._replica)
+            if deltas > MAX_BEHIND_CYCLES:  # the server is far behind: a new seed instead
+                self._replica = [i for i in self._replica if isinstance(i, KDSeed)]
+                self.replica_dropped += deltas
+                dropped = True
+            if isinstance(item, KDSeed):
+                self._cond.notify()
+        if dropped and self.on_replica_dropped is not None:
+            self.on_replica_dropped()
 
     def stream(self, message: bytes) -> None:
         with self._cond:
@@ -208,13 +233,13 @@ class _Outbox:
             self._cond.notify()
 
     def take(self, last_sent: float, send_ms: float) -> NodeNews | None:
-        """The news to send: waits until there is a snapshot, stream messages, a copy of the
-        KD for SQL or the final status, or a status and :data:`STATUS_PERIOD_S` s since
-        ``last_sent``; None when closed (:meth:`close`) with nothing left to send."""
+        """The news to send: waits until there is a snapshot, stream messages, a seed or
+        delta of the replica or the final status, or a status and :data:`STATUS_PERIOD_S` s
+        since ``last_sent``; None when closed (:meth:`close`) with nothing left to send."""
         with self._cond:
             while True:
                 urgent = self._snapshot is not None or self._stream or self._final
-                urgent = urgent or self._sql_copy is not None
+                urgent = urgent or bool(self._replica)
                 wait = last_sent + STATUS_PERIOD_S - time.monotonic()
                 if urgent or (self._status is not None and (wait <= 0 or self._closed)):
                     break
@@ -224,17 +249,17 @@ class _Outbox:
             news = NodeNews(
                 self._status, self._snapshot, self._posted_t,
                 list(self._stream), self.replaced, self.stream_dropped, send_ms, self._final,
-                self._sql_copy,
+                self._replica, self.replica_dropped,
             )  # fmt: skip
-            self._status, self._snapshot, self._sql_copy = None, None, None
+            self._status, self._snapshot, self._replica = None, None, []
             self._stream.clear()
-            self._final = False  # sent: the news after (copies for SQL) are no final ones
+            self._final = False  # sent: the news after (seeds for SQL) are no final ones
             return news
 
 
 def _send_news(outbox: _Outbox, conn: Any) -> None:
     """The sender thread of the node's process: news until the outbox is closed (the node
-    stopped; a node done with its log still sends copies of its KD for SQL), or until the
+    stopped; a node done with its log still sends seeds of its KD for SQL), or until the
     server's end of the pipe is closed."""
     lock = threading.Lock()
     last, send_ms = 0.0, float("nan")
@@ -310,12 +335,13 @@ def _node_main(
     request_conn: Any,
     parent: int,
     start_timeout_s: float,
-    sql_copies: tuple[str, float] | None = None,
+    sql_feed: tuple[str, float] | None = None,
 ) -> None:
     """The node's process: build and start the node, tell the server it is ready (or why
     not), answer requests until told to stop (or SIGTERM), then stop the node (the KD
-    flushed and closed) and send the final status. ``sql_copies``: (the server's folder for
-    copies of the KD for SQL, their period in s of wall time), None: SQL goes to the node."""
+    flushed and closed) and send the final status. ``sql_feed``: (the server's folder for
+    the seeds of its replica of the KD for SQL, the least time between two seeds in s of wall
+    time), None: SQL goes to the node."""
     die_with_parent(parent)
     exit_with_parent(parent, "wm-node-watch")  # where prctl is not there (or not allowed)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server's process stops the node
@@ -323,9 +349,10 @@ def _node_main(
     reply_lock = threading.Lock()
     outbox = _Outbox()
     live: LiveNode | None = None
-    publisher: CopyPublisher | None = None
+    feed: ReplicaFeed | None = None
     try:
         live = cls(**kwargs)
+        live.local_sql = False  # the server's process answers SQL (or sends it here)
         if ingest_queue is not None:
             live.queue = ingest_queue
         live.demand = _GivenDemand()  # type: ignore[assignment]
@@ -336,9 +363,11 @@ def _node_main(
         sender.start()
         live.start(start_timeout_s)
         info = {"vj_config": live.vj_config, "levels": live.map_levels, "pid": os.getpid()}
-        if sql_copies is not None:
-            publisher = CopyPublisher(live, sql_copies[0], sql_copies[1], outbox.post_sql)
-            publisher.start()
+        if sql_feed is not None:
+            feed = ReplicaFeed(live, sql_feed[0], outbox.post_replica, sql_feed[1])
+            outbox.on_replica_dropped = feed.reseed
+            live.kd_feed = feed
+            feed.start()
         send_message(request_conn, ("ready", info, ""), reply_lock)
         calls: queue.Queue = queue.Queue()
         for k in range(CALL_THREADS):
@@ -355,6 +384,8 @@ def _node_main(
                 live.demand.set(rest[0])  # type: ignore[attr-defined]
             elif kind == "stream_clients":
                 live.stream_clients = int(rest[0])
+            elif kind == "sql_seed" and feed is not None:
+                feed.reseed()
             elif kind == "stop":
                 break
     except SystemExit:
@@ -369,8 +400,8 @@ def _node_main(
         live.status.error = live.status.error or f"{type(e).__name__}: {e}"
     # a second SIGTERM while the KD is flushed must not cut the flush short
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    if publisher is not None:  # no copy of a KD being closed
-        publisher.stop()
+    if feed is not None:  # no seed of a KD being closed (its last changes still go out)
+        feed.stop()
     if live is not None:
         live.stop()
         outbox.post(live, False, True)  # the final status, whatever the replay had sent
@@ -406,6 +437,7 @@ class NodeLink:
         self.snapshots = 0
         self.replaced = 0
         self.stream_dropped = 0
+        self.replica_dropped = 0
         self.transfer_ms = float("nan")
         self.send_ms = float("nan")
         self._transfer_sum_ms = 0.0
@@ -424,14 +456,14 @@ class NodeLink:
         link._conn, child_conn = ctx.Pipe()
         link._news = news_recv
         queue_ = live.queue if hasattr(live, "queue") else None
-        copies = live.sql_copies
-        sql_copies = None if copies is None else (str(copies.folder), live.sql_copy_period_s)
+        replica = live.sql_replica
+        sql_feed = None if replica is None else (str(replica.folder), live.sql_seed_period_s)
         # a spawned child imports the caller's main module again (as __mp_main__): scripts
         # that make a process-backed node need a ``if __name__ == "__main__"`` guard
         link.proc = ctx.Process(
             target=_node_main,
             args=(type(live), live.spawn_args(), queue_, news_send, child_conn, os.getpid(),
-                  timeout_s, sql_copies),
+                  timeout_s, sql_feed),
             # not a daemon: the node starts the odometry process of its own
             daemon=False, name="wm-node",
         )  # fmt: skip
@@ -536,6 +568,11 @@ class NodeLink:
         for message in news.stream:  # before the status: a stream ends after its last cycle
             if sink is not None:
                 sink(message)
+        replica = live.sql_replica
+        if news.replica and replica is not None:
+            replica.offer(news.replica)
+            if news.snapshot is not None:  # SQL answers as of the snapshot's cycle, as others
+                replica.wait_applied(APPLY_WAIT_S)
         with self._lock:  # never over the error of a process found gone
             if not self.alive:
                 return
@@ -546,9 +583,8 @@ class NodeLink:
                 self._transfer_sum_ms += self.transfer_ms
             if news.status is not None:  # news of stream messages alone keeps the status
                 live.status = news.status
-        if news.sql_copy is not None and live.sql_copies is not None:
-            live.sql_copies.offer(news.sql_copy)
         self.replaced, self.stream_dropped = news.replaced, news.stream_dropped
+        self.replica_dropped = news.replica_dropped
         self.send_ms = news.send_ms
         if news.snapshot is not None:
             self.send_demand()  # what expired since, or changed its order
@@ -623,4 +659,5 @@ class NodeLink:
             "replaced": self.replaced, "transfer_ms": ms(self.transfer_ms),
             "mean_transfer_ms": ms(self._transfer_sum_ms / n) if n else None,
             "send_ms": ms(self.send_ms), "stream_dropped": self.stream_dropped,
+            "replica_dropped": self.replica_dropped,
         }  # fmt: skip

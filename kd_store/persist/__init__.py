@@ -7,7 +7,8 @@ One module per noun, all re-exported here (callers use ``kd_store.persist.NAME``
 - :mod:`~kd_store.persist.schema`: the file, its schema version and tables, migrations,
   runs, checkpoints (:func:`connect`).
 - :mod:`~kd_store.persist.arrow`: frames as Arrow tables and back (no DuckDB).
-- :mod:`~kd_store.persist.flush`: one flush (:class:`Write`, :func:`write`).
+- :mod:`~kd_store.persist.flush`: one flush (:class:`Write`, :func:`write`), as Arrow rows
+  that can be held, merged and written to a replica too (:class:`Rows`).
 - :mod:`~kd_store.persist.load`: what opening a KD loads (:func:`read`), state histories.
 - :mod:`~kd_store.persist.tile_rows`: map tiles as ``map_tile_rows``.
 - :mod:`~kd_store.persist.sql`: the one-SELECT read-only query, bounded results.
@@ -35,7 +36,7 @@ from kd_store.persist.arrow import (
     relations_from_arrow,
     relations_to_arrow,
 )
-from kd_store.persist.flush import Write, write
+from kd_store.persist.flush import Rows, Write, apply_rows, merge_rows, write, write_rows
 from kd_store.persist.load import Stored, read, read_states, read_states_as_of
 from kd_store.persist.parquet import export_parquet, import_parquet
 from kd_store.persist.schema import (
@@ -70,8 +71,10 @@ __all__ = [
     "TABLES",
     "TABLES_SINCE",
     "Connection",
+    "Rows",
     "Stored",
     "Write",
+    "apply_rows",
     "begin_run",
     "checkpoint",
     "classes_from_arrow",
@@ -92,6 +95,7 @@ __all__ = [
     "import_parquet",
     "latest_run",
     "mark_snapshot",
+    "merge_rows",
     "read",
     "read_only_query",
     "read_states",
@@ -105,4 +109,5 @@ __all__ = [
     "snapshot_target",
     "tiles_to_arrow",
     "write",
+    "write_rows",
 ]

@@ -110,24 +110,48 @@ def entities_to_arrow(
     for k in VALUE_FIELDS:
         cols[k] = pa.array([float(getattr(f.value, k)) for f in frames], type=pa.float64())
     cols["images"] = pa.array([list(f.images) for f in frames], type=pa.list_(pa.string()))
-    cols["map_cells"] = pa.array(
-        [[{"map_level": c[0], "col": c[1], "row": c[2]} for c in f.map_cells] for f in frames],
-        type=pa.list_(_CELL),
-    )
-    cols["attributes"] = pa.array(
-        [
-            [
-                (k, {n: float(getattr(a, n)) for n in ATTRIBUTE_FIELDS})
-                for k, a in f.attributes.items()
-            ]
-            for f in frames
-        ],
-        type=pa.map_(pa.string(), _ATTR),
-    )
+    cols["map_cells"] = _cells_array(frames)
+    cols["attributes"] = _attributes_array(frames)
     cols["created_ns"] = pa.array([f.created_ns for f in frames], type=pa.int64())
     cols["noteworthy"] = pa.array([f.noteworthy for f in frames], type=pa.bool_())
     cols.update(states if states is not None else _state_lists([f.state for f in frames]))
     return pa.table(cols)
+
+
+def _offsets(counts: list[int]) -> pa.Array:
+    """int32 list offsets of lists of ``counts`` items."""
+    out = np.zeros(len(counts) + 1, dtype=np.int32)
+    np.cumsum(counts, out=out[1:])
+    return pa.array(out)
+
+
+def _cells_array(frames: list[EntityFrame]) -> pa.Array:
+    """``map_cells`` of ``frames`` as one list-of-struct array, built from flat columns: a
+    frame is written at every flush (and every cycle while a live node serves SQL), and Arrow
+    converts nested Python dicts one by one."""
+    cells = [c for f in frames for c in f.map_cells]
+    flat = np.array(cells, dtype=np.int64).reshape(-1, 3)
+    values = pa.StructArray.from_arrays(
+        [pa.array(flat[:, 0].astype(np.int32)), pa.array(flat[:, 1]), pa.array(flat[:, 2])],
+        fields=list(_CELL),
+    )
+    return pa.ListArray.from_arrays(_offsets([len(f.map_cells) for f in frames]), values)
+
+
+def _attributes_array(frames: list[EntityFrame]) -> pa.Array:
+    """``attributes`` of ``frames`` as one map array (name -> the six values of
+    :data:`~kd_store.frames.ATTRIBUTE_FIELDS`), built from flat columns as
+    :func:`_cells_array`."""
+    items = [(k, a) for f in frames for k, a in f.attributes.items()]
+    values = pa.StructArray.from_arrays(
+        [
+            pa.array([float(getattr(a, n)) for _, a in items], pa.float64())
+            for n in ATTRIBUTE_FIELDS
+        ],
+        fields=list(_ATTR),
+    )
+    keys = pa.array([k for k, _ in items], pa.string())
+    return pa.MapArray.from_arrays(_offsets([len(f.attributes) for f in frames]), keys, values)
 
 
 def _state_from_row(r: dict) -> State | None:
