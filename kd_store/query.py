@@ -152,18 +152,6 @@ def _time_limited(sql: str, limits: QueryLimits, run, interrupt) -> pa.Table:
         timer.cancel()
 
 
-def open_copy(path: str | Path, limits: QueryLimits = QueryLimits()) -> persist.Connection:
-    """A read-only connection to a KD copy (:meth:`KnowledgeDatabase.copy_committed`) for
-    untrusted SQL, configured as :func:`query_file`'s (external access off, configuration
-    locked, ``limits.memory_limit`` and ``limits.threads``); opening it replays the copy's
-    write-ahead log. Run each query on a reader of its own (``SQLReader(persist.cursor(con))``
-    through :func:`query_reader`). KDError when it cannot be opened."""
-    p = Path(path)
-    if not p.is_file():
-        raise KDError(f"KD copy {p} does not exist")
-    return persist.connect(p, read_only=True, settings=sandbox_settings(limits))
-
-
 def query_file(path: str | Path, sql: str, limits: QueryLimits = QueryLimits()) -> pa.Table:
     """One read-only SELECT over the KD file ``path`` in a sandboxed connection; the result as
     Arrow. Raises KDError naming the query for anything refused, failed, timed out or over

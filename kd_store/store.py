@@ -179,7 +179,7 @@ class KnowledgeDatabase:
         """Copy what the KD file holds as of its last flush (the file and its write-ahead log,
         no flush, no CHECKPOINT, no fsync) to ``path`` and ``path.wal``, under the KD's lock
         so that no commit lands mid-copy; returns (file bytes, log bytes). A read-only open of
-        the pair (:func:`kd_store.query.open_copy`) sees the KD as of that flush. Cheaper for
+        the pair (``persist.connect``) sees the KD as of that flush. Cheaper for
         the writer than :meth:`publish_snapshot` (no checkpoint, nothing waits for the disk)
         but no durable snapshot: for readers on this host, each copy to a new ``path``
         (:func:`kd_store.persist.copy_with_wal`). KDError for a throwaway KD or a failed

@@ -585,8 +585,12 @@ def largest_segment_of_track(
     track's largest segment is taken (ties: the later segment)."""
     out = np.full(n_tracks, -1, dtype=np.int64)
     mine = np.flatnonzero(track_of >= 0)
-    mine = mine[np.argsort(n_pixels[mine], kind="stable")]  # the largest is assigned last
-    out[track_of[mine]] = mine
+    # by track, then by size (a stable sort: ties keep the later segment last); the last of
+    # each track's run is its largest (numpy leaves repeated-index assignment unordered)
+    mine = mine[np.lexsort((n_pixels[mine], track_of[mine]))]
+    t = track_of[mine]
+    last = np.r_[t[1:] != t[:-1], True] if len(t) else np.zeros(0, dtype=bool)
+    out[t[last]] = mine[last]
     return out
 
 

@@ -178,6 +178,9 @@ def test_a_tracks_largest_segment_speaks_for_it_not_a_sliver_that_joined_it() ->
         2,
         -1,
     ]
+    # three pieces of one track, two of them as large: the later of those; none at all: -1
+    assert largest_segment_of_track(np.array([0, 0, 0]), np.array([7, 9, 9]), 1).tolist() == [2]
+    assert largest_segment_of_track(np.zeros(0, np.int64), np.zeros(0), 2).tolist() == [-1, -1]
 
 
 def _status_after_hits(n_points: int | None, hits: int) -> TrackStatus:

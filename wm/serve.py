@@ -74,6 +74,7 @@ This module imports FastAPI; the command line imports it only for ``wm serve``.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import tempfile
 import threading
@@ -1039,16 +1040,14 @@ def create_app(
         clients of the earlier answer that cut the rows instead."""
         replica = live.sql_replica
         try:
-            if replica is None:
-                table, cycle = live.call(sql_query, req.query, sql_limits)
-            else:
+            answer = None
+            if replica is not None:
                 if not live.running:
                     raise ServeError("the live node is not running (not started, or stopped)")
                 live.demand.ask([SQL_KEY])  # the node feeds the replica while SQL is asked for
-                try:
-                    table, cycle = replica.query(req.query, sql_limits)
-                except NoReplicaYet:  # being seeded: the node answers meanwhile
-                    table, cycle = live.call(sql_query, req.query, sql_limits)
+                with contextlib.suppress(NoReplicaYet):  # being seeded: the node answers
+                    answer = replica.query(req.query, sql_limits)
+            table, cycle = answer or live.call(sql_query, req.query, sql_limits)
         except ServeError as e:
             raise bad(e, 503) from None
         except KDError as e:
