@@ -61,14 +61,21 @@ class GroundConfig:
     step_m:            rise allowed on top of the slope (noise, curbs, ruts).
     resume_gap_m:      after a non-ground return, the ground resumes only at least this much
                        farther (plus ``resume_gap_per_m`` times the range) than it, and rising
-                       no steeper than ``resume_slope_deg`` from the last ground return.
-                       At 5 degrees the roof of a car parked behind another (5-7 degrees
-                       above the ground before the first one) is not taken for ground, as it
-                       is at 15. On real street scans (KITTI) the gentler rule once lost cars,
-                       but only because the grouping joined three cars parked nose to tail
-                       across the returns between them (:mod:`sp.segments` now skips a pixel
-                       only when it is empty or an occluder), and the merged piece's track
-                       then failed.
+                       no steeper than ``resume_slope_deg`` from the last ground return and no
+                       more than ``resume_max_rise_m`` above it.
+                       At 3 degrees the roof of a car parked behind another is not taken
+                       for ground: in a parking lot's rows the roof 1.3-1.7 m up lies 5-7
+                       degrees above the ground before the first car, and the roofs of a
+                       whole row then continue it as "ground" out to 40 m (it was 5 degrees,
+                       which let the first roof in at 5.1). Further out a slope alone lets a
+                       roof in again (3 degrees over 30 m is 1.6 m), hence the cap: ground
+                       hidden behind an occluder rises at most 0.8 m, less than a car's roof.
+                       A hillside past an occluder that rises more is left to level 4, which
+                       takes a gently sloping plane for terrain. On real street scans
+                       (KITTI) a gentler rule once lost cars, but only because the grouping
+                       joined three cars parked nose to tail across the returns between them
+                       (:mod:`sp.segments` now skips a pixel only when it is empty or an
+                       occluder), and the merged piece's track then failed.
     cell_m, n_sectors: polar grid of the refinement pass (radial cell length, sectors).
     refine_above_m:    in refinement, returns this far above the local lowest ground are
                        not ground; returns within ``refine_within_m`` of it are.
@@ -80,8 +87,9 @@ class GroundConfig:
     max_slope_deg: float = 32.0
     step_m: float = 0.06
     resume_gap_m: float = 0.8
-    resume_slope_deg: float = 5.0
+    resume_slope_deg: float = 3.0
     resume_gap_per_m: float = 0.04
+    resume_max_rise_m: float = 0.8
     refine: bool = True
     cell_m: float = 2.0
     n_sectors: int = 180
@@ -141,9 +149,9 @@ def column_walk(
     return _to_image(ok, ground_v)
 
 
-def _walk_params(config: GroundConfig) -> tuple[float, float, float, float, float, float]:
+def _walk_params(config: GroundConfig) -> tuple[float, ...]:
     """The scalars of :func:`_column_walk_kernel` after ``height_m``: tangents of the slopes,
-    tolerances and gaps (m)."""
+    tolerances, gaps and the resume cap (m)."""
     return (
         float(np.tan(np.deg2rad(config.max_slope_deg))),
         float(np.tan(np.deg2rad(config.resume_slope_deg))),
@@ -151,6 +159,7 @@ def _walk_params(config: GroundConfig) -> tuple[float, float, float, float, floa
         float(config.step_m),
         float(config.resume_gap_m),
         float(config.resume_gap_per_m),
+        float(config.resume_max_rise_m),
     )
 
 
@@ -192,7 +201,17 @@ def _row_starts(valid):  # pragma: no cover
 
 @numba.njit(cache=True, nogil=True)
 def _column_walk_kernel(  # pragma: no cover
-    r_valid, z_valid, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m
+    r_valid,
+    z_valid,
+    valid,
+    height_m,
+    tan_s,
+    tan_r,
+    start_tol,
+    step,
+    gap,
+    gap_per_m,
+    max_rise,
 ):
     """``column_walk_reference`` row by row, every column's walk state in scalars of
     arrays (W,): the same comparisons on the same float64 values, so the same mask.
@@ -229,7 +248,7 @@ def _column_walk_kernel(  # pragma: no cover
                         prev_ground[j]
                         or (
                             r - prev_r[j] >= gap + gap_per_m * r
-                            and (z - last_z[j]) <= tan_r * max(dr, 0.0) + step
+                            and (z - last_z[j]) <= min(tan_r * max(dr, 0.0), max_rise) + step
                         )
                     )
                 )
@@ -403,7 +422,7 @@ def ground_mask(
 
 @numba.njit(cache=True, nogil=True)
 def _prepare_walk_kernel(  # pragma: no cover
-    xyz, valid, prior_m, lo_m, hi_m, tan_s, tan_r, start_tol, step, gap, gap_per_m
+    xyz, valid, prior_m, lo_m, hi_m, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise
 ):
     """:func:`_prepare_kernel`, the sensor height (:func:`_median_height`) and the column walk
     (:func:`_column_walk_kernel`) in one call. Returns ``x_v, y_v, z_v, r_v`` as
@@ -411,7 +430,7 @@ def _prepare_walk_kernel(  # pragma: no cover
     x_v, y_v, z_v, r_v, z_low = _prepare_kernel(xyz, valid)
     h = _median_height(z_low, prior_m, lo_m, hi_m)
     ground_v = _column_walk_kernel(
-        r_v, z_v, valid, h, tan_s, tan_r, start_tol, step, gap, gap_per_m
+        r_v, z_v, valid, h, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise
     )
     return x_v, y_v, z_v, r_v, ground_v, h
 

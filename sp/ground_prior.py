@@ -36,10 +36,11 @@ class GroundPriorConfig:
     min_range_m:  only returns at least this far (range from the sensor) are checked;
                   nearer, the rows lie close enough for the column walk alone.
     above_m:      a ground return more than this above the expected ground is not ground:
-                  above a curb, a bank or the envelope's slope allowance, below a car's roof
-                  (1.3-1.6 m). Lower (0.5 m, the height of a low rock) also took people's
-                  legs far out off the ground, and pairs of people walking side by side were
-                  then joined and tracked as one vehicle more often (development seeds).
+                  above a curb or a rut, below the hits of a 32-beam sensor on a low rock or
+                  a bush far out (its rows lie 0.7 m apart at 30 m, so the one row that hits
+                  a 0.8 m rock hits it 0.1-0.7 m up). At 0.8 m those rocks and bushes, and the
+                  lower returns of parked cars, were ground; at 0.5 m a person far out is now
+                  and then seen first by the legs alone (and called a rock or a bush).
     radius_m:     the expected ground at a point is the lowest known ground within this
                   distance of it, each cell raised by ``slope_deg`` over its distance (a slope
                   is not taken for an object; a car's roof is judged against the ground
@@ -48,7 +49,7 @@ class GroundPriorConfig:
     """
 
     min_range_m: float = 15.0
-    above_m: float = 0.8
+    above_m: float = 0.5
     radius_m: float = 2.0
     slope_deg: float = 15.0
 

@@ -91,6 +91,22 @@ def test_a_far_return_over_flat_ground_is_not_ground_with_the_prior() -> None:
     assert not not_ground(xyz, rng, ground, unknown, GroundPriorConfig()).any()
 
 
+def test_the_one_row_on_a_low_rock_far_out_is_not_ground_with_the_prior() -> None:
+    # a 32-beam sensor's rows lie 0.7 m apart at 30 m: the one row on a 0.8 m rock there
+    # may hit it 0.6 m up
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, -SENSOR_H + 0.6)])
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert ground[0].all()
+    off = not_ground(xyz, rng, ground, _flat_prior(-SENSOR_H), GroundPriorConfig())
+    assert off[0].all() and not off[1:].any()
+    # (the former 0.8 m limit left it ground) ...
+    old = GroundPriorConfig(above_m=0.8)
+    assert not not_ground(xyz, rng, ground, _flat_prior(-SENSOR_H), old).any()
+    # ... and a 0.3 m hump is ground
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, -SENSOR_H + 0.3)])
+    assert not not_ground(xyz, rng, ground, _flat_prior(-SENSOR_H), GroundPriorConfig()).any()
+
+
 def test_a_far_slope_the_prior_knows_stays_ground() -> None:
     # the ground rises at 10 degrees from 20 m; the map holds the slope (its cells' heights)
     rise = math.tan(math.radians(10.0))

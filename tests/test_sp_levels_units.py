@@ -123,8 +123,29 @@ def test_a_gentle_resume_rule_tells_the_roof_of_a_car_behind_a_car_from_ground()
     assert gentle[-len(NEAR_GROUND) :].all()
     assert not gentle[on_roof].any()
     # a steeper rule takes it for ground
-    steep, _ = ground_mask(xyz, valid, GroundConfig(resume_slope_deg=15.0))
+    steep, _ = ground_mask(
+        xyz, valid, GroundConfig(resume_slope_deg=15.0, resume_max_rise_m=math.inf)
+    )
     assert steep[on_roof].all()
+
+
+def test_the_roof_of_a_car_in_the_row_behind_is_not_ground() -> None:
+    # a parking lot: over the first parked car a sweep sees the roof of one in the next row,
+    # 1.3 m above the ground 14.6 m past the last ground return (5.1 degrees), and the roofs
+    # of that row beyond it: none of them is ground
+    roofs = [(19.1, -0.5), (25.0, -0.4), (31.0, -0.35), (37.0, -0.3)]
+    xyz, valid = _columns(NEAR_GROUND + CAR_FACE + roofs)
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert not ground[: len(roofs)].any()
+    assert ground[-len(NEAR_GROUND) :].all()
+    # the former 5 degree rule took the row for ground, and 3 degrees without a cap on the
+    # rise the roofs 31 m and more out
+    five, _ = ground_mask(
+        xyz, valid, GroundConfig(resume_slope_deg=5.0, resume_max_rise_m=math.inf)
+    )
+    assert five[: len(roofs)].all()
+    three, _ = ground_mask(xyz, valid, GroundConfig(resume_max_rise_m=math.inf))
+    assert three[:2].all() and not three[2:4].any()
 
 
 def test_gentle_hill_behind_a_car_is_ground() -> None:

@@ -51,7 +51,8 @@ def column_walk_reference(
         # ``resume_slope_deg`` from the ground in front of it (a car's hood seen past its
         # bumper is not ground)
         resume_ok = (r - prev_r >= config.resume_gap_m + config.resume_gap_per_m * r) & (
-            (z - last_z) <= tan_r * np.maximum(dr, 0.0) + config.step_m
+            (z - last_z)
+            <= np.minimum(tan_r * np.maximum(dr, 0.0), config.resume_max_rise_m) + config.step_m
         )
         gap_ok = prev_ground | resume_ok
         cont = v & have & (dr > 0.0) & rise_ok & drop_ok & gap_ok
