@@ -42,7 +42,7 @@ from sp.segments import (
     split_at_gap,
     split_by_predictions,
 )
-from sp.tracking import Measurements, Tracker, TrackStatus, evident_speed
+from sp.tracking import Measurements, Tracker, TrackStatus
 from sp.windowing import window_mask
 
 # shape attributes of an object's points, observed per sweep (sp.computation.SegmentAttributes,
@@ -406,11 +406,12 @@ class ObjectLevel:
     def class_rows(self) -> tuple[np.ndarray, list[dict[str, float]]]:
         """The attributes every framed track is classified by: its tracker slots (K,) and,
         per slot, attribute name -> value (units in the names; an attribute never observed
-        is left out). Extents and speed are the filter's, appearance and shape the running
-        means of :meth:`appearance_of` and :meth:`shape_of`."""
+        is left out). Extents are the filter's, speed the one its sequential test supports
+        (:meth:`sp.tracking.Tracks.tested_speed`), appearance and shape the running means of
+        :meth:`appearance_of` and :meth:`shape_of`."""
         tr = self.tracker.tracks
         ks = np.flatnonzero(tr.id >= 0)
-        speeds = evident_speed(tr.x[ks], tr.P[ks], self.ctx.config.tracker.evident_sigmas)
+        speeds = tr.tested_speed(self.ctx.config.tracker)[ks]
         rows = []
         for k, speed in zip(ks, speeds.tolist(), strict=True):
             l, w, h = (float(v) for v in tr.w[k, :3])

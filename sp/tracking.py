@@ -187,6 +187,16 @@ class Tracks:
         evident = evident_speed(self.x, self.P, config.evident_sigmas) >= config.evident_mps
         return (self.llr > config.llr_moving) | evident
 
+    def tested_speed(self, config: TrackerConfig) -> np.ndarray:
+        """(T,) ground speed (m/s) the tracks show as evidence of what they are: the filter's
+        evident speed where the sequential test favours the moving model, 0 where it favours
+        rest. A static wall whose visible piece slides along it as the vehicle passes gives
+        its filter an evident speed that the stationary model, which lets the visible centre
+        lie anywhere on the footprint, explains as well; classing it by that speed calls the
+        wall a vehicle. (What is reported as its state stays :meth:`reported`'s.)"""
+        speed = evident_speed(self.x, self.P, config.evident_sigmas)
+        return np.where(self.llr > config.llr_moving, speed, 0.0)
+
     def reported(self, config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
         """The state to report per track: (x (T, 6), P (T, 6, 6)), the constant-velocity
         filter's for moving tracks; for the others its position at zero velocity (with the

@@ -274,6 +274,22 @@ def test_partial_view_does_not_make_a_static_wall_move() -> None:
     assert speeds[True] < 0.6 * speeds[False]
 
 
+def test_a_wall_sliding_into_view_is_classed_at_rest_a_mover_by_its_speed() -> None:
+    # the partly seen wall above, its visible centre 1 m further each sweep, and a car
+    # driving 8 m/s: the sequential test holds the wall at rest, so it shows no speed
+    cfg = TrackerConfig()
+    wall, car = Tracker(cfg), Tracker(cfg)
+    for k in range(8):
+        t = k * SWEEP_NS
+        length = 2.0 + 2.0 * k
+        wall.step(Measurements(np.array([[length / 2, 0.0, 1.0]]), np.array([t]), _what(length)), t)
+        x = 8.0 * t / 1e9
+        car.step(Measurements(np.array([[x, 5.0, 0.8]]), np.array([t]), _what(4.5, 1.8)), t)
+    assert evident_speed(wall.tracks.x[0], wall.tracks.P[0], 2.0) > 0.5  # the filter's drift
+    assert wall.tracks.tested_speed(cfg)[0] == 0.0
+    assert car.tracks.tested_speed(cfg)[0] > 5.0
+
+
 def test_partial_view_R_grows_along_the_long_axis_only() -> None:
     cfg = TrackerConfig()
     yaw = math.radians(30.0)
