@@ -99,6 +99,8 @@ class GroundConfig:
     def __post_init__(self) -> None:
         if not 0.0 < self.max_slope_deg < 80.0:
             raise GroundError(f"max_slope_deg {self.max_slope_deg} is not in (0, 80)")
+        if not self.resume_max_rise_m >= 0.0:  # inf: no cap; NaN would take no ground back
+            raise GroundError(f"resume_max_rise_m {self.resume_max_rise_m} is not >= 0")
         if self.cell_m <= 0 or self.n_sectors < 1:
             raise GroundError(f"polar grid cell_m {self.cell_m}, n_sectors {self.n_sectors}")
 

@@ -11,7 +11,7 @@ from kernel_scenes import ground_sweep
 from maps.fusion import FusionError, fuse_points
 from maps.level import LevelConfig, MapLevel
 from maps.stack import MapStack, StackConfig, StackError
-from sp.ground import GroundError, ground_mask
+from sp.ground import GroundConfig, GroundError, ground_mask
 from sp.lists import range_jump_edges
 from sp.windowing import WindowingError, window_mask
 
@@ -32,6 +32,13 @@ def test_ground_mask_rejects_mismatched_shapes() -> None:
         ground_mask(np.zeros((4, 5, 3)), np.zeros((4, 6), dtype=bool))
     with pytest.raises(GroundError, match="does not match"):
         ground_mask(np.zeros((4, 5, 2)), np.zeros((4, 5), dtype=bool))
+
+
+def test_ground_config_refuses_a_negative_or_nan_resume_cap() -> None:
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(GroundError, match=f"resume_max_rise_m {bad}"):
+            GroundConfig(resume_max_rise_m=bad)
+    assert GroundConfig(resume_max_rise_m=float("inf")).resume_max_rise_m == float("inf")
 
 
 # --- sp.windowing ------------------------------------------------------------------------------
