@@ -48,10 +48,6 @@ def server(log: Path, tmp_path_factory, request):
 
 def call(base: str, path: str, body: dict | None = None, token: str | None = TOKEN):
     """(status, JSON) of one request."""
-    return _call_once(base, path, body, token)
-
-
-def _call_once(base: str, path: str, body: dict | None, token: str | None):
     req = urllib.request.Request(
         base + path,
         data=None if body is None else json.dumps(body).encode(),

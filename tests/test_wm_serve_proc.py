@@ -274,6 +274,29 @@ def test_news_of_stream_messages_alone_leave_the_status_as_it_was() -> None:
     assert link.live.status.cycles == 7 and got == [b"cycle 8"]
 
 
+def test_a_server_far_behind_gets_a_seed_not_an_ever_longer_outbox() -> None:
+    """The replica's deltas wait in the node's outbox while the sender is slow; one more than
+    the bound drops them all (counted) and asks the feed for a new seed, which then waits
+    alone; a seed posted after it is kept with it, in order."""
+    from wm.serve_proc import _Outbox
+    from wm.serve_sql import MAX_BEHIND_CYCLES, KDDelta, KDSeed
+
+    box = _Outbox()
+    asked: list[int] = []
+    box.on_replica_dropped = lambda: asked.append(1)
+    seed = KDSeed("kd-1.duckdb", 0, 0)
+    box.post_replica(seed)
+    for k in range(1, MAX_BEHIND_CYCLES + 1):
+        box.post_replica(KDDelta(k, k, None))
+    assert not asked and box.replica_dropped == 0
+    box.post_replica(KDDelta(MAX_BEHIND_CYCLES + 1, 0, None))
+    assert asked == [1] and box.replica_dropped == MAX_BEHIND_CYCLES + 1
+    again = KDSeed("kd-2.duckdb", MAX_BEHIND_CYCLES + 1, 0)
+    box.post_replica(again)
+    news = box.take(0.0, 0.0)
+    assert news.replica == [seed, again] and news.replica_dropped == MAX_BEHIND_CYCLES + 1
+
+
 def test_a_node_that_cannot_start_says_why(log, tmp_path: Path) -> None:  # noqa: F811
     """A KD path the node's process cannot create (below a file): start() raises a
     ServeError naming the cause, as the node in a thread does."""

@@ -80,7 +80,14 @@ from fastapi import HTTPException
 
 from core.process import die_with_parent, exit_with_parent
 from wm.serve import CycleSnapshot, LiveNode, LiveStatus, ServeError
-from wm.serve_sql import APPLY_WAIT_S, MAX_BEHIND_CYCLES, KDDelta, KDSeed, ReplicaFeed
+from wm.serve_sql import (
+    APPLY_WAIT_S,
+    MAX_BEHIND_CYCLES,
+    KDDelta,
+    KDSeed,
+    ReplicaFeed,
+    drop_backlog,
+)
 
 #: threads in the node's process answering requests (SQL may take seconds: more than one)
 CALL_THREADS = 4
@@ -205,14 +212,10 @@ class _Outbox:
         """The replica's feed (:class:`~wm.serve_sql.ReplicaFeed`), under the node's lock: a
         seed, or a cycle's delta. A delta wakes no sender: the node's thread posts the cycle's
         status right after, and both go in one message."""
-        dropped = False
         with self._cond:
             self._replica.append(item)
-            deltas = sum(isinstance(i, KDDelta) for i in self._replica)
-            if deltas > MAX_BEHIND_CYCLES:  # the server is far behind: a new seed instead
-                self._replica = [i for i in self._replica if isinstance(i, KDSeed)]
-                self.replica_dropped += deltas
-                dropped = True
+            dropped = drop_backlog(self._replica, MAX_BEHIND_CYCLES)  # the server is far
+            self.replica_dropped += dropped  # behind: a new seed instead
             if isinstance(item, KDSeed):
                 self._cond.notify()
         if dropped and self.on_replica_dropped is not None:

@@ -62,7 +62,7 @@ import shutil
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, MutableSequence, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -133,6 +133,20 @@ def flushed_cycle(live: Any) -> int | None:
     if flushed is None or snap is None:
         return None
     return min(int(flushed), snap.cycle_t_ns)
+
+
+def drop_backlog(items: MutableSequence[KDDelta | KDSeed], max_behind: int) -> int:
+    """The one rule of a backlog, in the node's outbox and the server's queue alike: when
+    ``items`` (in order) hold more than ``max_behind`` deltas, they are all dropped (in
+    place; the seeds stay) and their number returned, for a new seed to replace them;
+    else 0."""
+    deltas = sum(isinstance(i, KDDelta) for i in items)
+    if deltas <= max_behind:
+        return 0
+    seeds = [i for i in items if isinstance(i, KDSeed)]
+    items.clear()
+    items.extend(seeds)
+    return deltas
 
 
 def _remove(path: str | Path) -> None:
@@ -387,10 +401,9 @@ class SQLReplica:
                         self.seeds_offered += 1
                         self.last_seed = item
                 self._queue.append(item)
-            deltas = sum(isinstance(i, KDDelta) for i in self._queue)
-            if deltas > self.max_behind:
-                self._queue = deque(i for i in self._queue if isinstance(i, KDSeed))
-                self.deltas_dropped += deltas
+            dropped = drop_backlog(self._queue, self.max_behind)
+            if dropped:
+                self.deltas_dropped += dropped
                 self._gap = ask = True
             self._cond.notify_all()
         if ask:
@@ -460,6 +473,7 @@ class SQLReplica:
         opened = None
         if seed.path is not None:
             t0 = time.perf_counter()
+            con = None
             try:
                 # the server's own copy, written by this thread alone: read-write
                 con = persist.connect(seed.path, settings=sandbox_settings(self.limits))
@@ -467,6 +481,9 @@ class SQLReplica:
                     persist.write_rows(con, seed.rows)
             except Exception as e:  # broken: the next seed replaces it
                 self.seed_failures += 1
+                if con is not None:
+                    with contextlib.suppress(Exception):
+                        con.close()
                 _remove(seed.path)
                 raise ServeError(f"seed {seed.path} not opened ({e})") from None
             opened = _Replica(seed, con, 1e3 * (time.perf_counter() - t0))

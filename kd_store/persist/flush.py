@@ -112,11 +112,6 @@ class Rows:
         """Rows of ``entity_state_rows`` it appends."""
         return 0 if self.states is None else self.states.num_rows
 
-    @property
-    def nbytes(self) -> int:
-        """Bytes of its Arrow buffers."""
-        return sum(t.nbytes for k in _TABLES if (t := getattr(self, k)) is not None)
-
 
 _TABLES = ("entities", "expectations", "states", "events", "relations", "classes", "tiles")
 _RELATION_KEY = ("src_id", "kind", "dst_id", "t_from_ns")
