@@ -66,10 +66,10 @@ class GroundConfig:
                        At 3 degrees the roof of a car parked behind another is not taken
                        for ground: in a parking lot's rows the roof 1.3-1.7 m up lies 5-7
                        degrees above the ground before the first car, and the roofs of a
-                       whole row then continue it as "ground" out to 40 m (it was 5 degrees,
-                       which let the first roof in at 5.1). Further out a slope alone lets a
-                       roof in again (3 degrees over 30 m is 1.6 m), hence the cap: ground
-                       hidden behind an occluder rises at most 0.8 m, less than a car's roof.
+                       whole row then continue it as "ground" out to 40 m. Further out a
+                       slope alone lets a roof in again (3 degrees over 30 m is 1.6 m), hence
+                       the cap: ground hidden behind an occluder rises at most 0.8 m, less
+                       than a car's roof.
                        A hillside past an occluder that rises more is left to level 4, which
                        takes a gently sloping plane for terrain. On real street scans
                        (KITTI) a gentler rule once lost cars, but only because the grouping
@@ -203,18 +203,8 @@ def _row_starts(valid):  # pragma: no cover
 
 @numba.njit(cache=True, nogil=True)
 def _column_walk_kernel(  # pragma: no cover
-    r_valid,
-    z_valid,
-    valid,
-    height_m,
-    tan_s,
-    tan_r,
-    start_tol,
-    step,
-    gap,
-    gap_per_m,
-    max_rise,
-):
+    r_valid, z_valid, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise
+):  # fmt: skip
     """``column_walk_reference`` row by row, every column's walk state in scalars of
     arrays (W,): the same comparisons on the same float64 values, so the same mask.
 

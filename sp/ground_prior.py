@@ -38,9 +38,9 @@ class GroundPriorConfig:
     above_m:      a ground return more than this above the expected ground is not ground:
                   above a curb or a rut, below the hits of a 32-beam sensor on a low rock or
                   a bush far out (its rows lie 0.7 m apart at 30 m, so the one row that hits
-                  a 0.8 m rock hits it 0.1-0.7 m up). At 0.8 m those rocks and bushes, and the
-                  lower returns of parked cars, were ground; at 0.5 m a person far out is now
-                  and then seen first by the legs alone (and called a rock or a bush).
+                  a 0.8 m rock hits it 0.1-0.7 m up); higher, those rocks and bushes and the
+                  lower returns of parked cars stay ground. The price: a person far out is
+                  now and then seen first by the legs alone (and called a rock or a bush).
     radius_m:     the expected ground at a point is the lowest known ground within this
                   distance of it, each cell raised by ``slope_deg`` over its distance (a slope
                   is not taken for an object; a car's roof is judged against the ground
