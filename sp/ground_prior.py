@@ -41,6 +41,15 @@ class GroundPriorConfig:
                   a 0.8 m rock hits it 0.1-0.7 m up); higher, those rocks and bushes and the
                   lower returns of parked cars stay ground. The price: a person far out is
                   now and then seen first by the legs alone (and called a rock or a bush).
+    object_margin_m: a return more than ``above_m`` plus this above the expected ground makes
+                  the segment that holds it an object, however low it stands over the ground
+                  below it in its column (level 4 returns segments under
+                  ``min_object_height_m`` to the ground): far out, a column's last ground
+                  returns are often the object's own lower returns, and its height measured
+                  from them too small (the one row on a bush at 35 m stands 0.9 m over the
+                  terrain and 0.3 m over its column's ground). The margin keeps out the top
+                  of a steep bank, which stands about ``above_m`` over the lowest cell beside
+                  it raised by the slope.
     radius_m:     the expected ground at a point is the lowest known ground within this
                   distance of it, each cell raised by ``slope_deg`` over its distance (a slope
                   is not taken for an object; a car's roof is judged against the ground
@@ -50,6 +59,7 @@ class GroundPriorConfig:
 
     min_range_m: float = 15.0
     above_m: float = 0.5
+    object_margin_m: float = 0.2
     radius_m: float = 2.0
     slope_deg: float = 15.0
 
@@ -58,6 +68,10 @@ class GroundPriorConfig:
             raise GroundPriorError(
                 f"ground prior min_range_m {self.min_range_m}, above_m {self.above_m}, "
                 f"radius_m {self.radius_m}: need >= 0, > 0, >= 0"
+            )
+        if not self.object_margin_m >= 0:
+            raise GroundPriorError(
+                f"ground prior object_margin_m {self.object_margin_m} is not >= 0"
             )
         if not 0 <= self.slope_deg < 80:
             raise GroundPriorError(f"ground prior slope_deg {self.slope_deg} is not in [0, 80)")
@@ -115,6 +129,11 @@ def _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise):  # pragma: no cover
     return best
 
 
+#: :func:`above_prior` codes: a ground return the prior leaves ground, one above the ground it
+#: expects (not ground), one that makes its segment an object (``object_margin_m``).
+GROUND, ABOVE, OBJECT = 0, 1, 2
+
+
 def not_ground(
     xyz_w: np.ndarray,
     range_m: np.ndarray,
@@ -122,13 +141,27 @@ def not_ground(
     prior: GroundPrior,
     config: GroundPriorConfig,
 ) -> np.ndarray:
-    """(H, W) bool: the ``ground`` pixels (H, W) bool at range ``range_m`` (H, W) m of at
-    least ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m lies more than ``above_m``
-    above the ground ``prior`` expects there (module docstring): the lowest known
-    cell within ``radius_m``, raised by ``slope_deg`` over its distance."""
+    """(H, W) bool: the ``ground`` pixels the prior takes out of the ground (:func:`above_prior`
+    not ``GROUND``)."""
+    return above_prior(xyz_w, range_m, ground, prior, config) != GROUND
+
+
+def above_prior(
+    xyz_w: np.ndarray,
+    range_m: np.ndarray,
+    ground: np.ndarray,
+    prior: GroundPrior,
+    config: GroundPriorConfig,
+) -> np.ndarray:
+    """(H, W) int8 code of each pixel: ``ABOVE`` for the ``ground`` pixels (H, W) bool at range
+    ``range_m`` (H, W) m of at least ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m
+    lies more than ``above_m`` above the ground ``prior`` expects there (module docstring:
+    the lowest known cell within ``radius_m``, raised by ``slope_deg`` over its distance),
+    ``OBJECT`` for those more than ``above_m + object_margin_m`` above it, ``GROUND``
+    elsewhere."""
     res = float(prior.resolution_m)
     slope_tan = float(np.tan(np.radians(config.slope_deg)))
-    return _not_ground_kernel(
+    return _above_prior_kernel(
         np.ascontiguousarray(xyz_w, dtype=np.float64),
         np.ascontiguousarray(range_m),
         np.ascontiguousarray(ground, dtype=np.bool_),
@@ -139,6 +172,7 @@ def not_ground(
         res,
         float(config.min_range_m),
         float(config.above_m),
+        float(config.above_m + config.object_margin_m),
         int(config.radius_m // res),
         *_offsets(res, config.radius_m, slope_tan),
     )
@@ -158,16 +192,16 @@ def _offsets(
 
 
 @numba.njit(cache=True, nogil=True)
-def _not_ground_kernel(  # pragma: no cover
-    xyz_w, range_m, ground, low, z, ix0, iy0, res, min_range, above, k, off_x, off_y, rise
+def _above_prior_kernel(  # pragma: no cover
+    xyz_w, range_m, ground, low, z, ix0, iy0, res, min_range, above, obj, k, off_x, off_y, rise
 ):
-    """:func:`not_ground` pixel by pixel. Most far ground is ground: where no known cell of
+    """:func:`above_prior` pixel by pixel. Most far ground is ground: where no known cell of
     the square around a pixel's cell (``low``, :meth:`GroundPrior.lowest_around`) lies low
     enough to make it an object, the exact minimum is not needed; cells within ``k`` of the
     window's edge, whose square wraps onto other cells, are always computed exactly."""
     H, W = ground.shape
     n = z.shape[0]
-    out = np.zeros((H, W), dtype=np.bool_)
+    out = np.zeros((H, W), dtype=np.int8)
     memo = np.empty((0, 0))
     for i in range(H):
         for j in range(W):
@@ -190,5 +224,6 @@ def _not_ground_kernel(  # pragma: no cover
                 e = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
                 if inside:
                     memo[cy % n, cx % n] = e
-            out[i, j] = zp > e  # NaN (nothing known near) compares False
+            # NaN (nothing known near) compares False
+            out[i, j] = OBJECT if xyz_w[i, j, 2] - obj > e else (ABOVE if zp > e else GROUND)
     return out

@@ -29,7 +29,7 @@ from sp.classify import Classifier
 from sp.computation import SegmentAttributes, ground_plane
 from sp.context import IMAGE_NAMES, KD_STATUS, SPConfig, SPContext, row_step, unit
 from sp.ground import ground_mask
-from sp.ground_prior import GroundPrior, not_ground
+from sp.ground_prior import GROUND, OBJECT, GroundPrior, above_prior
 from sp.level2_lists import ListLevel
 from sp.lists import PatchGrid, patch_grid
 from sp.observations import FrameChange, Related, StateObserved, StateRule
@@ -84,16 +84,19 @@ class SurfaceLevel:
         xyz_w: np.ndarray | None = None,
         range_m: np.ndarray | None = None,
         prior: GroundPrior | None = None,
-    ) -> np.ndarray:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(H, W) bool ground pixels of the gravity-aligned points ``xyz_g`` (H, W, 3) m
-        (:func:`ground_mask`); with the world model's ground ``prior``, the world points
-        ``xyz_w`` (H, W, 3) m and the returns' ranges ``range_m`` (H, W) m, far returns well
-        above the ground it expects are not ground (:mod:`sp.ground_prior`)."""
+        (:func:`ground_mask`), and (H, W) bool the pixels that make their segment an object.
+        With the world model's ground ``prior``, the world points ``xyz_w`` (H, W, 3) m and
+        the returns' ranges ``range_m`` (H, W) m, far returns well above the ground it
+        expects are not ground, and those higher still are objects (:func:`above_prior`);
+        without, none is."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)
-        if prior is not None and xyz_w is not None and range_m is not None:
-            ground &= ~not_ground(xyz_w, range_m, ground, prior, cfg.ground_prior)
-        return ground
+        if prior is None or xyz_w is None or range_m is None:
+            return ground, np.zeros_like(ground)
+        code = above_prior(xyz_w, range_m, ground, prior, cfg.ground_prior)
+        return ground & (code == GROUND), code == OBJECT
 
     # ------------------------------------------------------------------ the cycle
 

@@ -54,6 +54,14 @@ SHAPE_MIN_BREADTH_M = 0.05  # a segment's points spread this far along its middl
 SHAPE_MIN_PIXELS = 12  # ... in this many returns at least, or its thickness is unknown
 
 
+def holds(labels: np.ndarray, mask: np.ndarray | None, k: int) -> np.ndarray:
+    """(k,) bool: which of the k segments of ``labels`` (H, W) int64 (-1 none) have a pixel
+    in ``mask`` (H, W) bool (none without a mask)."""
+    if mask is None:
+        return np.zeros(k, dtype=bool)
+    return np.bincount(labels[mask & (labels >= 0)], minlength=k)[:k] > 0
+
+
 @dataclass
 class Segments:
     """Level 4's grouping and computation of one sweep.
@@ -180,11 +188,15 @@ class ObjectLevel:
         xyz_g: np.ndarray,
         ground: np.ndarray,
         T_world_ladar: np.ndarray,
+        standing: np.ndarray | None = None,
     ) -> Segments:
         """Attributes of the segments ``labels`` (H, W) (world points ``xyz_w``, gravity-aligned
         ``xyz_g``, (H, W, 3) m); pieces of one face or wall are merged, people walking side by
         side cut where their tracks predict them, and segments too low or terrain-like go to
-        the ``ground`` (H, W) bool."""
+        the ``ground`` (H, W) bool, but for those holding a ``standing`` (H, W) bool pixel,
+        one the world model's ground prior finds well above the ground it expects
+        (:func:`sp.ground_prior.above_prior`): that ground is a better measure of a far
+        segment's height than the ground below it in its column."""
         cfg = self.ctx.config
         seg_cfg = cfg.segments
         valid = img.valid_first
@@ -231,7 +243,8 @@ class ObjectLevel:
         # too low to stand out of the terrain (bumps, ruts), a gently sloping plane (a
         # hillside seen past a gap) or rising from the ground as the ground does (a bank, a
         # mound): ground, not objects
-        low = (attrs.height_m < cfg.min_object_height_m) | terrain_patch(attrs, cfg)
+        low = (attrs.height_m < cfg.min_object_height_m) & ~holds(labels, standing, len(attrs))
+        low |= terrain_patch(attrs, cfg)
         rise_deg, n_cols = foot_rise_deg(
             labels, xyz_g, valid, ground, len(attrs), seg_cfg.row_gap, cfg.foot_chord_m,
             cfg.foot_rise_m,

@@ -32,7 +32,7 @@ from kernel_reference.computation_reference import (
 )
 from kernel_reference.covariance_reference import psd_mask_reference
 from kernel_reference.egosphere_reference import to_egosphere_reference
-from kernel_reference.ground_prior_reference import not_ground_reference
+from kernel_reference.ground_prior_reference import above_prior_reference
 from kernel_reference.ground_reference import (
     column_walk_reference,
     ground_mask_reference,
@@ -80,7 +80,7 @@ from sp.ground import (
     ground_mask,
     refine,
 )
-from sp.ground_prior import GroundPrior, GroundPriorConfig, not_ground
+from sp.ground_prior import ABOVE, OBJECT, GroundPrior, GroundPriorConfig, above_prior
 from sp.lists import (
     brightness_edges,
     list_slots,
@@ -239,7 +239,9 @@ def _prior_inputs(param: tuple[int, float]) -> Iterator[Args]:
 
 def _prior_check(param: tuple[int, float], calls: list[Call]) -> None:
     for args, got, _ in calls:
-        assert 20 < int(got.sum()) < int(args[2].sum())  # objects flagged, ground kept
+        # objects flagged, some high enough to stand as objects, most ground kept
+        assert 20 < int((got == OBJECT).sum()) < int((got != 0).sum()) < int(args[2].sum())
+        assert (got == ABOVE).sum() > 20
 
 
 # --- sp.computation: ground below each pixel, ground plane ------------------------------------
@@ -2023,8 +2025,8 @@ CASES = [
          marks=[pytest.mark.filterwarnings("ignore:invalid value encountered")]),
     Case("refine_degenerate", [None], _degenerate_refine_inputs, refine, refine_reference,
          _equal, marks=[pytest.mark.filterwarnings("ignore:invalid value encountered")]),
-    Case("not_ground", _product(range(3), [0.4, 1.0]), _prior_inputs, not_ground,
-         not_ground_reference, _equal, _prior_check),
+    Case("above_prior", _product(range(3), [0.4, 1.0]), _prior_inputs, above_prior,
+         above_prior_reference, _equal, _prior_check),
     Case("ground_below", [(0, 0.5), (1, 0.05), (2, 1.0), (3, 0.0)], _ground_below_inputs,
          ground_below, ground_below_reference, _equal, _ground_below_check),
     Case("ground_below_degenerate", [None], _ground_below_degenerate_inputs, ground_below,

@@ -11,7 +11,16 @@ import pytest
 from kernel_reference.ground_prior_reference import expected_ground_reference as expected
 
 from sp.ground import GroundConfig, ground_mask
-from sp.ground_prior import GroundPrior, GroundPriorConfig, GroundPriorError, not_ground
+from sp.ground_prior import (
+    ABOVE,
+    GROUND,
+    OBJECT,
+    GroundPrior,
+    GroundPriorConfig,
+    GroundPriorError,
+    above_prior,
+    not_ground,
+)
 
 RES = 0.4
 SLOPE = math.tan(math.radians(15.0))
@@ -179,3 +188,75 @@ def test_a_node_refuses_a_ground_prior_level_it_has_not() -> None:
 
     with kd_store.open(":memory:") as kd, pytest.raises(StackError, match=r"'nowhere'.*subsystem"):
         WorldModelNode(kd, NodeConfig(ground_prior_level="nowhere"))
+
+
+def test_returns_are_coded_by_how_far_they_stand_above_the_expected_ground() -> None:
+    flat = _flat_prior(-SENSOR_H)
+    for up, code in ((0.3, GROUND), (0.6, ABOVE), (0.9, OBJECT)):
+        xyz, valid, rng = _column([*FAR_GROUND, (30.0, -SENSOR_H + up)])
+        ground, _ = ground_mask(xyz, valid, GroundConfig())
+        got = above_prior(xyz, rng, ground, flat, GroundPriorConfig())
+        assert (got[0] == code).all() and (got[1:] == GROUND).all(), up
+    # a pixel the column walk already took out of the ground is not judged
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, -SENSOR_H + 0.9)])
+    none = np.zeros(valid.shape, dtype=bool)
+    assert (above_prior(xyz, rng, none, flat, GroundPriorConfig()) == GROUND).all()
+    with pytest.raises(GroundPriorError, match=r"object_margin_m -0.1 is not >= 0"):
+        GroundPriorConfig(object_margin_m=-0.1)
+
+
+# a far bush seen by one row, its ground continued from a 0.2 m bump 14 m before it
+N_ROWS, N_COLS = 16, 720
+BUMP_PROFILE = [(3.0 + 1.5 * k, -SENSOR_H) for k in range(12)] + [(24.0, -SENSOR_H + 0.2)]
+BUSH_COLS = slice(356, 368)  # 6 degrees: 3.9 m at 37.5 m
+
+
+def _bush_scan(t_ns: int):
+    """A LadarScan of the scene above: ground columns, and over ``BUSH_COLS`` one more row on
+    the bush 0.75 m above the flat ground at 37.5 m (a rise of 2.2 degrees from the bump, so
+    the column walk takes it for ground)."""
+    from logs.types import LadarScan
+
+    az = np.pi - (np.arange(N_COLS) + 0.5) * 2 * np.pi / N_COLS
+    xyz = np.full((N_ROWS, N_COLS, 3), np.nan)
+    rows = [*BUMP_PROFILE, (37.5, -SENSOR_H + 0.75)]
+    for k, (r, z) in enumerate(rows):
+        row = N_ROWS - 1 - k
+        cols = BUSH_COLS if k == len(rows) - 1 else slice(None)
+        xyz[row, cols] = np.stack(
+            [r * np.cos(az[cols]), r * np.sin(az[cols]), np.full_like(az[cols], z)], -1
+        )
+    valid = np.isfinite(xyz[..., 0])
+    pts = xyz[valid].astype(np.float32)
+    ring = (N_ROWS - 1 - np.nonzero(valid)[0]).astype(np.uint16)
+    n = len(pts)
+    return LadarScan(
+        t_ns, "ladar", pts, np.full(n, 0.5, np.float32), np.zeros(n, np.int64), ring
+    ), valid
+
+
+@pytest.mark.parametrize("margin_m", [0.2, 10.0])
+def test_a_far_bush_standing_above_the_expected_ground_is_an_object(margin_m: float) -> None:
+    import kd_store
+    from sp.egosphere import EgosphereConfig
+    from sp.pipeline import SPConfig
+    from wm.entities import KDSensoryProcessor
+
+    cfg = SPConfig(
+        egosphere=EgosphereConfig(n_rows=N_ROWS, n_cols=N_COLS, max_returns=1),
+        ground_prior=GroundPriorConfig(object_margin_m=margin_m),
+    )
+    sp = KDSensoryProcessor(kd_store.open(":memory:"), cfg)
+    T = np.eye(4)
+    T[2, 3] = SENSOR_H  # the sensor 1.8 m over the world's ground at z = 0
+    scan, valid = _bush_scan(0)
+    r = sp.process(scan, T, ground_prior=_flat_prior(0.0))
+    bush = np.zeros(valid.shape, dtype=bool)
+    bush[N_ROWS - 1 - len(BUMP_PROFILE), BUSH_COLS] = True
+    # the bush row stands 0.75 m over the ground the map knows, 0.2 m under its column's
+    # ground continued from the bump: without the rule its segment is too low for an object
+    if margin_m < 1.0:
+        assert not r.ground_mask[bush].any()
+    else:
+        assert r.ground_mask[bush].all()
+    assert r.ground_mask[valid & ~bush].all()

@@ -3,9 +3,9 @@
 :func:`expected_ground_reference` is the definition of the ground the prior expects at a
 point: the minimum, over the known cells of the window whose centres lie within the radius of
 the point's cell centre, of (height + slope x distance); NaN where none is known.
-:func:`not_ground_reference` flags the far ground returns more than ``above_m`` above it.
-:func:`sp.ground_prior.not_ground`, which prunes with a dilated grid and memoises per cell,
-must flag the same pixels.
+:func:`above_prior_reference` codes the far ground returns more than ``above_m`` above it,
+and those more than ``above_m + object_margin_m`` above it. :func:`sp.ground_prior.above_prior`,
+which prunes with a dilated grid and memoises per cell, must code every pixel the same.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from sp.ground_prior import GroundPrior, GroundPriorConfig
+from sp.ground_prior import ABOVE, GROUND, OBJECT, GroundPrior, GroundPriorConfig
 
 
 def expected_ground_reference(
@@ -41,15 +41,18 @@ def expected_ground_reference(
     return best
 
 
-def not_ground_reference(
+def above_prior_reference(
     xyz_w: np.ndarray,
     range_m: np.ndarray,
     ground: np.ndarray,
     prior: GroundPrior,
     config: GroundPriorConfig,
 ) -> np.ndarray:
-    """(H, W) bool: :func:`sp.ground_prior.not_ground` without pruning or memo."""
+    """(H, W) int8: :func:`sp.ground_prior.above_prior` without pruning or memo."""
     slope_tan = math.tan(math.radians(config.slope_deg))
     e = expected_ground_reference(prior, xyz_w[..., :2].reshape(-1, 2), config.radius_m, slope_tan)
-    above = xyz_w[..., 2] - e.reshape(ground.shape) > config.above_m  # NaN compares False
-    return ground & (range_m >= config.min_range_m) & above
+    rise = xyz_w[..., 2] - e.reshape(ground.shape)  # NaN compares False below
+    judged = ground & (range_m >= config.min_range_m)
+    obj = config.above_m + config.object_margin_m
+    code = np.where(rise > obj, OBJECT, np.where(rise > config.above_m, ABOVE, GROUND))
+    return np.where(judged, code, GROUND).astype(np.int8)
