@@ -50,6 +50,15 @@ class GroundPriorConfig:
                   terrain and 0.3 m over its column's ground). The margin keeps out the top
                   of a steep bank, which stands about ``above_m`` over the lowest cell beside
                   it raised by the slope.
+    on_ground_m, on_ground_share, on_ground_below_m: a segment standing less than
+                  ``on_ground_below_m`` over the ground below it in its column, with at least
+                  ``on_ground_share`` of its returns far (``min_range_m``) and within
+                  ``on_ground_m`` of the ground the map holds at their places, is terrain the
+                  column walk misjudged and goes back to the ground (:func:`on_known_ground`):
+                  the top of a bank or a crest seen past a dip, where the column's ground,
+                  continued from before the dip, lies under the terrain. Taller segments are
+                  never taken back: a car seen only by its roof over nearer cars may lie on
+                  cells the map took for ground.
     radius_m:     the expected ground at a point is the lowest known ground within this
                   distance of it, each cell raised by ``slope_deg`` over its distance (a slope
                   is not taken for an object; a car's roof is judged against the ground
@@ -60,6 +69,9 @@ class GroundPriorConfig:
     min_range_m: float = 15.0
     above_m: float = 0.5
     object_margin_m: float = 0.2
+    on_ground_m: float = 0.2
+    on_ground_share: float = 0.9
+    on_ground_below_m: float = 1.0
     radius_m: float = 2.0
     slope_deg: float = 15.0
 
@@ -68,6 +80,11 @@ class GroundPriorConfig:
             raise GroundPriorError(
                 f"ground prior min_range_m {self.min_range_m}, above_m {self.above_m}, "
                 f"radius_m {self.radius_m}: need >= 0, > 0, >= 0"
+            )
+        if not (self.on_ground_m >= 0 and 0 < self.on_ground_share <= 1):
+            raise GroundPriorError(
+                f"ground prior on_ground_m {self.on_ground_m}, on_ground_share "
+                f"{self.on_ground_share}: need >= 0 and in (0, 1]"
             )
         if not self.object_margin_m >= 0:
             raise GroundPriorError(
@@ -176,6 +193,34 @@ def above_prior(
         int(config.radius_m // res),
         *_offsets(res, config.radius_m, slope_tan),
     )
+
+
+def on_known_ground(
+    xyz_w: np.ndarray,
+    range_m: np.ndarray,
+    valid: np.ndarray,
+    prior: GroundPrior,
+    config: GroundPriorConfig,
+) -> np.ndarray:
+    """(H, W) bool: the ``valid`` (H, W) bool pixels at range ``range_m`` (H, W) m of at least
+    ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m lies within ``on_ground_m`` of
+    the ground ``prior`` holds in its own cell, where that cell's height is itself ground by
+    :func:`above_prior` (a parked car's body far out, which the map fused as ground where it
+    saw nothing lower, stands above the ground known beside it and is not trusted)."""
+    res = float(prior.resolution_m)
+    z = np.asarray(prior.z_m)
+    n = z.shape[0]
+    ix0, iy0 = prior.origin_cell
+    cx = np.floor(np.nan_to_num(xyz_w[..., 0]) / res).astype(np.int64)
+    cy = np.floor(np.nan_to_num(xyz_w[..., 1]) / res).astype(np.int64)
+    inside = (cx >= ix0) & (cx < ix0 + n) & (cy >= iy0) & (cy < iy0 + n)
+    cell_z = np.where(inside, z[cy % n, cx % n], np.nan)
+    with np.errstate(invalid="ignore"):
+        near = np.abs(xyz_w[..., 2] - cell_z) <= config.on_ground_m  # NaN compares False
+    near &= valid & (range_m >= config.min_range_m)
+    cell_xyz = np.array(xyz_w, dtype=np.float64)
+    cell_xyz[..., 2] = np.where(near, cell_z, 0.0)
+    return near & (above_prior(cell_xyz, range_m, near, prior, config) == GROUND)
 
 
 def _offsets(

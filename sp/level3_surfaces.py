@@ -29,7 +29,7 @@ from sp.classify import Classifier
 from sp.computation import SegmentAttributes, ground_plane
 from sp.context import IMAGE_NAMES, KD_STATUS, SPConfig, SPContext, row_step, unit
 from sp.ground import ground_mask
-from sp.ground_prior import GROUND, OBJECT, GroundPrior, above_prior
+from sp.ground_prior import GROUND, OBJECT, GroundPrior, above_prior, on_known_ground
 from sp.level2_lists import ListLevel
 from sp.lists import PatchGrid, patch_grid
 from sp.observations import FrameChange, Related, StateObserved, StateRule
@@ -41,6 +41,23 @@ from sp.surfaces import (
     plane_fit,
 )
 from sp.tracking import TrackStatus
+
+
+@dataclass
+class GroundPixels:
+    """Level 3's ground of one sweep, (H, W) bool each.
+
+    ground:    the ground pixels.
+    standing:  far returns the world model's ground prior finds well above the ground it
+               expects: their segment is an object however low it stands over its column's
+               ground (:func:`sp.ground_prior.above_prior`).
+    on_known:  far returns on the ground the world model knows at their places
+               (:func:`sp.ground_prior.on_known_ground`).
+    """
+
+    ground: np.ndarray
+    standing: np.ndarray
+    on_known: np.ndarray
 
 
 @dataclass
@@ -84,19 +101,21 @@ class SurfaceLevel:
         xyz_w: np.ndarray | None = None,
         range_m: np.ndarray | None = None,
         prior: GroundPrior | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(H, W) bool ground pixels of the gravity-aligned points ``xyz_g`` (H, W, 3) m
-        (:func:`ground_mask`), and (H, W) bool the pixels that make their segment an object.
-        With the world model's ground ``prior``, the world points ``xyz_w`` (H, W, 3) m and
-        the returns' ranges ``range_m`` (H, W) m, far returns well above the ground it
-        expects are not ground, and those higher still are objects (:func:`above_prior`);
-        without, none is."""
+    ) -> GroundPixels:
+        """The ground of the gravity-aligned points ``xyz_g`` (H, W, 3) m
+        (:func:`ground_mask`). With the world model's ground ``prior``, the world points
+        ``xyz_w`` (H, W, 3) m and the returns' ranges ``range_m`` (H, W) m, far returns well
+        above the ground it expects are not ground, those higher still make their segment
+        an object (:func:`above_prior`), and the far returns on the ground it knows are
+        marked (:func:`on_known_ground`); without, none is."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)
         if prior is None or xyz_w is None or range_m is None:
-            return ground, np.zeros_like(ground)
+            none = np.zeros_like(ground)
+            return GroundPixels(ground, none, none)
         code = above_prior(xyz_w, range_m, ground, prior, cfg.ground_prior)
-        return ground & (code == GROUND), code == OBJECT
+        known = on_known_ground(xyz_w, range_m, valid, prior, cfg.ground_prior)
+        return GroundPixels(ground & (code == GROUND), code == OBJECT, known)
 
     # ------------------------------------------------------------------ the cycle
 

@@ -32,7 +32,7 @@ from sp.computation import SegmentAttributes, ground_below, segment_attributes
 from sp.context import IMAGE_NAMES, KD_STATUS, SPContext, row_step, unit
 from sp.egosphere import EgosphereImage
 from sp.events import EventClass
-from sp.level3_surfaces import foot_rise_deg, terrain_patch
+from sp.level3_surfaces import GroundPixels, foot_rise_deg, terrain_patch
 from sp.observations import AppearanceObserved, ClassFounded, FrameChange, StatesObserved
 from sp.segments import (
     SegmentConfig,
@@ -54,12 +54,10 @@ SHAPE_MIN_BREADTH_M = 0.05  # a segment's points spread this far along its middl
 SHAPE_MIN_PIXELS = 12  # ... in this many returns at least, or its thickness is unknown
 
 
-def holds(labels: np.ndarray, mask: np.ndarray | None, k: int) -> np.ndarray:
-    """(k,) bool: which of the k segments of ``labels`` (H, W) int64 (-1 none) have a pixel
-    in ``mask`` (H, W) bool (none without a mask)."""
-    if mask is None:
-        return np.zeros(k, dtype=bool)
-    return np.bincount(labels[mask & (labels >= 0)], minlength=k)[:k] > 0
+def count_in(labels: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:
+    """(k,) int64: how many pixels of each of the k segments of ``labels`` (H, W) int64 (-1
+    none) lie in ``mask`` (H, W) bool."""
+    return np.bincount(labels[mask & (labels >= 0)], minlength=k)[:k]
 
 
 @dataclass
@@ -186,21 +184,22 @@ class ObjectLevel:
         labels: np.ndarray,
         xyz_w: np.ndarray,
         xyz_g: np.ndarray,
-        ground: np.ndarray,
+        gp: GroundPixels,
         T_world_ladar: np.ndarray,
-        standing: np.ndarray | None = None,
     ) -> Segments:
         """Attributes of the segments ``labels`` (H, W) (world points ``xyz_w``, gravity-aligned
-        ``xyz_g``, (H, W, 3) m); pieces of one face or wall are merged, people walking side by
-        side cut where their tracks predict them, and segments too low or terrain-like go to
-        the ``ground`` (H, W) bool, but for those holding a ``standing`` (H, W) bool pixel,
-        one the world model's ground prior finds well above the ground it expects
-        (:func:`sp.ground_prior.above_prior`): that ground is a better measure of a far
-        segment's height than the ground below it in its column."""
+        ``xyz_g``, (H, W, 3) m; level 3's ground ``gp``); pieces of one face or wall are
+        merged, people walking side by side cut where their tracks predict them, and segments
+        too low or terrain-like go to the ground. Far out, the ground the world model holds
+        judges a segment's height better than the ground below it in its column: a low
+        segment holding a ``gp.standing`` return is an object, and a segment of returns on
+        the ground the model knows (``gp.on_known``, :class:`sp.ground_prior.GroundPriorConfig`
+        ``on_ground_*``) is terrain."""
         cfg = self.ctx.config
         seg_cfg = cfg.segments
         valid = img.valid_first
         W = valid.shape[1]
+        ground = gp.ground
         gz = ground_below(ground, xyz_w[..., 2], np.hypot(xyz_g[..., 0], xyz_g[..., 1]))
         inten = np.nan_to_num(img.intensity[..., 0])
         range0_m = np.where(valid, img.range_first, 0.0)
@@ -243,8 +242,13 @@ class ObjectLevel:
         # too low to stand out of the terrain (bumps, ruts), a gently sloping plane (a
         # hillside seen past a gap) or rising from the ground as the ground does (a bank, a
         # mound): ground, not objects
-        low = (attrs.height_m < cfg.min_object_height_m) & ~holds(labels, standing, len(attrs))
+        k = len(attrs)
+        low = (attrs.height_m < cfg.min_object_height_m) & ~(count_in(labels, gp.standing, k) > 0)
         low |= terrain_patch(attrs, cfg)
+        on = cfg.ground_prior
+        n = count_in(labels, labels >= 0, k)
+        on_known = (count_in(labels, gp.on_known, k) >= on.on_ground_share * n) & (n > 0)
+        low |= on_known & (attrs.height_m < on.on_ground_below_m)
         rise_deg, n_cols = foot_rise_deg(
             labels, xyz_g, valid, ground, len(attrs), seg_cfg.row_gap, cfg.foot_chord_m,
             cfg.foot_rise_m,

@@ -217,7 +217,8 @@ class SensoryProcessor:
         t_ns = int(scan.t_ns)
         px = self.level1.step(scan, T, pose_t_ns, points_world)
         clock.lap("egosphere")
-        ground, standing = l3.ground_pixels(px.xyz_g, px.valid, px.xyz_w, px.range_m, ground_prior)
+        gp = l3.ground_pixels(px.xyz_g, px.valid, px.xyz_w, px.range_m, ground_prior)
+        ground = gp.ground
         clock.lap("ground")
 
         # level 4: the five SP functions in turn
@@ -226,7 +227,7 @@ class SensoryProcessor:
         candidates = px.valid & ~ground & (px.range_m <= self.config.max_object_range_m)
         labels = l4.group(px.xyz_s, px.range_m, candidates, px.row_el, attention)
         clock.lap("grouping")
-        seg = l4.compute(t_ns, px.img, labels, px.xyz_w, px.xyz_g, ground, T, standing)
+        seg = l4.compute(t_ns, px.img, labels, px.xyz_w, px.xyz_g, gp, T)
         clock.lap("computation")
         objects = l4.filter(seg, t_ns, T)
         self._objects_gone(objects.finished)

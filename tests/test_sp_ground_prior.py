@@ -20,6 +20,7 @@ from sp.ground_prior import (
     GroundPriorError,
     above_prior,
     not_ground,
+    on_known_ground,
 )
 
 RES = 0.4
@@ -260,3 +261,86 @@ def test_a_far_bush_standing_above_the_expected_ground_is_an_object(margin_m: fl
     else:
         assert r.ground_mask[bush].all()
     assert r.ground_mask[valid & ~bush].all()
+
+
+def test_far_returns_on_the_ground_the_map_knows_are_marked() -> None:
+    # ground at 0 m everywhere, but a 2 m x 2 m block at 1.4 m (a car's body the map fused as
+    # ground where it saw nothing lower) around cell (50, 0) and no knowledge near x = -20 m
+    n = 256
+    z = np.zeros((n, n), dtype=np.float32)
+    for ix in range(48, 53):
+        for iy in range(-2, 3):
+            z[iy % n, ix % n] = 1.4
+    z[:, (np.arange(-55, -45)) % n] = np.nan
+    prior = GroundPrior(z, (-n // 2, -n // 2), RES)
+    cfg = GroundPriorConfig()
+    pts = np.array(
+        [
+            [30.0, 5.0, 0.15],  # far, on the ground
+            [30.0, 5.0, 0.35],  # far, 0.35 m above it
+            [10.0, 5.0, 0.05],  # on the ground, but near: left to the column walk
+            [20.2, 0.2, 1.45],  # on the block's cell, which stands over the ground beside it
+            [-20.0, 0.0, 0.0],  # far, nothing known there
+        ]
+    )
+    xyz = pts.reshape(1, -1, 3)
+    rng = np.hypot(xyz[..., 0], xyz[..., 1])
+    valid = np.ones(rng.shape, dtype=bool)
+    got = on_known_ground(xyz, rng, valid, prior, cfg)
+    assert got[0].tolist() == [True, False, False, False, False]
+    # the block's cell is taken at its word when nothing lower is known near it
+    alone = np.full((n, n), np.nan, dtype=np.float32)
+    alone[0, 50] = 1.4
+    lone = GroundPrior(alone, (-n // 2, -n // 2), RES)
+    assert on_known_ground(xyz[:, 3:4], rng[:, 3:4], valid[:, 3:4], lone, cfg).all()
+    assert not on_known_ground(xyz, rng, ~valid, prior, cfg).any()  # invalid pixels never
+
+
+def _bank_scan(t_ns: int, bank_m: float):
+    """A LadarScan of flat ground out to 25 m and, over ``BUSH_COLS``, a far row at 31 m on the
+    foot of a step and one 0.3 m beyond on its top, ``bank_m`` up."""
+    from logs.types import LadarScan
+
+    az = np.pi - (np.arange(N_COLS) + 0.5) * 2 * np.pi / N_COLS
+    xyz = np.full((N_ROWS, N_COLS, 3), np.nan)
+    ground = [(3.0 + 2.0 * k, -SENSOR_H) for k in range(12)]
+    rows = [*ground, (31.0, -SENSOR_H), (31.3, -SENSOR_H + bank_m)]
+    for k, (r, z) in enumerate(rows):
+        cols = BUSH_COLS if k >= len(ground) else slice(None)
+        xyz[N_ROWS - 1 - k, cols] = np.stack(
+            [r * np.cos(az[cols]), r * np.sin(az[cols]), np.full_like(az[cols], z)], -1
+        )
+    valid = np.isfinite(xyz[..., 0])
+    pts = xyz[valid].astype(np.float32)
+    ring = (N_ROWS - 1 - np.nonzero(valid)[0]).astype(np.uint16)
+    n = len(pts)
+    scan = LadarScan(t_ns, "ladar", pts, np.full(n, 0.5, np.float32), np.zeros(n, np.int64), ring)
+    top = np.zeros(valid.shape, dtype=bool)
+    top[N_ROWS - 1 - (len(rows) - 1), BUSH_COLS] = True
+    return scan, top
+
+
+@pytest.mark.parametrize("map_knows_bank", [True, False])
+def test_a_far_step_on_the_ground_the_map_knows_is_terrain(map_knows_bank: bool) -> None:
+    import kd_store
+    from sp.egosphere import EgosphereConfig
+    from sp.pipeline import SPConfig
+    from wm.entities import KDSensoryProcessor
+
+    cfg = SPConfig(egosphere=EgosphereConfig(n_rows=N_ROWS, n_cols=N_COLS, max_returns=1))
+    sp = KDSensoryProcessor(kd_store.open(":memory:"), cfg)
+    T = np.eye(4)
+    T[2, 3] = SENSOR_H
+    scan, top = _bank_scan(0, 0.6)
+    # the map: flat at 0, and (when it knows the bank) 0.6 m from x = 31.2 m on
+    n = 256
+    ix = (np.arange(n) + n // 2) % n - n // 2  # the global cell each storage column holds
+    z = np.zeros((n, n), dtype=np.float32)
+    if map_knows_bank:
+        z[:, (ix + 0.5) * RES > 31.2] = 0.6
+    prior = GroundPrior(z, (-n // 2, -n // 2), RES)
+    r = sp.process(scan, T, ground_prior=prior)
+    # the step's top row stands 0.6 m over the column's ground: an object to the column walk;
+    # on a bank the map knows it is terrain, on ground the map knows flat it stays an object
+    assert r.ground_mask[top].all() == map_knows_bank
+    assert (~r.ground_mask[top]).all() == (not map_knows_bank)
