@@ -208,19 +208,22 @@ def on_known_ground(
     :func:`above_prior` (a parked car's body far out, which the map fused as ground where it
     saw nothing lower, stands above the ground known beside it and is not trusted)."""
     res = float(prior.resolution_m)
-    z = np.asarray(prior.z_m)
-    n = z.shape[0]
-    ix0, iy0 = prior.origin_cell
-    cx = np.floor(np.nan_to_num(xyz_w[..., 0]) / res).astype(np.int64)
-    cy = np.floor(np.nan_to_num(xyz_w[..., 1]) / res).astype(np.int64)
-    inside = (cx >= ix0) & (cx < ix0 + n) & (cy >= iy0) & (cy < iy0 + n)
-    cell_z = np.where(inside, z[cy % n, cx % n], np.nan)
-    with np.errstate(invalid="ignore"):
-        near = np.abs(xyz_w[..., 2] - cell_z) <= config.on_ground_m  # NaN compares False
-    near &= valid & (range_m >= config.min_range_m)
-    cell_xyz = np.array(xyz_w, dtype=np.float64)
-    cell_xyz[..., 2] = np.where(near, cell_z, 0.0)
-    return near & (above_prior(cell_xyz, range_m, near, prior, config) == GROUND)
+    slope_tan = float(np.tan(np.radians(config.slope_deg)))
+    return _on_known_kernel(
+        np.ascontiguousarray(xyz_w, dtype=np.float64),
+        np.ascontiguousarray(range_m),
+        np.ascontiguousarray(valid, dtype=np.bool_),
+        prior.lowest_around(config.radius_m),
+        np.asarray(prior.z_m),
+        int(prior.origin_cell[0]),
+        int(prior.origin_cell[1]),
+        res,
+        float(config.min_range_m),
+        float(config.above_m),
+        float(config.on_ground_m),
+        int(config.radius_m // res),
+        *_offsets(res, config.radius_m, slope_tan),
+    )
 
 
 def _offsets(
@@ -271,4 +274,40 @@ def _above_prior_kernel(  # pragma: no cover
                     memo[cy % n, cx % n] = e
             # NaN (nothing known near) compares False
             out[i, j] = OBJECT if xyz_w[i, j, 2] - obj > e else (ABOVE if zp > e else GROUND)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _on_known_kernel(  # pragma: no cover
+    xyz_w, range_m, valid, low, z, ix0, iy0, res, min_range, above, tol, k, off_x, off_y, rise
+):
+    """:func:`on_known_ground` pixel by pixel; whether a cell's height is itself ground is
+    found once per cell (pruned with ``low`` as in :func:`_above_prior_kernel`)."""
+    H, W = valid.shape
+    n = z.shape[0]
+    out = np.zeros((H, W), dtype=np.bool_)
+    trusted = np.zeros((0, 0), dtype=np.int8)  # per storage cell: 0 not judged, 1 yes, 2 no
+    for i in range(H):
+        for j in range(W):
+            if not valid[i, j] or not range_m[i, j] >= min_range:
+                continue
+            cx = np.int64(np.floor(xyz_w[i, j, 0] / res))
+            cy = np.int64(np.floor(xyz_w[i, j, 1] / res))
+            if not (ix0 <= cx < ix0 + n and iy0 <= cy < iy0 + n):
+                continue
+            cz = z[cy % n, cx % n]
+            if not abs(xyz_w[i, j, 2] - cz) <= tol:  # NaN (unknown) compares False
+                continue
+            if trusted.shape[0] == 0:
+                trusted = np.zeros((n, n), dtype=np.int8)
+            t = trusted[cy % n, cx % n]
+            if t == 0:
+                inner = ix0 + k <= cx < ix0 + n - k and iy0 + k <= cy < iy0 + n - k
+                if inner and not cz - above > low[cy % n, cx % n]:
+                    t = 1
+                else:
+                    e = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
+                    t = 2 if cz - above > e else 1
+                trusted[cy % n, cx % n] = t
+            out[i, j] = t == 1
     return out

@@ -32,7 +32,10 @@ from kernel_reference.computation_reference import (
 )
 from kernel_reference.covariance_reference import psd_mask_reference
 from kernel_reference.egosphere_reference import to_egosphere_reference
-from kernel_reference.ground_prior_reference import above_prior_reference
+from kernel_reference.ground_prior_reference import (
+    above_prior_reference,
+    on_known_ground_reference,
+)
 from kernel_reference.ground_reference import (
     column_walk_reference,
     ground_mask_reference,
@@ -80,7 +83,14 @@ from sp.ground import (
     ground_mask,
     refine,
 )
-from sp.ground_prior import ABOVE, OBJECT, GroundPrior, GroundPriorConfig, above_prior
+from sp.ground_prior import (
+    ABOVE,
+    OBJECT,
+    GroundPrior,
+    GroundPriorConfig,
+    above_prior,
+    on_known_ground,
+)
 from sp.lists import (
     brightness_edges,
     list_slots,
@@ -242,6 +252,19 @@ def _prior_check(param: tuple[int, float], calls: list[Call]) -> None:
         # objects flagged, some high enough to stand as objects, most ground kept
         assert 20 < int((got == OBJECT).sum()) < int((got != 0).sum()) < int(args[2].sum())
         assert (got == ABOVE).sum() > 20
+
+
+def _known_check(param: tuple[int, float], calls: list[Call]) -> None:
+    for args, got, _ in calls:
+        # some returns on the known ground; fewer than lie within on_ground_m of their cell,
+        # the cells standing above their neighbourhood refused
+        xyz, rng, valid, prior, cfg = args
+        n = prior.z_m.shape[0]
+        c = np.floor(xyz[..., :2] / prior.resolution_m).astype(np.int64)
+        z = prior.z_m[c[..., 1] % n, c[..., 0] % n]
+        with np.errstate(invalid="ignore"):
+            close = valid & (rng >= cfg.min_range_m) & (np.abs(xyz[..., 2] - z) <= cfg.on_ground_m)
+        assert 3 < int(got.sum()) < int(close.sum())
 
 
 # --- sp.computation: ground below each pixel, ground plane ------------------------------------
@@ -2027,6 +2050,8 @@ CASES = [
          _equal, marks=[pytest.mark.filterwarnings("ignore:invalid value encountered")]),
     Case("above_prior", _product(range(3), [0.4, 1.0]), _prior_inputs, above_prior,
          above_prior_reference, _equal, _prior_check),
+    Case("on_known_ground", _product(range(3), [0.4, 1.0]), _prior_inputs, on_known_ground,
+         on_known_ground_reference, _equal, _known_check),
     Case("ground_below", [(0, 0.5), (1, 0.05), (2, 1.0), (3, 0.0)], _ground_below_inputs,
          ground_below, ground_below_reference, _equal, _ground_below_check),
     Case("ground_below_degenerate", [None], _ground_below_degenerate_inputs, ground_below,

@@ -5,7 +5,8 @@ point: the minimum, over the known cells of the window whose centres lie within 
 the point's cell centre, of (height + slope x distance); NaN where none is known.
 :func:`above_prior_reference` codes the far ground returns more than ``above_m`` above it,
 and those more than ``above_m + object_margin_m`` above it. :func:`sp.ground_prior.above_prior`,
-which prunes with a dilated grid and memoises per cell, must code every pixel the same.
+which prunes with a dilated grid and memoises per cell, must code every pixel the same, and
+:func:`sp.ground_prior.on_known_ground` mark the pixels :func:`on_known_ground_reference` does.
 """
 
 from __future__ import annotations
@@ -56,3 +57,28 @@ def above_prior_reference(
     obj = config.above_m + config.object_margin_m
     code = np.where(rise > obj, OBJECT, np.where(rise > config.above_m, ABOVE, GROUND))
     return np.where(judged, code, GROUND).astype(np.int8)
+
+
+def on_known_ground_reference(
+    xyz_w: np.ndarray,
+    range_m: np.ndarray,
+    valid: np.ndarray,
+    prior: GroundPrior,
+    config: GroundPriorConfig,
+) -> np.ndarray:
+    """(H, W) bool: :func:`sp.ground_prior.on_known_ground` in numpy: far valid returns within
+    ``on_ground_m`` of their own known cell, whose height passes :func:`above_prior_reference`."""
+    res = float(prior.resolution_m)
+    z = np.asarray(prior.z_m)
+    n = z.shape[0]
+    ix0, iy0 = prior.origin_cell
+    cx = np.floor(np.nan_to_num(xyz_w[..., 0]) / res).astype(np.int64)
+    cy = np.floor(np.nan_to_num(xyz_w[..., 1]) / res).astype(np.int64)
+    inside = (cx >= ix0) & (cx < ix0 + n) & (cy >= iy0) & (cy < iy0 + n)
+    cell_z = np.where(inside, z[cy % n, cx % n], np.nan)
+    with np.errstate(invalid="ignore"):
+        near = np.abs(xyz_w[..., 2] - cell_z) <= config.on_ground_m  # NaN compares False
+    near &= valid & (range_m >= config.min_range_m)
+    cell_xyz = np.array(xyz_w, dtype=np.float64)
+    cell_xyz[..., 2] = np.where(near, cell_z, 0.0)
+    return near & (above_prior_reference(cell_xyz, range_m, near, prior, config) == GROUND)
