@@ -118,7 +118,7 @@ class GroundPrior:
         """(n, n) float32 toroidal grid: the lowest known height in the square of (2k + 1)^2
         cells around each cell (k = ``radius_m`` // resolution), wrapping over the storage's
         edge (+inf where none known). For a cell at least k cells inside the window it is a
-        lower bound of the ground expected there (:func:`not_ground`)."""
+        lower bound of the ground expected there (:func:`above_prior`)."""
         k = int(radius_m // self.resolution_m)
         z = np.asarray(self.z_m, dtype=np.float32)
         z = np.where(np.isnan(z), np.float32(np.inf), z)
@@ -151,18 +151,6 @@ def _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise):  # pragma: no cover
 GROUND, ABOVE, OBJECT = 0, 1, 2
 
 
-def not_ground(
-    xyz_w: np.ndarray,
-    range_m: np.ndarray,
-    ground: np.ndarray,
-    prior: GroundPrior,
-    config: GroundPriorConfig,
-) -> np.ndarray:
-    """(H, W) bool: the ``ground`` pixels the prior takes out of the ground (:func:`above_prior`
-    not ``GROUND``)."""
-    return above_prior(xyz_w, range_m, ground, prior, config) != GROUND
-
-
 def above_prior(
     xyz_w: np.ndarray,
     range_m: np.ndarray,
@@ -176,23 +164,8 @@ def above_prior(
     the lowest known cell within ``radius_m``, raised by ``slope_deg`` over its distance),
     ``OBJECT`` for those more than ``above_m + object_margin_m`` above it, ``GROUND``
     elsewhere."""
-    res = float(prior.resolution_m)
-    slope_tan = float(np.tan(np.radians(config.slope_deg)))
-    return _above_prior_kernel(
-        np.ascontiguousarray(xyz_w, dtype=np.float64),
-        np.ascontiguousarray(range_m),
-        np.ascontiguousarray(ground, dtype=np.bool_),
-        prior.lowest_around(config.radius_m),
-        np.asarray(prior.z_m),
-        int(prior.origin_cell[0]),
-        int(prior.origin_cell[1]),
-        res,
-        float(config.min_range_m),
-        float(config.above_m),
-        float(config.above_m + config.object_margin_m),
-        int(config.radius_m // res),
-        *_offsets(res, config.radius_m, slope_tan),
-    )
+    obj = config.above_m + config.object_margin_m
+    return _above_prior_kernel(*_kernel_args(xyz_w, range_m, ground, prior, config, obj))
 
 
 def on_known_ground(
@@ -207,12 +180,26 @@ def on_known_ground(
     the ground ``prior`` holds in its own cell, where that cell's height is itself ground by
     :func:`above_prior` (a parked car's body far out, which the map fused as ground where it
     saw nothing lower, stands above the ground known beside it and is not trusted)."""
+    args = _kernel_args(xyz_w, range_m, valid, prior, config, config.on_ground_m)
+    return _on_known_kernel(*args)
+
+
+def _kernel_args(
+    xyz_w: np.ndarray,
+    range_m: np.ndarray,
+    mask: np.ndarray,
+    prior: GroundPrior,
+    config: GroundPriorConfig,
+    limit_m: float,
+) -> tuple:
+    """The arguments of the compiled passes, in their order: the pixels, the prior's grid and
+    its pruning square, the thresholds (``limit_m`` the pass's own) and the cell offsets."""
     res = float(prior.resolution_m)
     slope_tan = float(np.tan(np.radians(config.slope_deg)))
-    return _on_known_kernel(
+    return (
         np.ascontiguousarray(xyz_w, dtype=np.float64),
         np.ascontiguousarray(range_m),
-        np.ascontiguousarray(valid, dtype=np.bool_),
+        np.ascontiguousarray(mask, dtype=np.bool_),
         prior.lowest_around(config.radius_m),
         np.asarray(prior.z_m),
         int(prior.origin_cell[0]),
@@ -220,7 +207,7 @@ def on_known_ground(
         res,
         float(config.min_range_m),
         float(config.above_m),
-        float(config.on_ground_m),
+        float(limit_m),
         int(config.radius_m // res),
         *_offsets(res, config.radius_m, slope_tan),
     )

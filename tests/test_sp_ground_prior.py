@@ -19,7 +19,6 @@ from sp.ground_prior import (
     GroundPriorConfig,
     GroundPriorError,
     above_prior,
-    not_ground,
     on_known_ground,
 )
 
@@ -78,6 +77,11 @@ def _column(profile: list[tuple[float, float]], n_cols: int = 90) -> tuple[np.nd
     xyz = np.stack(np.broadcast_arrays(r * np.cos(az), r * np.sin(az), z), axis=-1)
     valid = np.ones((len(profile), n_cols), dtype=bool)
     return np.ascontiguousarray(xyz, dtype=np.float64), valid, np.hypot(xyz[..., 0], xyz[..., 1])
+
+
+def not_ground(xyz, rng, ground, prior, config) -> np.ndarray:
+    """(H, W) bool: the ground pixels the prior takes out of the ground."""
+    return above_prior(xyz, rng, ground, prior, config) != GROUND
 
 
 def _flat_prior(z_m: float, n: int = 256) -> GroundPrior:
