@@ -52,13 +52,16 @@ class GroundPriorConfig:
                   it raised by the slope.
     on_ground_m, on_ground_share, on_ground_below_m: a segment standing less than
                   ``on_ground_below_m`` over the ground below it in its column, with at least
-                  ``on_ground_share`` of its returns far (``min_range_m``) and within
+                  ``on_ground_share`` of its returns within
                   ``on_ground_m`` of the ground the map holds at their places, is terrain the
                   column walk misjudged and goes back to the ground (:func:`on_known_ground`):
                   the top of a bank or a crest seen past a dip, where the column's ground,
                   continued from before the dip, lies under the terrain. Taller segments are
                   never taken back: a car seen only by its roof over nearer cars may lie on
                   cells the map took for ground.
+    on_ground_min_range_m: the marking's own nearest range (m): near, the map knows the
+                  terrain best, and the column walk misjudges a fold there as it does a
+                  crest far out.
     radius_m:     the expected ground at a point is the lowest known ground within this
                   distance of it, each cell raised by ``slope_deg`` over its distance (a slope
                   is not taken for an object; a car's roof is judged against the ground
@@ -72,6 +75,7 @@ class GroundPriorConfig:
     on_ground_m: float = 0.2
     on_ground_share: float = 0.9
     on_ground_below_m: float = 1.0
+    on_ground_min_range_m: float = 0.0
     radius_m: float = 2.0
     slope_deg: float = 15.0
 
@@ -81,10 +85,15 @@ class GroundPriorConfig:
                 f"ground prior min_range_m {self.min_range_m}, above_m {self.above_m}, "
                 f"radius_m {self.radius_m}: need >= 0, > 0, >= 0"
             )
-        if not (self.on_ground_m >= 0 and 0 < self.on_ground_share <= 1):
+        if not (
+            self.on_ground_m >= 0
+            and 0 < self.on_ground_share <= 1
+            and self.on_ground_min_range_m >= 0
+        ):
             raise GroundPriorError(
                 f"ground prior on_ground_m {self.on_ground_m}, on_ground_share "
-                f"{self.on_ground_share}: need >= 0 and in (0, 1]"
+                f"{self.on_ground_share}, on_ground_min_range_m {self.on_ground_min_range_m}: "
+                "need >= 0, in (0, 1], >= 0"
             )
         if not self.object_margin_m >= 0:
             raise GroundPriorError(
@@ -165,7 +174,8 @@ def above_prior(
     ``OBJECT`` for those more than ``above_m + object_margin_m`` above it, ``GROUND``
     elsewhere."""
     obj = config.above_m + config.object_margin_m
-    return _above_prior_kernel(*_kernel_args(xyz_w, range_m, ground, prior, config, obj))
+    args = _kernel_args(xyz_w, range_m, ground, prior, config, config.min_range_m, obj)
+    return _above_prior_kernel(*args)
 
 
 def on_known_ground(
@@ -176,11 +186,12 @@ def on_known_ground(
     config: GroundPriorConfig,
 ) -> np.ndarray:
     """(H, W) bool: the ``valid`` (H, W) bool pixels at range ``range_m`` (H, W) m of at least
-    ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m lies within ``on_ground_m`` of
+    ``on_ground_min_range_m`` whose world point ``xyz_w`` (H, W, 3) m lies within ``on_ground_m`` of
     the ground ``prior`` holds in its own cell, where that cell's height is itself ground by
     :func:`above_prior` (a parked car's body far out, which the map fused as ground where it
     saw nothing lower, stands above the ground known beside it and is not trusted)."""
-    args = _kernel_args(xyz_w, range_m, valid, prior, config, config.on_ground_m)
+    near_m = config.on_ground_min_range_m
+    args = _kernel_args(xyz_w, range_m, valid, prior, config, near_m, config.on_ground_m)
     return _on_known_kernel(*args)
 
 
@@ -190,10 +201,12 @@ def _kernel_args(
     mask: np.ndarray,
     prior: GroundPrior,
     config: GroundPriorConfig,
+    min_range_m: float,
     limit_m: float,
 ) -> tuple:
     """The arguments of the compiled passes, in their order: the pixels, the prior's grid and
-    its pruning square, the thresholds (``limit_m`` the pass's own) and the cell offsets."""
+    its pruning square, the pass's nearest range and thresholds (``limit_m`` its own) and the
+    cell offsets."""
     res = float(prior.resolution_m)
     slope_tan = float(np.tan(np.radians(config.slope_deg)))
     return (
@@ -205,7 +218,7 @@ def _kernel_args(
         int(prior.origin_cell[0]),
         int(prior.origin_cell[1]),
         res,
-        float(config.min_range_m),
+        float(min_range_m),
         float(config.above_m),
         float(limit_m),
         int(config.radius_m // res),

@@ -51,7 +51,7 @@ class GroundPixels:
     standing:  far returns the world model's ground prior finds well above the ground it
                expects: their segment is an object however low it stands over its column's
                ground (:func:`sp.ground_prior.above_prior`).
-    on_known:  far returns on the ground the world model knows at their places
+    on_known:  returns on the ground the world model knows at their places
                (:func:`sp.ground_prior.on_known_ground`).
     """
 
@@ -106,7 +106,7 @@ class SurfaceLevel:
         (:func:`ground_mask`). With the world model's ground ``prior``, the world points
         ``xyz_w`` (H, W, 3) m and the returns' ranges ``range_m`` (H, W) m, far returns well
         above the ground it expects are not ground, those higher still make their segment
-        an object (:func:`above_prior`), and the far returns on the ground it knows are
+        an object (:func:`above_prior`), and the returns on the ground it knows are
         marked (:func:`on_known_ground`); without, none is."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)

@@ -263,7 +263,8 @@ def _known_check(param: tuple[int, float], calls: list[Call]) -> None:
         c = np.floor(xyz[..., :2] / prior.resolution_m).astype(np.int64)
         z = prior.z_m[c[..., 1] % n, c[..., 0] % n]
         with np.errstate(invalid="ignore"):
-            close = valid & (rng >= cfg.min_range_m) & (np.abs(xyz[..., 2] - z) <= cfg.on_ground_m)
+            near = np.abs(xyz[..., 2] - z) <= cfg.on_ground_m
+        close = valid & (rng >= cfg.on_ground_min_range_m) & near
         assert 3 < int(got.sum()) < int(close.sum())
 
 

@@ -282,7 +282,7 @@ def test_far_returns_on_the_ground_the_map_knows_are_marked() -> None:
         [
             [30.0, 5.0, 0.15],  # far, on the ground
             [30.0, 5.0, 0.35],  # far, 0.35 m above it
-            [10.0, 5.0, 0.05],  # on the ground, but near: left to the column walk
+            [10.0, 5.0, 0.05],  # near, on the ground
             [20.2, 0.2, 1.45],  # on the block's cell, which stands over the ground beside it
             [-20.0, 0.0, 0.0],  # far, nothing known there
         ]
@@ -291,7 +291,9 @@ def test_far_returns_on_the_ground_the_map_knows_are_marked() -> None:
     rng = np.hypot(xyz[..., 0], xyz[..., 1])
     valid = np.ones(rng.shape, dtype=bool)
     got = on_known_ground(xyz, rng, valid, prior, cfg)
-    assert got[0].tolist() == [True, False, False, False, False]
+    assert got[0].tolist() == [True, False, True, False, False]
+    far_only = GroundPriorConfig(on_ground_min_range_m=15.0)
+    assert on_known_ground(xyz, rng, valid, prior, far_only)[0].tolist() == [True] + [False] * 4
     # the block's cell is taken at its word when nothing lower is known near it
     alone = np.full((n, n), np.nan, dtype=np.float32)
     alone[0, 50] = 1.4

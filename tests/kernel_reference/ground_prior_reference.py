@@ -12,6 +12,7 @@ which prunes with a dilated grid and memoises per cell, must code every pixel th
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -67,7 +68,8 @@ def on_known_ground_reference(
     config: GroundPriorConfig,
 ) -> np.ndarray:
     """(H, W) bool: :func:`sp.ground_prior.on_known_ground` in numpy: far valid returns within
-    ``on_ground_m`` of their own known cell, whose height passes :func:`above_prior_reference`."""
+    ``on_ground_m`` of their own known cell (from ``on_ground_min_range_m`` on), whose height
+    passes :func:`above_prior_reference`."""
     res = float(prior.resolution_m)
     z = np.asarray(prior.z_m)
     n = z.shape[0]
@@ -78,7 +80,8 @@ def on_known_ground_reference(
     cell_z = np.where(inside, z[cy % n, cx % n], np.nan)
     with np.errstate(invalid="ignore"):
         near = np.abs(xyz_w[..., 2] - cell_z) <= config.on_ground_m  # NaN compares False
-    near &= valid & (range_m >= config.min_range_m)
+    near &= valid & (range_m >= config.on_ground_min_range_m)
     cell_xyz = np.array(xyz_w, dtype=np.float64)
     cell_xyz[..., 2] = np.where(near, cell_z, 0.0)
-    return near & (above_prior_reference(cell_xyz, range_m, near, prior, config) == GROUND)
+    cell_cfg = replace(config, min_range_m=config.on_ground_min_range_m)
+    return near & (above_prior_reference(cell_xyz, range_m, near, prior, cell_cfg) == GROUND)
