@@ -51,7 +51,8 @@ class GroundPixels:
     standing:  far returns the world model's ground prior finds well above the ground it
                expects: their segment is an object however low it stands over its column's
                ground (:func:`sp.ground_prior.above_prior`).
-    on_known:  returns on the ground the world model knows at their places
+    on_known:  returns off the ground that lie on the ground the world model knows at their
+               places
                (:func:`sp.ground_prior.on_known_ground`).
     """
 
@@ -106,7 +107,7 @@ class SurfaceLevel:
         (:func:`ground_mask`). With the world model's ground ``prior``, the world points
         ``xyz_w`` (H, W, 3) m and the returns' ranges ``range_m`` (H, W) m, far returns well
         above the ground it expects are not ground, those higher still make their segment
-        an object (:func:`above_prior`), and the returns on the ground it knows are
+        an object (:func:`above_prior`), and the other returns on the ground it knows are
         marked (:func:`on_known_ground`); without, none is."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)
@@ -114,8 +115,10 @@ class SurfaceLevel:
             none = np.zeros_like(ground)
             return GroundPixels(ground, none, none)
         code = above_prior(xyz_w, range_m, ground, prior, cfg.ground_prior)
-        known = on_known_ground(xyz_w, range_m, valid, prior, cfg.ground_prior)
-        return GroundPixels(ground & (code == GROUND), code == OBJECT, known)
+        ground &= code == GROUND
+        # only returns off the ground can make segments, so only those are marked
+        known = on_known_ground(xyz_w, range_m, valid & ~ground, prior, cfg.ground_prior)
+        return GroundPixels(ground, code == OBJECT, known)
 
     # ------------------------------------------------------------------ the cycle
 
