@@ -240,13 +240,34 @@ def _offsets(
 
 
 @numba.njit(cache=True, nogil=True)
+def _surely_not_above(zp, cx, cy, low, n, ix0, iy0, k):  # pragma: no cover
+    """Whether height ``zp`` is not above the ground expected at cell (cx, cy), shown by the
+    dilated square ``low`` alone (:meth:`GroundPrior.lowest_around`, a lower bound of it for
+    cells at least ``k`` inside the window; nearer the edge the square wraps, so never)."""
+    inner = ix0 + k <= cx < ix0 + n - k and iy0 + k <= cy < iy0 + n - k
+    return inner and not zp > low[cy % n, cx % n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _expected_at(cx, cy, z, memo, ix0, iy0, off_x, off_y, rise):  # pragma: no cover
+    """The ground expected at cell (cx, cy) (:func:`_lowest_near`; NaN when nothing is known
+    near), remembered in ``memo`` (n, n) (inf: not computed) for cells of the window."""
+    n = z.shape[0]
+    if not (ix0 <= cx < ix0 + n and iy0 <= cy < iy0 + n):
+        return _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
+    e = memo[cy % n, cx % n]
+    if e == np.inf:
+        e = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
+        memo[cy % n, cx % n] = e
+    return e
+
+
+@numba.njit(cache=True, nogil=True)
 def _above_prior_kernel(  # pragma: no cover
     xyz_w, range_m, ground, low, z, ix0, iy0, res, min_range, above, obj, k, off_x, off_y, rise
 ):
-    """:func:`above_prior` pixel by pixel. Most far ground is ground: where no known cell of
-    the square around a pixel's cell (``low``, :meth:`GroundPrior.lowest_around`) lies low
-    enough to make it an object, the exact minimum is not needed; cells within ``k`` of the
-    window's edge, whose square wraps onto other cells, are always computed exactly."""
+    """:func:`above_prior` pixel by pixel. Most far ground is ground: where the dilated
+    square shows it (:func:`_surely_not_above`) the exact expected ground is not needed."""
     H, W = ground.shape
     n = z.shape[0]
     out = np.zeros((H, W), dtype=np.int8)
@@ -258,20 +279,11 @@ def _above_prior_kernel(  # pragma: no cover
             zp = xyz_w[i, j, 2] - above
             cx = np.int64(np.floor(xyz_w[i, j, 0] / res))
             cy = np.int64(np.floor(xyz_w[i, j, 1] / res))
-            inner = ix0 + k <= cx < ix0 + n - k and iy0 + k <= cy < iy0 + n - k
-            if inner and not zp > low[cy % n, cx % n]:
+            if _surely_not_above(zp, cx, cy, low, n, ix0, iy0, k):
                 continue
-            inside = ix0 <= cx < ix0 + n and iy0 <= cy < iy0 + n
-            if inside:
-                if memo.shape[0] == 0:
-                    memo = np.full((n, n), np.inf)  # inf: not computed yet
-                e = memo[cy % n, cx % n]
-            else:
-                e = np.inf
-            if e == np.inf:
-                e = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
-                if inside:
-                    memo[cy % n, cx % n] = e
+            if memo.shape[0] == 0:
+                memo = np.full((n, n), np.inf)
+            e = _expected_at(cx, cy, z, memo, ix0, iy0, off_x, off_y, rise)
             # NaN (nothing known near) compares False
             out[i, j] = OBJECT if xyz_w[i, j, 2] - obj > e else (ABOVE if zp > e else GROUND)
     return out
@@ -281,12 +293,12 @@ def _above_prior_kernel(  # pragma: no cover
 def _on_known_kernel(  # pragma: no cover
     xyz_w, range_m, valid, low, z, ix0, iy0, res, min_range, above, tol, k, off_x, off_y, rise
 ):
-    """:func:`on_known_ground` pixel by pixel; whether a cell's height is itself ground is
-    found once per cell (pruned with ``low`` as in :func:`_above_prior_kernel`)."""
+    """:func:`on_known_ground` pixel by pixel; a cell's own height is judged as
+    :func:`_above_prior_kernel` judges a return."""
     H, W = valid.shape
     n = z.shape[0]
     out = np.zeros((H, W), dtype=np.bool_)
-    trusted = np.zeros((0, 0), dtype=np.int8)  # per storage cell: 0 not judged, 1 yes, 2 no
+    memo = np.empty((0, 0))
     for i in range(H):
         for j in range(W):
             if not valid[i, j] or not range_m[i, j] >= min_range:
@@ -298,16 +310,11 @@ def _on_known_kernel(  # pragma: no cover
             cz = z[cy % n, cx % n]
             if not abs(xyz_w[i, j, 2] - cz) <= tol:  # NaN (unknown) compares False
                 continue
-            if trusted.shape[0] == 0:
-                trusted = np.zeros((n, n), dtype=np.int8)
-            t = trusted[cy % n, cx % n]
-            if t == 0:
-                inner = ix0 + k <= cx < ix0 + n - k and iy0 + k <= cy < iy0 + n - k
-                if inner and not cz - above > low[cy % n, cx % n]:
-                    t = 1
-                else:
-                    e = _lowest_near(z, cx, cy, ix0, iy0, off_x, off_y, rise)
-                    t = 2 if cz - above > e else 1
-                trusted[cy % n, cx % n] = t
-            out[i, j] = t == 1
+            if _surely_not_above(cz - above, cx, cy, low, n, ix0, iy0, k):
+                out[i, j] = True
+                continue
+            if memo.shape[0] == 0:
+                memo = np.full((n, n), np.inf)
+            e = _expected_at(cx, cy, z, memo, ix0, iy0, off_x, off_y, rise)
+            out[i, j] = not cz - above > e
     return out

@@ -52,8 +52,7 @@ class GroundPixels:
                expects: their segment is an object however low it stands over its column's
                ground (:func:`sp.ground_prior.above_prior`).
     on_known:  returns off the ground that lie on the ground the world model knows at their
-               places
-               (:func:`sp.ground_prior.on_known_ground`).
+               places (:func:`sp.ground_prior.on_known_ground`).
     """
 
     ground: np.ndarray

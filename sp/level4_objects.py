@@ -243,11 +243,10 @@ class ObjectLevel:
         # hillside seen past a gap) or rising from the ground as the ground does (a bank, a
         # mound): ground, not objects
         k = len(attrs)
-        low = (attrs.height_m < cfg.min_object_height_m) & ~(count_in(labels, gp.standing, k) > 0)
+        low = (attrs.height_m < cfg.min_object_height_m) & (count_in(labels, gp.standing, k) == 0)
         low |= terrain_patch(attrs, cfg)
         on = cfg.ground_prior
-        n = count_in(labels, labels >= 0, k)
-        on_known = (count_in(labels, gp.on_known, k) >= on.on_ground_share * n) & (n > 0)
+        on_known = count_in(labels, gp.on_known, k) >= on.on_ground_share * attrs.n_pixels
         low |= on_known & (attrs.height_m < on.on_ground_below_m)
         rise_deg, n_cols = foot_rise_deg(
             labels, xyz_g, valid, ground, len(attrs), seg_cfg.row_gap, cfg.foot_chord_m,
