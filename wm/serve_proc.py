@@ -214,8 +214,9 @@ class _Outbox:
         status right after, and both go in one message."""
         with self._cond:
             self._replica.append(item)
-            dropped = drop_backlog(self._replica, MAX_BEHIND_CYCLES)  # the server is far
-            self.replica_dropped += dropped  # behind: a new seed instead
+            # the server far behind: its deltas dropped, a new seed instead
+            dropped = drop_backlog(self._replica, MAX_BEHIND_CYCLES)
+            self.replica_dropped += dropped
             if isinstance(item, KDSeed):
                 self._cond.notify()
         if dropped and self.on_replica_dropped is not None:
