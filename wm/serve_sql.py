@@ -84,6 +84,10 @@ MAX_BEHIND_CYCLES = 50
 #: how long the server's news waits for the replica to apply a cycle's delta before it
 #: installs that cycle's snapshot anyway, s (half a 10 Hz cycle)
 APPLY_WAIT_S = 0.05
+#: DuckDB worker threads of the replica (its writes and every query on it): a cycle's writes
+#: and the small answers a server gives gain little from a second, which the node's cycle and
+#: its odometry want on a machine of two cores
+REPLICA_THREADS = 1
 #: how often the node's feed looks whether SQL is asked for or a seed is due, s
 POLL_S = 0.05
 #: a seed due this long without a cycle's end (the node idle, or done) is made by the feed's
@@ -345,7 +349,8 @@ class SQLReplica:
     the node writes the seeds (removed with :meth:`close`); ``request_seed``: asks the node
     for a new seed (the replica fell behind or lost a delta); ``max_behind``: deltas queued
     at most before the backlog is dropped and a seed asked for; ``limits``: the memory and
-    thread limits of the replica's connection (:class:`kd_store.query.QueryLimits`)."""
+    thread limits of the replica's connection (:class:`kd_store.query.QueryLimits`; default:
+    :data:`REPLICA_THREADS` threads)."""
 
     def __init__(
         self,
@@ -359,7 +364,7 @@ class SQLReplica:
         self.folder = Path(folder)
         self.request_seed = request_seed
         self.max_behind = max_behind
-        self.limits = limits if limits is not None else QueryLimits()
+        self.limits = limits if limits is not None else QueryLimits(threads=REPLICA_THREADS)
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._queue: deque[KDDelta | KDSeed] = deque()
