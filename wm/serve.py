@@ -86,6 +86,7 @@ from typing import Annotated, Any, TypeVar
 
 import numpy as np
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
@@ -924,23 +925,28 @@ def create_app(
         k = snap.row.get(snap.self_id if entity_id is None else int(entity_id), -1)
         return snap.entity(k) if k >= 0 and snap.cols["frame"][k] == "world" else None
 
+    # The lookups below are coroutines: an answer from the cycle's copy is a few dictionary
+    # reads, cheaper than the hand-over to a worker thread (and back) that a plain function
+    # costs; only what needs the node (another time or frame, before the first cycle) goes to
+    # a worker thread, since it waits for the node's answer.
+
     @app.get("/v1/self")
-    def self_state(t_ns: int | None = None, frame: str = "world") -> dict:
+    async def self_state(t_ns: int | None = None, frame: str = "world") -> Any:
         """The vehicle's own state as of ``t_ns`` (default: now) in ``frame``."""
         if now := present(None, t_ns, frame):  # ``entity_id`` None: the self entity
-            return now
-        return ask("entity", None, t_ns, frame)[0]
+            return JSONResponse(now)
+        return (await run_in_threadpool(ask, "entity", None, t_ns, frame))[0]
 
     @app.get("/v1/entities/{entity_id}")
-    def entity(entity_id: int, t_ns: int | None = None, frame: str = "world") -> dict:
+    async def entity(entity_id: int, t_ns: int | None = None, frame: str = "world") -> Any:
         """Entity ``entity_id`` as of ``t_ns`` (default: now) in ``frame``: world, base_link,
         ladar, egosphere or map:<level>."""
         if now := present(entity_id, t_ns, frame):
-            return now
-        return ask("entity", entity_id, t_ns, frame)[0]
+            return JSONResponse(now)
+        return (await run_in_threadpool(ask, "entity", entity_id, t_ns, frame))[0]
 
     @app.get("/v1/entities")
-    def region(
+    async def region(
         x: float | None = None,
         y: float | None = None,
         radius_m: Annotated[float | None, Query(gt=0, le=1e5)] = None,
@@ -992,7 +998,8 @@ def create_app(
                                  "entities": [snap.entity(int(k)) for k in rows]})  # fmt: skip
 
         # before the first cycle: What Is under the node's lock
-        ents, cycle = ask("region", shape, cls, statuses, min_confidence, level)
+        query = ("region", shape, cls, statuses, min_confidence, level)
+        ents, cycle = await run_in_threadpool(ask, *query)
         return {"cycle_t_ns": cycle, "frame": "world", "entities": ents}
 
     @app.get("/v1/events")

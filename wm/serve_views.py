@@ -68,6 +68,7 @@ from typing import Annotated, Any, TypeVar
 
 import numpy as np
 from fastapi import FastAPI, HTTPException, Query, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response, StreamingResponse
 
 from maps.layers import RENAMED_LAYERS
@@ -200,14 +201,9 @@ def read_level(
     a copy of those layers the node makes under its lock (:func:`copy_level`; ``entities``:
     with what What If reads of the KD, for ``read`` to check against). Either way the layers
     are asked for (:class:`wm.serve_copy.ServedDemand`), so the cycles after copy them."""
-    snap = live.snapshot  # one read: a cycle ending now replaces it whole
-    running_node(live)
-    if snap is not None and snap.maps is not None:
-        lvl = find_level(snap.maps, key)
-        names = layers_of(lvl)
-        live.demand.ask(layer_key(lvl.name, n) for n in names)
-        if all(n in lvl.specs for n in names):
-            return read(LevelRead(lvl, names, snap.cycle_t_ns, snap, None))
+    if (answer := read_level_copy(live, key, layers_of, read)) is not None:
+        return answer[0]
+    snap = live.snapshot
     if live.process:
         levels = snap.maps if snap is not None and snap.maps is not None else live.map_levels
         if levels is None:
@@ -232,6 +228,24 @@ def read_level(
         live.demand.ask(layer_key(lvl.name, n) for n in names)
         cycle = snap.cycle_t_ns if snap is not None else -1
         return read(LevelRead(lvl, names, cycle, None, node))
+
+
+def read_level_copy(
+    live: Any, key: str, layers_of: Callable[[Any], list[str]], read: Callable[[LevelRead], T]
+) -> tuple[T] | None:
+    """(``read`` over map level ``key``,) from the cycle's copy when it holds every layer
+    ``layers_of`` names (those are asked for either way), else None: :func:`read_level`'s
+    answer when it needs neither the node nor its lock."""
+    snap = live.snapshot  # one read: a cycle ending now replaces it whole
+    running_node(live)
+    if snap is None or snap.maps is None:
+        return None
+    lvl = find_level(snap.maps, key)
+    names = layers_of(lvl)
+    live.demand.ask(layer_key(lvl.name, n) for n in names)
+    if not all(n in lvl.specs for n in names):
+        return None
+    return (read(LevelRead(lvl, names, snap.cycle_t_ns, snap, None)),)
 
 
 def copy_level(live: Any, name: str, layers: list[str], entities: bool) -> tuple[Any, int, Any]:
@@ -767,7 +781,7 @@ def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CY
     app.state.stream_feed = feed  # for a caller in the same process (and the tests)
 
     @app.get("/v1/maps/{level}")
-    def map_view(
+    async def map_view(
         request: Request,
         level: str,
         x: float,
@@ -795,7 +809,10 @@ def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CY
         def window(src: LevelRead) -> tuple[MapWindow, int]:
             return map_window(src.level, x, y, half_m, src.layers), src.cycle_t_ns
 
-        w, cycle = read_level(live, level, layers_of, window)
+        # from the cycle's copy on the event loop; what needs the node waits in a worker
+        got = read_level_copy(live, level, layers_of, window)
+        w, cycle = got[0] if got else await run_in_threadpool(read_level, live, level, layers_of,
+                                                              window)  # fmt: skip
         if binary == NPY:
             return _npy_response(w, cycle, renamed)
         if binary == ARROW_STREAM:
