@@ -127,7 +127,8 @@ def test_sql_over_the_replica_is_refused_outside_the_kd(finished, tmp_path, quer
 
 def test_the_replicas_connection_has_external_access_off(finished) -> None:
     """Not parsing alone: the server's connection to the replica has DuckDB's external access
-    off, its configuration locked, and the memory and thread limits of untrusted SQL."""
+    off, its configuration locked, and the replica's thread limit (one worker, so it leaves
+    the node's cores alone)."""
     live, base, _, _ = finished
     assert live.running
     q = (
@@ -135,7 +136,7 @@ def test_the_replicas_connection_has_external_access_off(finished) -> None:
         "current_setting('lock_configuration') AS locked, current_setting('threads') AS n"
     )
     ans = _sql_at(base, q, 0)
-    assert ans["rows"] == [[False, True, 2]]
+    assert ans["rows"] == [[False, True, 1]]
 
 
 def test_sql_answers_an_arrow_stream_when_asked(finished) -> None:
