@@ -203,6 +203,18 @@ def read_level(
     are asked for (:class:`wm.serve_copy.ServedDemand`), so the cycles after copy them."""
     if (answer := read_level_copy(live, key, layers_of, read)) is not None:
         return answer[0]
+    return read_level_node(live, key, layers_of, read, entities)
+
+
+def read_level_node(
+    live: Any,
+    key: str,
+    layers_of: Callable[[Any], list[str]],
+    read: Callable[[LevelRead], T],
+    entities: bool = False,
+) -> T:
+    """:func:`read_level` from the node: the copy of the layers its process makes, or its own
+    level under its lock. Waits for the node: call it from a worker thread."""
     snap = live.snapshot
     if live.process:
         levels = snap.maps if snap is not None and snap.maps is not None else live.map_levels
@@ -811,8 +823,9 @@ def add_view_routes(app: FastAPI, live: Any, stream_queue: int = STREAM_QUEUE_CY
 
         # from the cycle's copy on the event loop; what needs the node waits in a worker
         got = read_level_copy(live, level, layers_of, window)
-        w, cycle = got[0] if got else await run_in_threadpool(read_level, live, level, layers_of,
-                                                              window)  # fmt: skip
+        if got is None:
+            got = (await run_in_threadpool(read_level_node, live, level, layers_of, window),)
+        w, cycle = got[0]
         if binary == NPY:
             return _npy_response(w, cycle, renamed)
         if binary == ARROW_STREAM:
