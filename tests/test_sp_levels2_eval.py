@@ -1,76 +1,68 @@
-"""Evaluation of SP levels 2-3 and of appearance in classification on the simulated default
-drive (``make eval``): classification accuracy of the confirmed objects with and without
-the appearance attributes (LADAR reflectance, camera intensity), the camera frames fed to the
-pipeline as the node does; and how much of the true walls the free-standing surfaces cover
-on sweeps where no object is confirmed yet."""
+"""Evaluation of SP levels 2-3 and of appearance in classification on simulated drives
+(``make eval``): the classes of the KD's objects with and without the appearance attributes
+(LADAR reflectance, camera intensity), scored by the protocol of docs/evaluation.md; and how
+much of the true walls the free-standing surfaces cover on sweeps where no object is
+confirmed yet."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
-from test_sp_levels_eval import MotTally, points_in_boxes, score_cycle
+from test_sp_levels_eval import points_in_boxes, truth_pose_scores
 
 import kd_store
 from bench.results import record
-from logs.types import CameraFrame, GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
+from logs.types import GroundTruthPose, LadarScan, ObjectBoxes, TransformFrame
 from sp.pipeline import SPConfig
 from wm.entities import KDSensoryProcessor
 
 CMD = "make eval"
 
 
-def run_with_camera(
-    appearance: bool, reflectance: float | None = None, seconds: float = 20.0
-) -> dict[str, float]:
-    """The default scenario through SP with the camera frames; the tracking figures.
-    ``reflectance``: the LADAR's intensity per unit reflectance (None: not used)."""
-    from fixtures.simulate import simulate
+@pytest.fixture(scope="module")
+def village_log(tmp_path_factory) -> Path:
+    """20 s of the village scenario on its own seed (a development seed): houses, walls,
+    parked and moving vehicles, pedestrians, trees, bushes and posts."""
+    from fixtures.simulate import simulate_to_log
 
-    kd = kd_store.open(":memory:")
-    cfg = SPConfig(appearance_classes=appearance, intensity_per_reflectance=reflectance)
-    sp = KDSensoryProcessor(kd, cfg)
-    tally = MotTally()
-    T_body_ladar = T_body_camera = T_world_body = None
-    boxes: ObjectBoxes | None = None
-    camera: CameraFrame | None = None
-    for f in simulate("default", seconds=seconds):
-        if isinstance(f, TransformFrame) and f.child_frame_id == "ladar":
-            T_body_ladar = f.T_parent_child
-        elif isinstance(f, TransformFrame) and f.child_frame_id == "camera":
-            T_body_camera = f.T_parent_child
-        elif isinstance(f, GroundTruthPose):
-            T_world_body = f.T_parent_child
-        elif isinstance(f, ObjectBoxes):
-            boxes = f
-        elif isinstance(f, CameraFrame):
-            camera = f
-        elif isinstance(f, LadarScan) and T_body_ladar is not None and T_world_body is not None:
-            T_cam = None if T_body_camera is None else T_world_body @ T_body_camera
-            result = sp.process(f, T_world_body @ T_body_ladar, camera=camera, T_world_camera=T_cam)
-            if boxes is not None and boxes.t_ns == f.t_ns:
-                score_cycle(tally, kd, sp, result, boxes)
-    return tally.figures()
+    d = tmp_path_factory.mktemp("village-log")
+    return simulate_to_log("village", d / "village.mcap", seconds=20.0, progress=False)
 
 
 @pytest.mark.eval
-def test_eval_classification_with_and_without_appearance() -> None:
-    without = run_with_camera(False)
-    camera = run_with_camera(True)  # the default: camera grey only (LADAR units unknown)
-    # and the LADAR's reflectance too: the simulator reports albedo times shading, 0..1
-    with_ = run_with_camera(True, reflectance=1.0)
-    runs = (("no_appearance", without), ("camera", camera), ("appearance", with_))
-    for name, fig in runs:
+def test_eval_classification_with_and_without_appearance(village_log: Path) -> None:
+    """The node over a village drive (true poses) without appearance attributes and with
+    them (the camera's grey and the LADAR's reflectance, the simulator's albedo times
+    shading, 0..1), each KD scored by the protocol (wm.evaluation). The fitted class library
+    (kd_store/classes_fitted.yaml, wm.fit_classes) leaves appearance out, since it depends on
+    a sensor's calibration, so the two KDs must hold the same classes: appearance measured
+    by one sensor never decides a class."""
+    runs = {
+        "no_appearance": SPConfig(appearance_classes=False),
+        "appearance": SPConfig(intensity_per_reflectance=1.0),
+    }
+    figs = {
+        name: truth_pose_scores(village_log, village_log.with_name(f"{name}.kd"), sp)
+        for name, sp in runs.items()
+    }
+    for name, fig in figs.items():
         record(
             f"sp_levels_classification_accuracy_{name}",
             fig["classification_accuracy"],
             "ratio",
-            target=0.9,
+            target=0.85,
             command=CMD,
         )
-    record("sp_levels_mota_camera", with_["mota"], "ratio", target=0.9, command=CMD)
-    for _, fig in runs:
-        assert fig["classification_accuracy"] >= 0.9
-        assert fig["classification_accuracy"] >= without["classification_accuracy"] - 0.02
+    print({name: (fig["classification_accuracy"], fig["mota"]) for name, fig in figs.items()})
+    without, with_ = figs["no_appearance"], figs["appearance"]
+    assert with_["tp_pairs"] >= 300  # enough matched pairs to score
+    assert with_["classification_accuracy"] == without["classification_accuracy"]
+    assert with_["mota"] == without["mota"]
+    # a guard below what SP reaches here with true poses (0.85 on this log; the target of
+    # docs/evaluation.md, 0.85, is for the median over the evaluation seeds)
+    assert with_["classification_accuracy"] >= 0.8
 
 
 @pytest.mark.eval
