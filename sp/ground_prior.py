@@ -41,15 +41,13 @@ class GroundPriorConfig:
                   a 0.8 m rock hits it 0.1-0.7 m up); higher, those rocks and bushes and the
                   lower returns of parked cars stay ground. The price: a person far out is
                   now and then seen first by the legs alone (and called a rock or a bush).
-    object_margin_m: a return (ground or not) more than ``above_m`` plus this above the
-                  expected ground makes the segment that holds it an object, however low it
-                  stands over the ground below it in its column (level 4 returns segments
-                  under ``min_object_height_m`` to the ground): far out, a column's last
-                  ground returns are often the object's own lower returns, and its height
-                  measured from them too small (the one row on a bush at 35 m stands 0.9 m
-                  over the terrain and 0.3 m over its column's ground; a rock whose lower
-                  returns raised its column's ground stands 0.3-0.5 m over that and 0.6-0.8 m
-                  over the terrain). The margin keeps out the top
+    object_margin_m: a return more than ``above_m`` plus this above the expected ground makes
+                  the segment that holds it an object, however low it stands over the ground
+                  below it in its column (level 4 returns segments under
+                  ``min_object_height_m`` to the ground): far out, a column's last ground
+                  returns are often the object's own lower returns, and its height measured
+                  from them too small (the one row on a bush at 35 m stands 0.9 m over the
+                  terrain and 0.3 m over its column's ground). The margin keeps out the top
                   of a steep bank, which stands about ``above_m`` over the lowest cell beside
                   it raised by the slope.
     on_ground_m, on_ground_share, on_ground_below_m: a segment standing less than
@@ -169,12 +167,12 @@ def above_prior(
     prior: GroundPrior,
     config: GroundPriorConfig,
 ) -> np.ndarray:
-    """(H, W) int8 code of each pixel: ``ABOVE`` for the pixels of ``ground`` (H, W) bool (the
-    pixels to judge) at range ``range_m`` (H, W) m of at least ``min_range_m`` whose world
-    point ``xyz_w`` (H, W, 3) m lies more than ``above_m`` above the ground ``prior`` expects
-    there (module docstring: the lowest known cell within ``radius_m``, raised by
-    ``slope_deg`` over its distance), ``OBJECT`` for those more than ``above_m +
-    object_margin_m`` above it, ``GROUND`` elsewhere."""
+    """(H, W) int8 code of each pixel: ``ABOVE`` for the ``ground`` pixels (H, W) bool at range
+    ``range_m`` (H, W) m of at least ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m
+    lies more than ``above_m`` above the ground ``prior`` expects there (module docstring:
+    the lowest known cell within ``radius_m``, raised by ``slope_deg`` over its distance),
+    ``OBJECT`` for those more than ``above_m + object_margin_m`` above it, ``GROUND``
+    elsewhere."""
     obj = config.above_m + config.object_margin_m
     args = _kernel_args(xyz_w, range_m, ground, prior, config, config.min_range_m, obj)
     return _above_prior_kernel(*args)

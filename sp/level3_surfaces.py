@@ -48,9 +48,9 @@ class GroundPixels:
     """Level 3's ground of one sweep, (H, W) bool each.
 
     ground:    the ground pixels.
-    standing:  far returns (ground or not) the world model's ground prior finds well above
-               the ground it expects: their segment is an object however low it stands over
-               its column's ground (:func:`sp.ground_prior.above_prior`).
+    standing:  far returns the world model's ground prior finds well above the ground it
+               expects: their segment is an object however low it stands over its column's
+               ground (:func:`sp.ground_prior.above_prior`).
     on_known:  returns off the ground that lie on the ground the world model knows at their
                places (:func:`sp.ground_prior.on_known_ground`).
     """
@@ -105,17 +105,15 @@ class SurfaceLevel:
         """The ground of the gravity-aligned points ``xyz_g`` (H, W, 3) m
         (:func:`ground_mask`). With the world model's ground ``prior``, the world points
         ``xyz_w`` (H, W, 3) m and the returns' ranges ``range_m`` (H, W) m, far returns well
-        above the ground it expects are not ground, and far returns higher still, ground or
-        not, make their segment an object (:func:`above_prior`); the other returns on the
-        ground it knows are marked (:func:`on_known_ground`); without, none is."""
+        above the ground it expects are not ground, those higher still make their segment
+        an object (:func:`above_prior`), and the other returns on the ground it knows are
+        marked (:func:`on_known_ground`); without, none is."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)
         if prior is None or xyz_w is None or range_m is None:
             none = np.zeros_like(ground)
             return GroundPixels(ground, none, none)
-        # every far return is judged, not only the ground: a low segment's own returns (a
-        # rock whose lower returns raised its column's ground) make it an object as well
-        code = above_prior(xyz_w, range_m, valid, prior, cfg.ground_prior)
+        code = above_prior(xyz_w, range_m, ground, prior, cfg.ground_prior)
         ground &= code == GROUND
         # only returns off the ground can make segments, so only those are marked
         known = on_known_ground(xyz_w, range_m, valid & ~ground, prior, cfg.ground_prior)

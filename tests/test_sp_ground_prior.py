@@ -268,23 +268,6 @@ def test_a_far_bush_standing_above_the_expected_ground_is_an_object(margin_m: fl
     assert ground[valid & ~bush].all()
 
 
-def test_a_far_rock_whose_lower_returns_raised_its_columns_ground_is_an_object() -> None:
-    # two rows on a rock at 30 m: the lower, 0.35 m up, the column walk takes for ground (and
-    # the rock's height is then measured from it); the upper, 0.8 m up, is off the ground but
-    # its segment stands only 0.45 m over that raised ground, under min_object_height_m
-    ground_rows = [(3.0 + 1.5 * k, -SENSOR_H) for k in range(12)]
-    rock = [(30.0, -SENSOR_H + 0.35), (30.0, -SENSOR_H + 0.8)]
-    scan, valid, top = _scan_rows(ground_rows, rock)
-    lower = np.roll(top, 1, axis=0)
-    with_prior = _ground_after_sp(scan, _flat_prior(0.0), GroundPriorConfig())
-    # it stands 0.8 m over the ground the map knows: an object, all of it that is not ground
-    assert not with_prior[top].any()
-    # without the map (nothing known there) the segment is too low and joins the ground
-    unknown = _ground_after_sp(scan, _flat_prior(np.nan), GroundPriorConfig())
-    assert unknown[top].all() and unknown[lower].all()
-    assert with_prior[valid & ~top & ~lower].all()
-
-
 def test_far_returns_on_the_ground_the_map_knows_are_marked() -> None:
     # ground at 0 m everywhere, but a 2 m x 2 m block at 1.4 m (a car's body the map fused as
     # ground where it saw nothing lower) around cell (50, 0) and no knowledge near x = -20 m
