@@ -84,6 +84,9 @@ class SPConfig:
     gap_split_max_width_m: float = 0.9
     gap_split_min_height_m: float = 1.0
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
+    # ... on a view with at least this share of the returns of the best view that had the
+    # class (or on views that keep preferring the new class: sp.level4_objects.ClassEvidence)
+    reclassify_min_share: float = 0.5
     found_specific: bool = True  # a confirmed object matching nothing founds a specific class
     lists: bool = True  # level-2 list entities (edges, vertices, patches)
     list_config: ListConfig = field(default_factory=ListConfig)

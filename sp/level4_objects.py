@@ -89,6 +89,51 @@ class ObjectsObserved:
     finished: np.ndarray
 
 
+@dataclass
+class ClassEvidence:
+    """What one track's class rests on, so that a class taken on good views is not given up
+    on poorer ones (reference 001, 4.5.3: a hypothesis stands until the evidence against it
+    is as good as the evidence for it). A car, a wall or a tree seen well while the vehicle
+    passed and then only by a few returns as it is left behind (far, at a grazing angle, its
+    visible part sliding along it) is not renamed by those last views; the KD keeps one class
+    per entity, so a late wrong one is wrong for every state it holds.
+
+    support: class name -> most returns of a view in which that class was the track's.
+    best:    the class that scored highest in the latest measured views, ``run`` of them in a
+             row; ``held``: the measured views the present class scored highest in since it
+             was taken.
+    """
+
+    support: dict[str, int] = dataclasses.field(default_factory=dict)
+    best: str | None = None
+    run: int = 0
+    held: int = 0
+
+    def observe(self, best: str, present: str | None, n_returns: int) -> None:
+        """A view of ``n_returns`` (> 0) returns in which class ``best`` scored highest while
+        the track's class was ``present``."""
+        self.run = self.run + 1 if best == self.best else 1
+        self.best = best
+        if best == present:
+            self.held += 1
+            self.support[best] = max(self.support.get(best, 0), n_returns)
+
+    def may_change(self, present: str, new: str, n_returns: int, min_share: float) -> bool:
+        """Whether the class may change from ``present`` to ``new`` on a view of
+        ``n_returns`` returns: the view, or one in which the track was a ``new`` already, has
+        at least ``min_share`` of the returns of the best view that was a ``present``; or
+        ``new`` has scored highest in more measured views in a row than ``present`` did
+        since it was taken (a tall tree seen near is cut by the sensor's field of view and
+        looks like a building, but from farther out a tree for longer)."""
+        seen = max(n_returns, self.support.get(new, 0))
+        return seen >= min_share * self.support.get(present, 0) or self.run > self.held
+
+    def take(self, new: str, n_returns: int) -> None:
+        """The class is now ``new``, taken on a view of ``n_returns`` returns."""
+        self.support[new] = max(self.support.get(new, 0), n_returns)
+        self.held = 0
+
+
 class ObjectLevel:
     """Level-4 objects: the tracker and, per object id, its class (name, score), running
     appearance (LADAR intensity, camera grey) and shape (:data:`SHAPE_KEYS`)."""
@@ -106,6 +151,9 @@ class ObjectLevel:
         self._next_provisional = -2  # ids of hypotheses without a frame yet: -2, -3, ...
         self._provisional_segments = np.zeros(0, np.int64)
         self._born_ids = np.zeros(0, np.int64)
+        # returns of each framed track's measurement this sweep, and what its class rests on
+        self._seen_returns: dict[int, int] = {}
+        self.class_evidence: dict[int, ClassEvidence] = {}
         self._denied_ids = np.zeros(0, np.int64)
 
     # ------------------------------------------------------------------ windowing
@@ -312,6 +360,8 @@ class ObjectLevel:
         )
         # states of the tracks updated this cycle
         upd = np.unique(track_of[track_of >= 0])
+        hit = np.flatnonzero(track_of >= 0)
+        self._seen_returns = {int(tr.id[track_of[j]]): int(a.n_pixels[j]) for j in hit}
         # tracks the stationarity test finds at rest are reported at zero speed
         x_rep, P_rep = tr.reported(cfg.tracker)
         if upd.size:
@@ -362,6 +412,7 @@ class ObjectLevel:
         self._denied_ids = finished.id[(finished.status == TrackStatus.DENIED) & (finished.id >= 0)]
         for tid in finished.id:
             self.track_class.pop(int(tid), None)
+            self.class_evidence.pop(int(tid), None)
             self.track_reflectance.pop(int(tid), None)
             self.track_camera.pop(int(tid), None)
             self.track_shape.pop(int(tid), None)
@@ -377,9 +428,10 @@ class ObjectLevel:
 
     def classify(self, t_ns: int) -> list[int]:
         """Class of every framed track (all at once: a class founded here takes part from
-        the next sweep on); a confirmed class changes only for a score better by
-        ``reclassify_margin``, and a confirmed object matching nothing founds a specific
-        class. Returns the ids of the "reclassified" events."""
+        the next sweep on); a class changes only for a score better by
+        ``reclassify_margin`` on evidence as good as what it rests on
+        (:class:`ClassEvidence`, ``reclassify_min_share``), and a confirmed object matching
+        nothing founds a specific class. Returns the ids of the "reclassified" events."""
         ctx = self.ctx
         cfg = ctx.config
         self.refresh_classes()
@@ -392,12 +444,19 @@ class ObjectLevel:
             confirmed = tr.status[k] == TrackStatus.CONFIRMED
             if m.name is None:
                 continue
+            seen = self._seen_returns.get(tid, 0)
+            evidence = self.class_evidence.setdefault(tid, ClassEvidence())
+            if seen:
+                evidence.observe(m.name, old, seen)
             if old is not None and m.name != old:
                 if m.score < m.scores.get(old, -2.0) + cfg.reclassify_margin:
+                    continue
+                if not evidence.may_change(old, m.name, seen, cfg.reclassify_min_share):
                     continue
             if m.name == old:
                 self.track_class[tid] = (old, m.score)
                 continue
+            evidence.take(m.name, seen)
             self.track_class[tid] = (m.name, m.score)
             ctx.set_class(tid, m.name)
             proto = ctx.classes.get(m.name)

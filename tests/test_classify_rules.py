@@ -10,6 +10,7 @@ import kd_store
 from kd_store import Level, Status
 from sp.classify import Classifier
 from sp.computation import SegmentAttributes
+from sp.pipeline import SPConfig
 from wm.entities import KDSensoryProcessor
 
 
@@ -168,3 +169,92 @@ def test_shape_is_averaged_over_sweeps_that_saw_a_surface_only() -> None:
     assert after["longest_m"] == 9.0  # but more of the wall came into view
     assert 0.01 < after["breadth_m"] < 0.6
     assert sp.level4.shape_of(8) == {}  # never observed: the classifier leaves shape out
+
+
+def _one_track(tid: int, what: tuple[float, float, float, float]):
+    """The tracker's state of one confirmed track at rest at the origin with extents
+    ``what`` (length, width, height m, yaw rad)."""
+    from sp.tracking import Tracks, TrackStatus
+
+    return Tracks(
+        x=np.zeros((1, 6)),
+        P=np.eye(6)[None] * 0.01,
+        w=np.array([what], dtype=np.float64),
+        Pw=np.full((1, 4), 0.01),
+        t_ns=np.zeros(1, np.int64),
+        id=np.array([tid], np.int64),
+        status=np.array([TrackStatus.CONFIRMED], np.int8),
+        confidence=np.ones(1),
+        hits=np.full(1, 20, np.int64),
+        misses=np.zeros(1, np.int64),
+        nis=np.zeros(1),
+        range_m=np.full(1, 20.0),
+        xs=np.zeros((1, 3)),
+        Ps=np.eye(3)[None] * 0.01,
+        llr=np.full(1, -5.0),
+        points=np.full(1, 200, np.int64),
+    )
+
+
+def test_a_class_taken_on_good_views_is_not_given_up_on_poor_ones() -> None:
+    sp = KDSensoryProcessor(kd_store.open(":memory:"))
+    level4, tid = sp.level4, 5
+    wall, car_side = (9.0, 0.3, 1.5, 0.0), (4.2, 1.8, 1.5, 0.0)
+    level4.tracker.tracks = _one_track(tid, wall)
+    for t in range(6):  # passing it: 200 returns a sweep
+        level4._seen_returns = {tid: 200}
+        level4.classify(t)
+    assert level4.track_class[tid][0] == "freestanding wall"
+    # left behind, a few returns on a piece of it that has the extents of a car's side
+    level4.tracker.tracks.w[0] = car_side
+    for t in range(6, 10):
+        level4._seen_returns = {tid: 12}
+        level4.classify(t)
+        assert level4.track_class[tid][0] == "freestanding wall", t
+    # unmeasured (coasting), nothing changes either
+    level4._seen_returns = {}
+    level4.classify(10)
+    assert level4.track_class[tid][0] == "freestanding wall"
+    # a view as good as those the class rests on does change it
+    level4._seen_returns = {tid: 150}
+    level4.classify(11)
+    assert level4.track_class[tid][0] == "vehicle"
+    # with the rule off (share 0) the poor views alone would have
+    sp0 = KDSensoryProcessor(kd_store.open(":memory:"), SPConfig(reclassify_min_share=0.0))
+    sp0.level4.tracker.tracks = _one_track(tid, wall)
+    sp0.level4._seen_returns = {tid: 200}
+    sp0.level4.classify(0)
+    sp0.level4.tracker.tracks.w[0] = car_side
+    sp0.level4._seen_returns = {tid: 12}
+    sp0.level4.classify(1)
+    assert sp0.level4.track_class[tid][0] == "vehicle"
+
+
+def test_class_evidence_lets_a_class_return_or_outlast_the_present_one() -> None:
+    from sp.level4_objects import ClassEvidence
+
+    ev = ClassEvidence()
+    ev.take("rock", 80)
+    for _ in range(5):
+        ev.observe("rock", "rock", 90)
+    assert not ev.may_change("rock", "vehicle", 30, 0.5)  # 30 < 0.5 x 90
+    assert ev.may_change("rock", "vehicle", 45, 0.5)
+    # taken as a vehicle on its nearest views (160 returns), the rock is seen as a rock again
+    # from farther out: the rock was the track's class on a view as good as 0.5 x 160, a bush
+    # never was
+    ev.take("vehicle", 160)
+    for _ in range(3):
+        ev.observe("vehicle", "vehicle", 160)
+    ev.observe("rock", "vehicle", 40)
+    assert ev.may_change("vehicle", "rock", 40, 0.5)
+    assert not ev.may_change("vehicle", "bush", 40, 0.5)
+    # a tree near the sensor, its crown cut by the field of view, looks like a building on
+    # the views with the most returns; from farther out it is a tree, in more views in a row
+    # than it was ever a building
+    tree = ClassEvidence()
+    tree.take("building", 300)
+    for _ in range(10):
+        tree.observe("building", "building", 300)
+    for k in range(11):
+        tree.observe("tree", "building", 60)
+        assert tree.may_change("building", "tree", 60, 0.5) == (k == 10), k
