@@ -651,7 +651,10 @@ def _reported_tilt_variance(frame: OdometryFrame) -> float:
     R = np.asarray(frame.T_parent_child)[:3, :3]
     if R[2, 0] == 0.0 and R[2, 1] == 0.0:
         return math.nan
-    cov = np.asarray(frame.pose_covariance, dtype=np.float64)
+    try:
+        cov = np.asarray(frame.pose_covariance, dtype=np.float64)
+    except (TypeError, ValueError):  # not numbers at all: as unusable as a wrong shape
+        return 0.0
     if cov.shape != (6, 6):
         return 0.0
     var = max(float(cov[3, 3]), float(cov[4, 4]))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -398,3 +400,16 @@ def test_the_gyro_holds_the_heading_where_the_ground_alone_registers(open_countr
     yaw_err_deg = math.degrees(math.atan2(err[1, 0], err[0, 0]))
     # weighted at twice the gyro's error, the registration turned it 2 degrees by now
     assert abs(yaw_err_deg) < 1.2, yaw_err_deg
+
+
+def test_a_wheel_pose_covariance_that_is_not_numbers_is_read_as_unknown() -> None:
+    """The node does not screen covariances (wm.screen): a message whose pose covariance is
+    text, not numbers, is taken with its tilt variance unknown, as one of a wrong shape is,
+    and the run goes on (found by tests/test_wm_fuzz_frames.py)."""
+    from sp.odometry import _reported_tilt_variance
+
+    good = _tilted_wheel(0, 0.02, 1.3, 1e-4)
+    assert _reported_tilt_variance(good) == pytest.approx(1e-4)
+    for cov in ("x", None, [[1.0, 2.0]], {"a": 1}):
+        bad = dataclasses.replace(good, pose_covariance=cov)
+        assert _reported_tilt_variance(bad) == 0.0, cov
