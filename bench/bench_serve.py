@@ -393,9 +393,9 @@ def main(process: bool = True) -> None:
                target=None if t is None else f"<= {t:g} ms", command=CMD)  # fmt: skip
     # the growth is taken round by round (above), not as a ratio of these median runs
     record(f"serve_cycle_ms_alone{suffix}", alone["mean_cycle_ms"], "ms", command=CMD)
-    for load, name in (("api", ""), ("sql", "_with_sql")):
-        record(f"serve_cycle_ms_under_load{name}{suffix}",
-               _median_run(runs[load])["mean_cycle_ms"], "ms", command=CMD)  # fmt: skip
+    for load, name, run in (("api", "", loaded), ("sql", "_with_sql", with_sql)):
+        record(f"serve_cycle_ms_under_load{name}{suffix}", run["mean_cycle_ms"], "ms",
+               command=CMD)  # fmt: skip
         record(
             f"serve_cycle_growth_under_load{name}{suffix}", float(np.median(growth[load])),
             "ratio", baseline="median over rounds of loaded / alone cycle time, same round",

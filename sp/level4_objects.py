@@ -359,8 +359,8 @@ class ObjectLevel:
             track_of >= 0, np.where(framed[np.maximum(track_of, 0)], track_of, -2), -1
         )
         # states of the tracks updated this cycle
-        upd = np.unique(track_of[track_of >= 0])
         hit = np.flatnonzero(track_of >= 0)
+        upd = np.unique(track_of[hit])
         self._seen_returns = {int(tr.id[track_of[j]]): int(a.n_pixels[j]) for j in hit}
         # tracks the stationarity test finds at rest are reported at zero speed
         x_rep, P_rep = tr.reported(cfg.tracker)
