@@ -9,7 +9,7 @@ Reference 001, section 4.4. Start with :func:`open`::
         kd.sql("SELECT class_name, count(*) FROM entities GROUP BY ALL")
 """
 
-from kd_store.classes import ClassKind, ClassLibrary, ClassPrototype
+from kd_store.classes import ClassKind, ClassLibrary, ClassPrototype, Discriminant
 from kd_store.config import KDConfig, MemoryConfig, PromotionRule
 from kd_store.errors import KDError, ResultTooLarge
 from kd_store.frames import (
@@ -36,6 +36,7 @@ __all__ = [
     "ClassKind",
     "ClassLibrary",
     "ClassPrototype",
+    "Discriminant",
     "EntityFrame",
     "EventFrame",
     "KDConfig",

@@ -51,6 +51,37 @@ class ClassPrototype:
     fitted: bool = False
 
 
+@dataclass(frozen=True)
+class Discriminant:
+    """A classifier of one SP level fitted on labelled training data (``wm.fit_classes``): a
+    softmax over ``classes`` of a linear function of quadratic features of the attributes.
+
+    ``attributes`` (A,) names; ``eps`` (A,) the floors of ``f = log(x + eps) - centre``;
+    ``centre`` (A,) the training mean of ``log(x + eps)``; ``weights`` (D, C) with
+    D = A (f) + A (f missing) + A (A + 1) / 2 (f_i f_j, i <= j, row-major) + 1 (bias) and C
+    = len(classes). ``sp.classify.discriminant_probabilities`` evaluates it."""
+
+    level: Level
+    attributes: tuple[str, ...]
+    eps: tuple[float, ...]
+    centre: tuple[float, ...]
+    classes: tuple[str, ...]
+    weights: tuple[tuple[float, ...], ...]
+
+    def __post_init__(self) -> None:
+        a, c = len(self.attributes), len(self.classes)
+        d = 2 * a + a * (a + 1) // 2 + 1
+        if len(self.eps) != a or len(self.centre) != a:
+            raise KDError(f"discriminant: {a} attributes but {len(self.eps)} eps, "
+                          f"{len(self.centre)} centres")  # fmt: skip
+        if len(self.weights) != d or any(len(r) != c for r in self.weights):
+            raise KDError(
+                f"discriminant: weights must be {d} rows of {c} (attributes {a}, classes {c})"
+            )
+        if not all(math.isfinite(v) for r in self.weights for v in r):
+            raise KDError("discriminant: a weight is not finite")
+
+
 def descendants(is_a: Mapping[str, str | None], name: str) -> set[str]:
     """``name`` and every class whose ``is_a`` chain reaches it; ``is_a[c]`` is the parent of
     class ``c``, None for a root (every parent a key)."""
@@ -70,6 +101,8 @@ class ClassLibrary:
     def __init__(self, prototypes: list[ClassPrototype] | None = None) -> None:
         self._by_name: dict[str, ClassPrototype] = {}
         self.dirty: set[str] = set()
+        # level -> the classifier fitted on training data that replaces its prototypes' scores
+        self.discriminants: dict[Level, Discriminant] = {}
         # counts the changes (:meth:`add`), so that a copy of the taxonomy taken in one cycle
         # can be kept for the next when nothing changed (wm.serve_copy.Taxonomy)
         self.version = 0
@@ -93,9 +126,24 @@ class ClassLibrary:
     def apply_fitted(self, text: str, source: str | Path = "<yaml>") -> None:
         """Replace the attributes and weights of the classes named in a fitted overlay (the
         layout ``wm.fit_classes`` writes: ``classes: [{name, attributes: {a: [value,
-        weight]}}]``) and mark them fitted; their kind, level, ``is_a`` and value stay."""
+        weight]}}]``) and mark them fitted; their kind, level, ``is_a`` and value stay. An
+        overlay's ``discriminant`` (:class:`Discriminant`'s fields) becomes its level's; an
+        overlay without one leaves the levels it fits none."""
         try:
-            rows = yaml.safe_load(text)["classes"]
+            doc = yaml.safe_load(text)
+            rows = doc["classes"]
+            if doc.get("discriminant"):
+                d = doc["discriminant"]
+                disc = Discriminant(
+                    Level(int(d["level"])),
+                    tuple(map(str, d["attributes"])),
+                    tuple(map(float, d["eps"])),
+                    tuple(map(float, d["centre"])),
+                    tuple(map(str, d["classes"])),
+                    tuple(tuple(map(float, r)) for r in d["weights"]),
+                )
+                for c in disc.classes:
+                    self.get(c)
             for row in rows:
                 base = self.get(str(row["name"]))
                 attrs = row["attributes"]
@@ -106,7 +154,12 @@ class ClassLibrary:
                     value=base.value, fitted=True,
                 )  # fmt: skip
                 self.add(fitted)
-        except (yaml.YAMLError, KeyError, TypeError, ValueError, IndexError) as e:
+            # a discriminant fitted with other prototypes of these levels no longer holds
+            for level in {self.get(str(row["name"])).level for row in rows}:
+                self.discriminants.pop(level, None)
+            if doc.get("discriminant"):
+                self.discriminants[disc.level] = disc
+        except (yaml.YAMLError, KeyError, TypeError, ValueError, IndexError, KDError) as e:
             raise KDError(f"fitted classes {source}: not a fitted-classes document ({e})") from None
 
     @classmethod

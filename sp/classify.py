@@ -49,6 +49,21 @@ extents, which partial views undercut and the fit has seen (a person's stay:
 ``WHOLE_EXTENTS``). The two kinds of score are not on one scale, so a level with fitted
 prototypes classifies by those alone.
 
+A fitted level may also carry a discriminant (``kd_store.Discriminant``, fitted by
+``wm.fit_classes.fit_discriminant`` on the same training samples): a softmax over the fitted
+classes of a linear function of the log attributes, their products and which are missing
+(:func:`discriminant_features`). Where the level has one, it says which class an entity
+most likely is (its probabilities are the scores, over the classes whose ``PLAUSIBLE`` bounds
+the entity keeps), and the fitted prototype's likelihood only how well the entity matches
+that class (``Match.fit``, which decides whether a specific class is founded). Each class's
+own centre and spread, scored one attribute at a time, cannot draw the borders between
+classes a sensor shows: a large tree's crown is thicker, more curved and wider than the
+typical tree's, all evidence against "tree" for a likelihood narrower than the building's
+(whose broad spread forgives everything), where the discriminant learns from the samples how
+the attributes vary together within each class and where one class's samples give way to
+another's. On development seeds 13-20 it names 0.86 of the labelled (track, sweep) samples
+right against 0.77 for the likelihood.
+
 The written-down rules and prototypes come from published typical dimensions (cars 3.5-5.5 m long,
 1.5-2.1 m wide, 1.3-2.0 m high; persons 1.0-2.0 m high, 0.3-0.9 m wide; free-standing walls
 10-25 m long, 0.4-0.6 m thick, 1.5-2.5 m high) and the shape of such bodies; the shape
@@ -61,12 +76,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from core.errors import EngineError
-from kd_store import ClassKind, ClassLibrary, ClassPrototype, Level
+from kd_store import ClassKind, ClassLibrary, ClassPrototype, Discriminant, Level
 
 
 class ClassifyError(EngineError, ValueError):
@@ -127,7 +142,7 @@ PLAUSIBLE: dict[str, dict[str, tuple[float, float]]] = {
 
 @dataclass(frozen=True)
 class ClassifyConfig:
-    """match: best score below which a confirmed entity founds a new specific class;
+    """match: best ``Match.fit`` below which a confirmed entity founds a new specific class;
     scale: the feature distance ``s`` at which the cosine is shrunk by exp(-1/2)."""
 
     match: float = 0.2
@@ -137,12 +152,21 @@ class ClassifyConfig:
 @dataclass(frozen=True)
 class Match:
     """Best class, its score in [-1, 1], its generic lineage (general to specific, without the
-    geometric root) and the scores of every candidate class."""
+    geometric root) and the scores of every candidate class. ``fit``: how well the entity
+    matches the best class's prototype (the score itself, but for a level with a
+    discriminant, whose probabilities say which class is likeliest and not whether any class
+    is like the entity: there it is the fitted prototype's likelihood); below
+    ``ClassifyConfig.match`` the entity matches no class well (4.4.3)."""
 
     name: str | None
     score: float
     generic: tuple[str, ...]
     scores: Mapping[str, float]
+    fit: float = math.nan
+
+    def __post_init__(self) -> None:
+        if math.isnan(self.fit):
+            object.__setattr__(self, "fit", self.score)
 
 
 class Classifier:
@@ -188,6 +212,13 @@ class Classifier:
         ]
         self.names = names
         self._fitted = _fitted_terms([p for p in self.protos if p.fitted], names)
+        # a fitted discriminant of the level scores the classes it knows in place of their
+        # prototypes (both fitted on the same training data; the discriminant learns where
+        # one class ends and the next begins rather than each class's centre alone)
+        self.disc = self.library.discriminants.get(self.level)
+        if self.disc is not None:
+            known = set(self.disc.classes)
+            self.protos = [p for p in self.protos if p.name in known]
 
     def _log(self, a: str, v: float) -> float:
         return math.log(max(v, 0.0) + EPS.get(a, DEFAULT_EPS)) - self.mu[a]
@@ -202,6 +233,8 @@ class Classifier:
         array operations per prototype, not a Python loop per entity."""
         if not rows:
             return []
+        if self.disc is not None:
+            return self._classify_discriminant(rows)
         names = self.names
         X = np.array([[float(r.get(a, math.nan)) for a in names] for r in rows], dtype=np.float64)
         eps = np.array([EPS.get(a, DEFAULT_EPS) for a in names])
@@ -232,6 +265,41 @@ class Classifier:
                 {p.name: float(S[i, j]) for j, p in enumerate(self.protos) if np.isfinite(S[i, j])}
             )
             for i in range(len(rows))
+        ]
+
+    def _classify_discriminant(self, rows: Sequence[Mapping[str, float]]) -> list[Match]:
+        """:meth:`classify_many` by the level's :class:`~kd_store.Discriminant`: each class's
+        probability given the attributes, over the classes whose ``PLAUSIBLE`` bounds the row
+        keeps (the others score ``IMPLAUSIBLE``); a row with none of its attributes gets none."""
+        disc = self.disc
+        names = disc.attributes
+        X = np.array([[float(r.get(a, math.nan)) for a in names] for r in rows], dtype=np.float64)
+        P = discriminant_probabilities(disc, X)
+        ok = np.stack(
+            [plausible(X, names, c, least_extents=c in WHOLE_EXTENTS) for c in disc.classes], 1
+        )
+        P = np.where(ok, P, 0.0)
+        P /= np.maximum(P.sum(axis=1, keepdims=True), 1e-300)
+        S = np.where(ok, P, IMPLAUSIBLE)
+        seen = np.isfinite(X).any(axis=1)
+        col = {c: j for j, c in enumerate(disc.classes)}
+        out = [
+            self._match({p.name: float(S[i, col[p.name]]) for p in self.protos} if seen[i] else {})
+            for i in range(len(rows))
+        ]
+        # how well the chosen class's fitted prototype matches: the discriminant cannot say
+        # that an entity is like no class (a hill-sized blob is still likeliest a building)
+        fitted = {p.name for p in self.protos if p.fitted}
+        if not fitted:
+            return out
+        Xp = np.array([[float(r.get(a, math.nan)) for a in self.names] for r in rows])
+        eps = np.array([EPS.get(a, DEFAULT_EPS) for a in self.names])
+        with np.errstate(invalid="ignore"):
+            F = np.log(np.maximum(Xp, 0.0) + eps)
+        like = {c: _likelihood(F, *self._fitted[c])[0] for c in fitted}
+        return [
+            replace(m, fit=float(like[m.name][i])) if m.name in like else m
+            for i, m in enumerate(out)
         ]
 
     def _as_seen(
@@ -272,6 +340,30 @@ class Classifier:
             n for n in reversed(lineage) if self.library.get(n).kind == ClassKind.GENERIC
         )
         return Match(best, scores[best], generic, scores)
+
+
+def discriminant_features(F: np.ndarray) -> np.ndarray:
+    """Features (R, D) of a :class:`~kd_store.Discriminant` from centred log attributes ``F``
+    (R, A), NaN missing: ``F`` with missing values at the centre (0), the missing indicators,
+    the products ``F_i F_j`` (i <= j, row-major) and a 1; D = 2A + A(A+1)/2 + 1. The products
+    let a linear softmax draw curved borders between classes (a crown thicker than usual
+    because it is larger than usual is still a crown)."""
+    miss = ~np.isfinite(F)
+    F = np.where(miss, 0.0, F)
+    i, j = np.triu_indices(F.shape[1])
+    return np.hstack([F, miss.astype(np.float64), F[:, i] * F[:, j], np.ones((len(F), 1))])
+
+
+def discriminant_probabilities(disc: Discriminant, X: np.ndarray) -> np.ndarray:
+    """(R, C) probability of each of ``disc.classes`` for attribute rows ``X`` (R, A) in
+    ``disc.attributes`` order (units in the names, NaN missing)."""
+    eps = np.asarray(disc.eps)
+    with np.errstate(invalid="ignore"):
+        F = np.log(np.maximum(X, 0.0) + eps) - np.asarray(disc.centre)
+    L = discriminant_features(F) @ np.asarray(disc.weights)
+    L -= L.max(axis=1, keepdims=True)
+    E = np.exp(L)
+    return E / E.sum(axis=1, keepdims=True)
 
 
 def _fitted_terms(

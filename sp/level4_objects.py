@@ -468,12 +468,7 @@ class ObjectLevel:
             )
             if old is not None and confirmed:
                 events.append(ctx.event(EventClass.RECLASSIFIED, t_ns, [tid], 4, unit(m.score)))
-            if (
-                confirmed
-                and cfg.found_specific
-                and m.score < cfg.classify.match
-                and specific is None
-            ):
+            if confirmed and cfg.found_specific and m.fit < cfg.classify.match and specific is None:
                 ctx.record(ClassFounded(tid))
                 ctx.classes_founded = True
         return events

@@ -1,7 +1,9 @@
 """Class prototypes fitted on labelled training data (wm.fit_classes) and scored by their
 likelihood (sp.classify): the fit recovers known class distributions, the score prefers the
 class an entity was drawn from, one odd attribute does not veto a class, fitted prototypes
-survive the KD file, and evaluation seeds are refused."""
+survive the KD file, and evaluation seeds are refused. The fitted discriminant tells apart
+classes that only attributes taken together separate, keeps the PLAUSIBLE bounds, and leaves
+an entity like no class matching none."""
 
 from __future__ import annotations
 
@@ -14,8 +16,8 @@ import pytest
 import kd_store
 from kd_store import ClassLibrary, KDError, Level
 from logs.types import ObjectBoxes
-from sp.classify import Classifier
-from wm.fit_classes import FitError, Samples, fit, label_tracks, main, to_yaml
+from sp.classify import IMPLAUSIBLE, Classifier
+from wm.fit_classes import FitError, Samples, fit, fit_discriminant, label_tracks, main, to_yaml
 
 # two classes drawn log-normally around known centres (m) with known spreads (log units)
 TRUE = {
@@ -108,6 +110,11 @@ def test_the_fitted_overlay_keeps_the_taxonomy_and_values() -> None:
         assert lib.get(name).is_a == hand.get(name).is_a
         assert lib.get(name).value == hand.get(name).value
         assert lib.get(name).attributes != hand.get(name).attributes
+    # the shipped discriminant does not outlive an overlay that refits its level without one
+    shipped = ClassLibrary.default()
+    assert Level.OBJECT in shipped.discriminants
+    shipped.apply_fitted(to_yaml(fit(_samples(200, 1), ["height_m", "length_m"]), {}))
+    assert Level.OBJECT not in shipped.discriminants
     with pytest.raises(KDError, match="'no such class' is not in the class library"):
         lib.apply_fitted("classes: [{name: no such class, attributes: {}}]")
     with pytest.raises(KDError, match=r"fitted classes overlay\.yaml: not a fitted-classes"):
@@ -157,6 +164,78 @@ def test_the_shipped_default_is_fitted_on_training_seeds_only() -> None:
     lib = ClassLibrary.default()
     fitted = {p.name for p in lib if p.fitted}
     assert {"vehicle", "person", "building", "tree", "post", "freestanding wall"} <= fitted
+    # the discriminant scores exactly the fitted classes, on the attributes they were fitted on
+    disc = lib.discriminants[Level.OBJECT]
+    assert set(disc.classes) == fitted
+    assert list(disc.attributes) == doc["provenance"]["attributes"]
+
+
+def _correlated(n: int, seed: int) -> Samples:
+    """Trees and buildings with the same height and width distributions (log-normal around
+    6 m and 3 m, 0.3 log units) but opposite correlations (+0.9, -0.9) between the two: no
+    attribute alone tells them apart, the two together do."""
+    rng = np.random.default_rng(seed)
+    s = Samples([], [], [])
+    for cls, rho in (("tree", 0.9), ("building", -0.9)):
+        z = rng.multivariate_normal([0, 0], 0.09 * np.array([[1, rho], [rho, 1]]), n)
+        s.rows += [
+            {"height_m": math.exp(math.log(6.1) + a) - 0.1, "width_m": math.exp(math.log(3.1) + b)
+             - 0.1} for a, b in z
+        ]  # fmt: skip
+        s.labels += [cls] * n
+        s.tracks += [("log", i) for i in range(n)]
+    return s
+
+
+def _library_with_discriminant(s: Samples, attributes: list[str]) -> ClassLibrary:
+    lib = ClassLibrary.default(fitted=False)
+    fitted = fit(s, attributes)
+    lib.apply_fitted(to_yaml(fitted, {}, fit_discriminant(s, attributes, [f.name for f in fitted])))
+    return lib
+
+
+def _accuracy(lib: ClassLibrary, s: Samples) -> float:
+    ms = Classifier(lib, Level.OBJECT).classify_many(s.rows)
+    return float(np.mean([m.name == c for m, c in zip(ms, s.labels, strict=True)]))
+
+
+def test_the_discriminant_separates_classes_only_attributes_together_separate() -> None:
+    train, held_out = _correlated(2000, 1), _correlated(500, 2)
+    attributes = ["height_m", "width_m"]
+    with_disc = _library_with_discriminant(train, attributes)
+    likelihood_only = ClassLibrary.default(fitted=False)
+    likelihood_only.apply_fitted(to_yaml(fit(train, attributes), {}))
+    assert _accuracy(likelihood_only, held_out) < 0.7  # each attribute alone: a coin toss
+    # the sign of the product alone is right 0.5 + asin(0.9) / pi = 0.86 of the time
+    assert _accuracy(with_disc, held_out) > 0.8
+
+
+def test_the_discriminant_keeps_plausible_bounds_and_tells_when_nothing_matches() -> None:
+    lib = _library_with_discriminant(_samples(2000, 1), ["height_m", "length_m", "width_m"])
+    clf = Classifier(lib, Level.OBJECT)
+    assert set(lib.discriminants[Level.OBJECT].classes) == {"vehicle", "person"}
+    assert _accuracy(lib, _samples(300, 99)) >= 0.97
+    # a person's height and width but 3 m tall: no person, whatever the discriminant says
+    m = clf.classify({"height_m": 3.0, "length_m": 0.6, "width_m": 0.5})
+    assert m.scores["person"] == IMPLAUSIBLE and m.name == "vehicle"
+    # a mound (4 m high, 20 x 12 m, within a vehicle's bounds): the likelier of the two
+    # classes, but like neither (a specific class is founded)
+    mound = clf.classify({"height_m": 4.0, "length_m": 20.0, "width_m": 12.0})
+    assert mound.name == "vehicle" and mound.score > 0.5 and mound.fit < 0.2
+    car = clf.classify({"height_m": 1.5, "length_m": 4.0, "width_m": 1.8})
+    assert car.name == "vehicle" and car.fit > 0.5
+
+
+def test_a_discriminant_of_the_wrong_shape_is_refused() -> None:
+    s = _samples(200, 1)
+    attributes = ["height_m", "length_m", "width_m"]
+    text = to_yaml(fit(s, attributes), {}, fit_discriminant(s, attributes))
+    import yaml
+
+    doc = yaml.safe_load(text)
+    doc["discriminant"]["weights"] = doc["discriminant"]["weights"][:-1]  # a row short
+    with pytest.raises(KDError, match=r"discriminant: weights must be 13 rows of 2"):
+        ClassLibrary.default(fitted=False).apply_fitted(yaml.safe_dump(doc))
 
 
 def test_the_shipped_prototypes_classify_tracks_of_an_unseen_world(tmp_path: Path) -> None:

@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from core.errors import EngineError
+from kd_store import Discriminant
 from logs.types import ObjectBoxes
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,11 @@ MIN_STD = 0.05  # floor of a fitted spread (log units): a class never seen to va
 LABEL_DISTANCE_M = 0.3  # a track's centre this close to a true box's footprint takes its class
 MIN_SAMPLES = 30  # a class (or a mode) with fewer (track, sweep) samples is not fitted
 USUAL_MOST = 90  # percentile an AT_MOST attribute's prototype value is taken at
+#: the discriminant weighs each class's samples by count ** -CLASS_BALANCE: 0 lets the many
+#: vehicle and building samples drown rocks and bushes, 1 gives every class the same say
+CLASS_BALANCE = 0.75
+L2 = 1e-4  # ridge on the discriminant's weights (not its biases), per unit of sample weight
+MAX_ITER = 1000  # L-BFGS iterations of the discriminant's fit
 
 
 class FitError(EngineError):
@@ -211,8 +217,83 @@ def _centre_spread(
     return values, weights
 
 
-def to_yaml(fitted: Iterable[FittedClass], provenance: Mapping[str, object]) -> str:
-    """The fitted prototypes as a class-library overlay (``kd_store/classes_fitted.yaml``)."""
+def fit_discriminant(
+    samples: Samples,
+    attributes: Sequence[str] = FIT_ATTRIBUTES,
+    classes: Sequence[str] | None = None,
+    balance: float = CLASS_BALANCE,
+    l2: float = L2,
+) -> Discriminant:
+    """The level-4 :class:`~kd_store.Discriminant` of ``samples``: a softmax over ``classes``
+    (default: those with ``MIN_SAMPLES``) of :func:`sp.classify.discriminant_features`,
+    fitted by weighted maximum likelihood (L-BFGS, ``MAX_ITER``) with a ridge ``l2`` on all
+    but the biases; each sample weighs ``count(its class) ** -balance``."""
+    from scipy.optimize import minimize
+
+    from kd_store import Discriminant, Level
+    from sp.classify import DEFAULT_EPS, EPS, discriminant_features
+
+    if classes is None:
+        n = defaultdict(int)
+        for c in samples.labels:
+            n[c] += 1
+        classes = sorted(c for c, k in n.items() if k >= MIN_SAMPLES)
+    index = {c: i for i, c in enumerate(classes)}
+    keep = [i for i, c in enumerate(samples.labels) if c in index]
+    if not keep:
+        raise FitError(f"no samples of the classes {list(classes)} to fit a discriminant on")
+    eps = np.array([EPS.get(a, DEFAULT_EPS) for a in attributes])
+    X = np.array(
+        [[samples.rows[i].get(a, math.nan) for a in attributes] for i in keep], dtype=np.float64
+    )
+    y = np.array([index[samples.labels[i]] for i in keep])
+    with np.errstate(invalid="ignore"):
+        L = np.log(np.maximum(X, 0.0) + eps)
+    centre = np.nanmean(L, axis=0)
+    if not np.all(np.isfinite(centre)):
+        raise FitError(f"attributes {list(attributes)}: one is never observed in the samples")
+    Z = discriminant_features(L - centre)
+    count = np.bincount(y, minlength=len(classes)).astype(np.float64)
+    sw = count[y] ** -balance
+    sw /= sw.sum()
+    D, C = Z.shape[1], len(classes)
+    rows = np.arange(len(y))
+    ridge = np.ones((D, 1))
+    ridge[-1] = 0.0  # the biases carry the class balance: no ridge on them
+
+    def nll(w: np.ndarray) -> tuple[float, np.ndarray]:
+        W = w.reshape(D, C)
+        S = Z @ W
+        S -= S.max(axis=1, keepdims=True)
+        lse = np.log(np.exp(S).sum(axis=1))
+        P = np.exp(S - lse[:, None])
+        P[rows, y] -= 1.0
+        value = -float((sw * (S[rows, y] - lse)).sum()) + l2 * float((ridge * W**2).sum())
+        grad = Z.T @ (P * sw[:, None]) + 2.0 * l2 * ridge * W
+        return value, grad.ravel()
+
+    r = minimize(nll, np.zeros(D * C), jac=True, method="L-BFGS-B",
+                 options={"maxiter": MAX_ITER})  # fmt: skip
+    log.info("discriminant: %d samples, %d classes, %d iterations, %s",
+             len(y), C, r.nit, r.message)  # fmt: skip
+    W = r.x.reshape(D, C)
+    return Discriminant(
+        Level.OBJECT,
+        tuple(attributes),
+        tuple(float(e) for e in eps),
+        tuple(round(float(c), 6) for c in centre),
+        tuple(classes),
+        tuple(tuple(round(float(v), 6) for v in row) for row in W),
+    )
+
+
+def to_yaml(
+    fitted: Iterable[FittedClass],
+    provenance: Mapping[str, object],
+    discriminant: Discriminant | None = None,
+) -> str:
+    """The fitted prototypes (and discriminant) as a class-library overlay
+    (``kd_store/classes_fitted.yaml``)."""
     rows = [
         {
             "name": f.name,
@@ -223,10 +304,22 @@ def to_yaml(fitted: Iterable[FittedClass], provenance: Mapping[str, object]) -> 
     ]
     head = (
         "# Level-4 class prototypes fitted by wm/fit_classes.py (values: exp(mean log(x + eps))"
-        " - eps;\n# weights: 1 / std of log(x + eps)). Generated; do not edit by hand.\n"
+        " - eps;\n# weights: 1 / std of log(x + eps)) and the discriminant that scores them"
+        " (kd_store.Discriminant).\n# Generated; do not edit by hand.\n"
     )
+    doc: dict[str, object] = {"provenance": dict(provenance), "classes": rows}
+    if discriminant is not None:
+        d = discriminant
+        doc["discriminant"] = {
+            "level": int(d.level),
+            "attributes": list(d.attributes),
+            "eps": list(d.eps),
+            "centre": list(d.centre),
+            "classes": list(d.classes),
+            "weights": [list(r) for r in d.weights],
+        }
     return head + yaml.safe_dump(
-        {"provenance": dict(provenance), "classes": rows},
+        doc,
         sort_keys=False,
         width=100,
         default_flow_style=None,
@@ -257,6 +350,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             log.info("%s: %d labelled samples", path.name, len(s))
             samples.extend(s)
     fitted = fit(samples)
+    discriminant = fit_discriminant(samples, classes=[f.name for f in fitted])
     provenance = {
         "scenarios": list(args.scenarios),
         "seeds": list(args.seeds),
@@ -264,8 +358,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         "samples": len(samples),
         "attributes": list(FIT_ATTRIBUTES),
         "usual_most_percentile": USUAL_MOST,
+        "class_balance": CLASS_BALANCE,
+        "l2": L2,
     }
-    Path(args.out).write_text(to_yaml(fitted, provenance))
+    Path(args.out).write_text(to_yaml(fitted, provenance, discriminant))
     for f in fitted:
         log.info("%-18s %6d samples %4d tracks", f.name, f.samples, f.tracks)
     return 0
