@@ -76,7 +76,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -280,26 +280,31 @@ class Classifier:
         )
         P = np.where(ok, P, 0.0)
         P /= np.maximum(P.sum(axis=1, keepdims=True), 1e-300)
-        S = np.where(ok, P, IMPLAUSIBLE)
-        seen = np.isfinite(X).any(axis=1)
+        names_p = [p.name for p in self.protos]
         col = {c: j for j, c in enumerate(disc.classes)}
-        out = [
-            self._match({p.name: float(S[i, col[p.name]]) for p in self.protos} if seen[i] else {})
-            for i in range(len(rows))
-        ]
+        S = np.where(ok, P, IMPLAUSIBLE)[:, [col[n] for n in names_p]]
+        seen = np.isfinite(X).any(axis=1)
         # how well the chosen class's fitted prototype matches: the discriminant cannot say
-        # that an entity is like no class (a hill-sized blob is still likeliest a building)
-        fitted = {p.name for p in self.protos if p.fitted}
-        if not fitted:
-            return out
-        Xp = np.array([[float(r.get(a, math.nan)) for a in self.names] for r in rows])
-        eps = np.array([EPS.get(a, DEFAULT_EPS) for a in self.names])
-        with np.errstate(invalid="ignore"):
-            F = np.log(np.maximum(Xp, 0.0) + eps)
-        like = {c: _likelihood(F, *self._fitted[c])[0] for c in fitted}
+        # that an entity is like no class (a mound is still likeliest one of them); each row
+        # against its own best class's likelihood terms, stacked (R', A), in one pass
+        best = S.argmax(axis=1) if names_p else np.zeros(len(rows), dtype=int)
+        fit = np.full(len(rows), math.nan)
+        idx = [
+            i for i in range(len(rows))
+            if seen[i] and S[i, best[i]] > IMPLAUSIBLE and names_p[best[i]] in self._fitted
+        ]  # fmt: skip
+        if idx:
+            eps = np.array([EPS.get(a, DEFAULT_EPS) for a in self.names])
+            Xp = np.array([[float(rows[i].get(a, math.nan)) for a in self.names] for i in idx])
+            with np.errstate(invalid="ignore"):
+                F = np.log(np.maximum(Xp, 0.0) + eps)
+            terms = [self._fitted[names_p[best[i]]] for i in idx]
+            fit[idx] = _likelihood(F, *(np.stack([t[k] for t in terms]) for k in range(5)))[0]
         return [
-            replace(m, fit=float(like[m.name][i])) if m.name in like else m
-            for i, m in enumerate(out)
+            self._match(
+                dict(zip(names_p, S[i].tolist(), strict=True)) if seen[i] else {}, float(fit[i])
+            )
+            for i in range(len(rows))
         ]
 
     def _as_seen(
@@ -330,7 +335,7 @@ class Classifier:
             out[:, i] = np.where(inside, c[i], np.where(col < lo, col + (c[i] - lo), col))
         return out
 
-    def _match(self, scores: dict[str, float]) -> Match:
+    def _match(self, scores: dict[str, float], fit: float = math.nan) -> Match:
         candidates = {k: v for k, v in scores.items() if v > IMPLAUSIBLE}
         if not candidates:
             return Match(None, 0.0, (), scores)
@@ -339,7 +344,7 @@ class Classifier:
         generic = tuple(
             n for n in reversed(lineage) if self.library.get(n).kind == ClassKind.GENERIC
         )
-        return Match(best, scores[best], generic, scores)
+        return Match(best, scores[best], generic, scores, fit)
 
 
 def discriminant_features(F: np.ndarray) -> np.ndarray:
