@@ -8,8 +8,14 @@ a wall is seen in pieces, a bush's points are a shell of leaves. The attributes 
 points) are therefore collected as SP computes them, per framed track and sweep, on logs with
 ground truth, labelled with the class of the true box the track's centre lies in, and each
 class's prototype becomes the centre and spread of its attributes in the classifier's feature
-space (``log(x + eps)``): the value ``exp(mean) - eps`` and the weight ``1 / std``
-(:class:`sp.classify.Classifier` scores fitted prototypes by that likelihood).
+space (``log(x + eps)``): the value ``exp(mean) - eps`` and the weight ``1 / std``. On the
+same samples :func:`fit_discriminant` fits the softmax (``kd_store.Discriminant``) by which
+:class:`sp.classify.Classifier` chooses among the fitted classes; each prototype's likelihood
+then says how well the chosen class matches.
+
+The samples depend a little on the classes in use while they are collected (level 4's person
+and vehicle tracks), so a refit after the classifier changed moves the prototypes slightly
+(the shipped file is this command's output with the classifier it ships with).
 
 The split (docs/evaluation.md): prototypes are fitted on development seeds only
 (``TRAINING_SEEDS``), never on the evaluation seeds; ``python -m wm.fit_classes`` refuses an
