@@ -236,7 +236,7 @@ def fit_discriminant(
     but the biases; each sample weighs ``count(its class) ** -balance``."""
     from scipy.optimize import minimize
 
-    from kd_store import Discriminant, Level
+    from kd_store import Level
     from sp.classify import DEFAULT_EPS, EPS, discriminant_features
 
     if classes is None:
@@ -282,6 +282,9 @@ def fit_discriminant(
                  options={"maxiter": MAX_ITER})  # fmt: skip
     log.info("discriminant: %d samples, %d classes, %d iterations, %s",
              len(y), C, r.nit, r.message)  # fmt: skip
+    if not r.success:
+        log.warning("discriminant fit did not converge (%s): the weights are the last iterate",
+                    r.message)  # fmt: skip
     W = r.x.reshape(D, C)
     return Discriminant(
         Level.OBJECT,
