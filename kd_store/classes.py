@@ -132,18 +132,17 @@ class ClassLibrary:
         try:
             doc = yaml.safe_load(text)
             rows = doc["classes"]
-            if doc.get("discriminant"):
-                d = doc["discriminant"]
-                disc = Discriminant(
-                    Level(int(d["level"])),
-                    tuple(map(str, d["attributes"])),
-                    tuple(map(float, d["eps"])),
-                    tuple(map(float, d["centre"])),
-                    tuple(map(str, d["classes"])),
-                    tuple(tuple(map(float, r)) for r in d["weights"]),
-                )
-                for c in disc.classes:
-                    self.get(c)
+            d = doc.get("discriminant")
+            disc = None if not d else Discriminant(
+                Level(int(d["level"])),
+                tuple(map(str, d["attributes"])),
+                tuple(map(float, d["eps"])),
+                tuple(map(float, d["centre"])),
+                tuple(map(str, d["classes"])),
+                tuple(tuple(map(float, r)) for r in d["weights"]),
+            )  # fmt: skip
+            for c in disc.classes if disc else ():
+                self.get(c)
             for row in rows:
                 base = self.get(str(row["name"]))
                 attrs = row["attributes"]
@@ -157,7 +156,7 @@ class ClassLibrary:
             # a discriminant fitted with other prototypes of these levels no longer holds
             for level in {self.get(str(row["name"])).level for row in rows}:
                 self.discriminants.pop(level, None)
-            if doc.get("discriminant"):
+            if disc is not None:
                 self.discriminants[disc.level] = disc
         except (yaml.YAMLError, KeyError, TypeError, ValueError, IndexError, KDError) as e:
             raise KDError(f"fitted classes {source}: not a fitted-classes document ({e})") from None

@@ -162,11 +162,7 @@ class Match:
     score: float
     generic: tuple[str, ...]
     scores: Mapping[str, float]
-    fit: float = math.nan
-
-    def __post_init__(self) -> None:
-        if math.isnan(self.fit):
-            object.__setattr__(self, "fit", self.score)
+    fit: float
 
 
 class Classifier:
@@ -236,11 +232,9 @@ class Classifier:
         if self.disc is not None:
             return self._classify_discriminant(rows)
         names = self.names
-        X = np.array([[float(r.get(a, math.nan)) for a in names] for r in rows], dtype=np.float64)
-        eps = np.array([EPS.get(a, DEFAULT_EPS) for a in names])
+        X = attribute_matrix(rows, names)
         mu = np.array([self.mu[a] for a in names])
-        with np.errstate(invalid="ignore"):
-            F = np.log(np.maximum(X, 0.0) + eps) - mu  # NaN stays NaN: missing
+        F = log_features(X, names) - mu
         S = np.full((len(rows), len(self.protos)), np.nan)
         for j, (p, fp) in enumerate(zip(self.protos, self._feat, strict=True)):
             if p.fitted:
@@ -272,18 +266,22 @@ class Classifier:
         probability given the attributes, over the classes whose ``PLAUSIBLE`` bounds the row
         keeps (the others score ``IMPLAUSIBLE``); a row with none of its attributes gets none."""
         disc = self.disc
-        names = disc.attributes
-        X = np.array([[float(r.get(a, math.nan)) for a in names] for r in rows], dtype=np.float64)
-        P = discriminant_probabilities(disc, X)
+        # the rows read once, over the prototypes' attributes and then the discriminant's
+        cols = list(self.names) + [a for a in disc.attributes if a not in self.names]
+        X = attribute_matrix(rows, cols)
+        at = {a: j for j, a in enumerate(cols)}
+        Xd = X[:, [at[a] for a in disc.attributes]]
+        P = discriminant_probabilities(disc, Xd)
         ok = np.stack(
-            [plausible(X, names, c, least_extents=c in WHOLE_EXTENTS) for c in disc.classes], 1
-        )
+            [plausible(Xd, disc.attributes, c, least_extents=c in WHOLE_EXTENTS)
+             for c in disc.classes], 1
+        )  # fmt: skip
         P = np.where(ok, P, 0.0)
         P /= np.maximum(P.sum(axis=1, keepdims=True), 1e-300)
         names_p = [p.name for p in self.protos]
         col = {c: j for j, c in enumerate(disc.classes)}
         S = np.where(ok, P, IMPLAUSIBLE)[:, [col[n] for n in names_p]]
-        seen = np.isfinite(X).any(axis=1)
+        seen = np.isfinite(Xd).any(axis=1)
         # how well the chosen class's fitted prototype matches: the discriminant cannot say
         # that an entity is like no class (a mound is still likeliest one of them); each row
         # against its own best class's likelihood terms, stacked (R', A), in one pass
@@ -294,10 +292,7 @@ class Classifier:
             if seen[i] and S[i, best[i]] > IMPLAUSIBLE and names_p[best[i]] in self._fitted
         ]  # fmt: skip
         if idx:
-            eps = np.array([EPS.get(a, DEFAULT_EPS) for a in self.names])
-            Xp = np.array([[float(rows[i].get(a, math.nan)) for a in self.names] for i in idx])
-            with np.errstate(invalid="ignore"):
-                F = np.log(np.maximum(Xp, 0.0) + eps)
+            F = log_features(X[idx, : len(self.names)], self.names)
             terms = [self._fitted[names_p[best[i]]] for i in idx]
             fit[idx] = _likelihood(F, *(np.stack([t[k] for t in terms]) for k in range(5)))[0]
         return [
@@ -338,13 +333,26 @@ class Classifier:
     def _match(self, scores: dict[str, float], fit: float = math.nan) -> Match:
         candidates = {k: v for k, v in scores.items() if v > IMPLAUSIBLE}
         if not candidates:
-            return Match(None, 0.0, (), scores)
+            return Match(None, 0.0, (), scores, 0.0)
         best = max(candidates, key=lambda k: candidates[k])
         lineage = self.library.lineage(best)
         generic = tuple(
             n for n in reversed(lineage) if self.library.get(n).kind == ClassKind.GENERIC
         )
-        return Match(best, scores[best], generic, scores, fit)
+        return Match(best, scores[best], generic, scores, scores[best] if math.isnan(fit) else fit)
+
+
+def attribute_matrix(rows: Sequence[Mapping[str, float]], names: Sequence[str]) -> np.ndarray:
+    """(R, A) float64 values of ``names`` in each row (name -> value); NaN where missing."""
+    return np.array([[float(r.get(a, math.nan)) for a in names] for r in rows], dtype=np.float64)
+
+
+def log_features(X: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    """``log(x + eps_a)`` of attribute rows ``X`` (R, A) in ``names`` order, the space fitted
+    classes live in (``EPS``; a negative value counts as 0, NaN stays NaN: missing)."""
+    eps = np.array([EPS.get(a, DEFAULT_EPS) for a in names])
+    with np.errstate(invalid="ignore"):
+        return np.log(np.maximum(X, 0.0) + eps)
 
 
 def discriminant_features(F: np.ndarray) -> np.ndarray:

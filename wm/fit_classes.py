@@ -176,9 +176,8 @@ def fit(samples: Samples, attributes: Sequence[str] = FIT_ATTRIBUTES) -> list[Fi
     """Per class with at least ``MIN_SAMPLES`` samples: per attribute, the mean and standard
     deviation of ``log(x + eps)`` over the samples that have it (the 1st to 99th percentile,
     so a few broken segments do not set the spread)."""
-    from sp.classify import DEFAULT_EPS, EPS
+    from sp.classify import attribute_matrix, log_features
 
-    eps = np.array([EPS.get(a, DEFAULT_EPS) for a in attributes])
     by_class: dict[str, list[int]] = defaultdict(list)
     for i, c in enumerate(samples.labels):
         by_class[c].append(i)
@@ -187,11 +186,7 @@ def fit(samples: Samples, attributes: Sequence[str] = FIT_ATTRIBUTES) -> list[Fi
         if len(idx) < MIN_SAMPLES:
             log.warning("class %r: %d samples, fewer than %d; not fitted", c, len(idx), MIN_SAMPLES)
             continue
-        X = np.array(
-            [[samples.rows[i].get(a, math.nan) for a in attributes] for i in idx], dtype=np.float64
-        )
-        with np.errstate(invalid="ignore"):
-            F = np.log(np.maximum(X, 0.0) + eps)  # NaN stays NaN: not observed
+        F = log_features(attribute_matrix([samples.rows[i] for i in idx], attributes), attributes)
         values, weights = _centre_spread(F, attributes)
         tracks = len({samples.tracks[i] for i in idx})
         out.append(FittedClass(c, values, weights, len(idx), tracks))
@@ -237,7 +232,7 @@ def fit_discriminant(
     from scipy.optimize import minimize
 
     from kd_store import Level
-    from sp.classify import DEFAULT_EPS, EPS, discriminant_features
+    from sp.classify import DEFAULT_EPS, EPS, attribute_matrix, discriminant_features, log_features
 
     if classes is None:
         n = defaultdict(int)
@@ -248,13 +243,8 @@ def fit_discriminant(
     keep = [i for i, c in enumerate(samples.labels) if c in index]
     if not keep:
         raise FitError(f"no samples of the classes {list(classes)} to fit a discriminant on")
-    eps = np.array([EPS.get(a, DEFAULT_EPS) for a in attributes])
-    X = np.array(
-        [[samples.rows[i].get(a, math.nan) for a in attributes] for i in keep], dtype=np.float64
-    )
+    L = log_features(attribute_matrix([samples.rows[i] for i in keep], attributes), attributes)
     y = np.array([index[samples.labels[i]] for i in keep])
-    with np.errstate(invalid="ignore"):
-        L = np.log(np.maximum(X, 0.0) + eps)
     centre = np.nanmean(L, axis=0)
     if not np.all(np.isfinite(centre)):
         raise FitError(f"attributes {list(attributes)}: one is never observed in the samples")
@@ -289,7 +279,7 @@ def fit_discriminant(
     return Discriminant(
         Level.OBJECT,
         tuple(attributes),
-        tuple(float(e) for e in eps),
+        tuple(EPS.get(a, DEFAULT_EPS) for a in attributes),
         tuple(round(float(c), 6) for c in centre),
         tuple(classes),
         tuple(tuple(round(float(v), 6) for v in row) for row in W),
