@@ -54,7 +54,9 @@ def test_sigkill_of_wm_run_leaves_no_process_and_keeps_what_it_saw(
         kids: dict[int, str] = {}
         deadline = time.monotonic() + 60
         while len(set(kids.values())) < 2 and time.monotonic() < deadline and proc.poll() is None:
-            kids |= {k: _kind(k) for k in _children(proc.pid) - kids.keys()}
+            # every poll reads every child's command line again: a child caught between its
+            # fork and its exec still shows the parent's, so the decoder looks like odometry
+            kids |= {k: _kind(k) for k in _children(proc.pid)}
             time.sleep(0.05)
         assert {"decoder", "odometry"} <= set(kids.values()), f"children seen: {kids}"
         # a few seconds into the 8 s log, by the run's own CPU time (a whole run takes about

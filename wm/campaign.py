@@ -281,7 +281,10 @@ def children(pid: int) -> set[int]:
 
 
 def kind_of(pid: int) -> str:
-    """A run's child: the decoder (the prefetch interpreter) or odometry (a fork of the run)."""
+    """A run's child: the decoder (the prefetch interpreter) or odometry (a fork of the run).
+
+    A child read between its fork and its exec still shows the run's command line, so it is
+    "odometry" until read again."""
     cmd = _cmdline(pid)
     if not cmd:
         return "gone"
