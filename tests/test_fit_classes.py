@@ -260,3 +260,22 @@ def test_the_shipped_prototypes_classify_tracks_of_an_unseen_world(tmp_path: Pat
     fitted, written = accuracy(ClassLibrary.default()), accuracy(ClassLibrary.default(fitted=False))
     print(f"held-out village seed {seed}: fitted {fitted:.3f}, written-down {written:.3f}")
     assert fitted >= 0.75 and fitted >= written + 0.05, (fitted, written)
+
+
+def test_the_fit_command_on_two_cores_writes_what_it_writes_on_one(tmp_path: Path) -> None:
+    """``python -m wm.fit_classes`` simulates the missing logs and collects them side by side
+    (``--jobs``), and the file it writes does not depend on the order they finish in."""
+    from wm.fit_classes import main
+
+    argv = ["--scenarios", "parking", "--seeds", "5", "6", "--seconds", "3"]
+    argv += ["--cache", str(tmp_path / "logs")]
+    assert main([*argv, "--jobs", "2", "--out", str(tmp_path / "two.yaml")]) == 0
+    assert len(list((tmp_path / "logs").glob("parking-seed*-3s-*.mcap"))) == 2
+    assert main([*argv, "--jobs", "1", "--out", str(tmp_path / "one.yaml")]) == 0
+    two, one = (tmp_path / "two.yaml").read_text(), (tmp_path / "one.yaml").read_text()
+    assert two == one
+    import yaml
+
+    doc = yaml.safe_load(two)
+    assert doc["provenance"]["seeds"] == {"parking": [5, 6]}
+    assert {c["name"] for c in doc["classes"]} >= {"vehicle"}

@@ -37,7 +37,7 @@ import math
 import sys
 from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -356,9 +356,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     bad = sorted(set().union(*sets.values()) & set(EVAL_SEEDS))
     if bad:
         raise FitError(f"seeds {bad} are evaluation seeds (docs/evaluation.md): never fit on them")
-    paths = [
-        _log(sc, seed, args.seconds, Path(args.cache)) for sc, ss in sets.items() for seed in ss
-    ]
+    cache = Path(args.cache)
+    runs = [(sc, seed) for sc, seeds in sets.items() for seed in seeds]
+    # logs missing from the cache are simulated side by side too (a process each)
+    with ThreadPoolExecutor(max(1, args.jobs)) as threads:
+        paths = list(threads.map(lambda run: _log(*run, args.seconds, cache), runs))
     samples = Samples([], [], [])
     # each log in a process of its own: a node is single-threaded, and the pool keeps the
     # samples in the order of the logs whatever order they finish in
