@@ -233,12 +233,12 @@ class Classifier:
             return self._classify_discriminant(rows)
         names = self.names
         X = attribute_matrix(rows, names)
-        mu = np.array([self.mu[a] for a in names])
-        F = log_features(X, names) - mu
+        L = log_features(X, names)
+        F = L - np.array([self.mu[a] for a in names])
         S = np.full((len(rows), len(self.protos)), np.nan)
         for j, (p, fp) in enumerate(zip(self.protos, self._feat, strict=True)):
             if p.fitted:
-                score, use = _likelihood(F + mu, *self._fitted[p.name])
+                score, use = _likelihood(L, *self._fitted[p.name])
                 ok = plausible(X, names, p.name, least_extents=p.name in WHOLE_EXTENTS)
                 S[:, j] = np.where(use.any(axis=1), np.where(ok, score, IMPLAUSIBLE), np.nan)
                 continue
@@ -286,7 +286,8 @@ class Classifier:
         # that an entity is like no class (a mound is still likeliest one of them); each row
         # against its own best class's likelihood terms, stacked (R', A), in one pass
         best = S.argmax(axis=1) if names_p else np.zeros(len(rows), dtype=int)
-        fit = np.full(len(rows), math.nan)
+        # a class without a fitted prototype matches as well as it scores
+        fit = S[np.arange(len(rows)), best] if names_p else np.zeros(len(rows))
         idx = [
             i for i in range(len(rows))
             if seen[i] and S[i, best[i]] > IMPLAUSIBLE and names_p[best[i]] in self._fitted
@@ -330,7 +331,9 @@ class Classifier:
             out[:, i] = np.where(inside, c[i], np.where(col < lo, col + (c[i] - lo), col))
         return out
 
-    def _match(self, scores: dict[str, float], fit: float = math.nan) -> Match:
+    def _match(self, scores: dict[str, float], fit: float | None = None) -> Match:
+        """The best of ``scores`` over the plausible classes; ``fit`` how well it matches
+        (None: its score)."""
         candidates = {k: v for k, v in scores.items() if v > IMPLAUSIBLE}
         if not candidates:
             return Match(None, 0.0, (), scores, 0.0)
@@ -339,7 +342,7 @@ class Classifier:
         generic = tuple(
             n for n in reversed(lineage) if self.library.get(n).kind == ClassKind.GENERIC
         )
-        return Match(best, scores[best], generic, scores, scores[best] if math.isnan(fit) else fit)
+        return Match(best, scores[best], generic, scores, scores[best] if fit is None else fit)
 
 
 def attribute_matrix(rows: Sequence[Mapping[str, float]], names: Sequence[str]) -> np.ndarray:

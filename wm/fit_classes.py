@@ -342,7 +342,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m wm.fit_classes", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--scenarios", nargs="+", help="default: those of TRAINING_SETS")
-    ap.add_argument("--seeds", nargs="+", type=int, help="default: each scenario's TRAINING_SETS")
+    ap.add_argument(
+        "--seeds", nargs="+", type=int,
+        help="default: each scenario's TRAINING_SETS (TRAINING_SEEDS for one not in it)",
+    )  # fmt: skip
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--cache", default="out/eval-logs", help="simulated logs (made when missing)")
     ap.add_argument("--jobs", type=int, default=2, help="logs collected side by side")
