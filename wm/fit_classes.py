@@ -365,12 +365,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     with ThreadPoolExecutor(max(1, args.jobs)) as threads:
         paths = list(threads.map(lambda run: _log(*run, args.seconds, cache), runs))
     samples = Samples([], [], [])
-    # each log in a process of its own: a node is single-threaded, and the pool keeps the
-    # samples in the order of the logs whatever order they finish in
-    with ProcessPoolExecutor(max(1, args.jobs)) as pool:
-        for path, s in zip(paths, pool.map(collect, paths), strict=True):
-            log.info("%s: %d labelled samples", path.name, len(s))
-            samples.extend(s)
+    for path, s in zip(paths, _collect_all(paths, args.jobs), strict=True):
+        log.info("%s: %d labelled samples", path.name, len(s))
+        samples.extend(s)
     fitted = fit(samples)
     discriminant = fit_discriminant(samples, classes=[f.name for f in fitted])
     provenance = {
@@ -386,6 +383,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     for f in fitted:
         log.info("%-18s %6d samples %4d tracks", f.name, f.samples, f.tracks)
     return 0
+
+
+def _collect_all(paths: Sequence[Path], jobs: int) -> Iterable[Samples]:
+    """The samples of each log, in the order of ``paths`` whatever order they finish in.
+
+    With ``jobs > 1`` each log is read in a process of its own (a node is single-threaded).
+    The processes are spawned, not forked: a fork of a caller that has run OpenMP or other
+    threads (a notebook, a test process) may die or hang in the child."""
+    if jobs <= 1:
+        return map(collect, paths)
+    import multiprocessing as mp
+
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
+        return list(pool.map(collect, paths))
 
 
 def _log(scenario: str, seed: int, seconds: float, cache: Path) -> Path:
