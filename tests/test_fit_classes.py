@@ -156,12 +156,15 @@ def test_the_shipped_default_is_fitted_on_training_seeds_only() -> None:
 
     import yaml
 
+    from fixtures import SIMULATOR_VERSION
     from wm.eval_sweep import EVAL_SEEDS
 
     text = resources.files("kd_store").joinpath("classes_fitted.yaml").read_text()
     doc = yaml.safe_load(text)
     seeds = set().union(*doc["provenance"]["seeds"].values())  # scenario -> seeds
     assert seeds and not seeds & set(EVAL_SEEDS)
+    # fitted on logs of the simulator as it is (after a change to it, refit: README)
+    assert doc["provenance"]["simulator_version"] == SIMULATOR_VERSION
     lib = ClassLibrary.default()
     fitted = {p.name for p in lib if p.fitted}
     assert {"vehicle", "person", "building", "tree", "post", "freestanding wall"} <= fitted
@@ -265,6 +268,7 @@ def test_the_shipped_prototypes_classify_tracks_of_an_unseen_world(tmp_path: Pat
 def test_the_fit_command_on_two_cores_writes_what_it_writes_on_one(tmp_path: Path) -> None:
     """``python -m wm.fit_classes`` simulates the missing logs and collects them side by side
     (``--jobs``), and the file it writes does not depend on the order they finish in."""
+    from fixtures import SIMULATOR_VERSION
     from wm.fit_classes import main
 
     argv = ["--scenarios", "parking", "--seeds", "5", "6", "--seconds", "3"]
@@ -278,4 +282,5 @@ def test_the_fit_command_on_two_cores_writes_what_it_writes_on_one(tmp_path: Pat
 
     doc = yaml.safe_load(two)
     assert doc["provenance"]["seeds"] == {"parking": [5, 6]}
+    assert doc["provenance"]["simulator_version"] == SIMULATOR_VERSION
     assert {c["name"] for c in doc["classes"]} >= {"vehicle"}

@@ -336,6 +336,7 @@ def to_yaml(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from fixtures import SIMULATOR_VERSION
     from wm.eval_sweep import EVAL_SEEDS
 
     ap = argparse.ArgumentParser(
@@ -373,6 +374,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     provenance = {
         "seeds": {s: list(seeds) for s, seeds in sets.items()},
         "seconds": args.seconds,
+        "simulator_version": SIMULATOR_VERSION,  # the logs' (fixtures.SIMULATOR_VERSION)
         "samples": len(samples),
         "attributes": list(FIT_ATTRIBUTES),
         "usual_most_percentile": USUAL_MOST,
