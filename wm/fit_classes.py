@@ -36,7 +36,7 @@ import logging
 import math
 import sys
 from collections import defaultdict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -362,12 +362,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise FitError(f"seeds {bad} are evaluation seeds (docs/evaluation.md): never fit on them")
     cache = Path(args.cache)
     runs = [(sc, seed) for sc, seeds in sets.items() for seed in seeds]
+    log.info("%d training logs in %s (those missing are simulated first)", len(runs), cache)
     # logs missing from the cache are simulated side by side too (a process each)
     with ThreadPoolExecutor(max(1, args.jobs)) as threads:
         paths = list(threads.map(lambda run: _log(*run, args.seconds, cache), runs))
     samples = Samples([], [], [])
-    for path, s in zip(paths, _collect_all(paths, args.jobs), strict=True):
-        log.info("%s: %d labelled samples", path.name, len(s))
+    for k, (path, s) in enumerate(zip(paths, _collect_all(paths, args.jobs), strict=True)):
+        log.info("[%d/%d] %s: %d labelled samples", k + 1, len(paths), path.name, len(s))
         samples.extend(s)
     fitted = fit(samples)
     discriminant = fit_discriminant(samples, classes=[f.name for f in fitted])
@@ -387,18 +388,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _collect_all(paths: Sequence[Path], jobs: int) -> Iterable[Samples]:
+def _collect_all(paths: Sequence[Path], jobs: int) -> Iterator[Samples]:
     """The samples of each log, in the order of ``paths`` whatever order they finish in.
 
     With ``jobs > 1`` each log is read in a process of its own (a node is single-threaded).
     The processes are spawned, not forked: a fork of a caller that has run OpenMP or other
     threads (a notebook, a test process) may die or hang in the child."""
     if jobs <= 1:
-        return map(collect, paths)
+        yield from map(collect, paths)
+        return
     import multiprocessing as mp
 
     with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
-        return list(pool.map(collect, paths))
+        yield from pool.map(collect, paths)
 
 
 def _log(scenario: str, seed: int, seconds: float, cache: Path) -> Path:
