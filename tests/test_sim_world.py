@@ -119,9 +119,7 @@ def test_convoy_members_keep_their_spacing(world: World) -> None:
 
 
 def test_agent_culling_never_loses_a_hit(world: World) -> None:
-    """Rays cast through the culled path equal a brute-force slab test against every agent."""
-    from fixtures.world import _ray_box
-
+    """Rays cast through the culled path equal a brute-force cast against every agent's mesh."""
     rng = np.random.default_rng(3)
     T, B = 40, 300
     t_ns = np.sort(rng.integers(0, 60 * NS_PER_S, T))
@@ -134,14 +132,14 @@ def test_agent_culling_never_loses_a_hit(world: World) -> None:
     dirs /= np.linalg.norm(dirs, axis=2, keepdims=True)
     hits = world.cast_rays(origins, dirs, t_ns)
     brute = np.full((T, B), np.inf)
-    for k, track in enumerate(world.agents):
+    for k in range(len(world.agents)):
         for g in range(T):
-            r, _ = _ray_box(
+            r, _ = world.cast_agent(
+                k,
                 np.repeat(origins[g : g + 1], B, axis=0),
                 dirs[g],
                 np.repeat(states.centers[g : g + 1, k], B, axis=0),
                 np.full(B, states.yaws[g, k]),
-                track.size / 2,
             )
             brute[g] = np.minimum(brute[g], r)
     on_agent = brute < hits.range_m + 1e-9
@@ -210,3 +208,52 @@ def test_a_parked_vehicle_stands_on_wheels_clear_of_the_ground() -> None:
         side += int(mid)
     assert side == 8  # every body is met at 45 % of its height
     assert under >= 6  # and 7 cm over the ground the beams go under it (a slope may stop one)
+
+
+def test_moving_agents_are_bodies_not_boxes(world: World) -> None:
+    """A moving vehicle's beams pass under its body and meet its side; a person's head is
+    narrower than the shoulders, so a level ray just inside the top corner of its box misses
+    it where a box would be hit; both meet the body near the middle of the box."""
+    t_ns = world.t0_ns + 7 * NS_PER_S
+    states = world.agent_states(np.array([t_ns]))
+    origins, dirs, expect = [], [], []
+    for k, agent in enumerate(world.agents):
+        c, yaw, (l, w, h) = states.centers[0, k], states.yaws[0, k], agent.size
+        left = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+        start = c - (w / 2 + 0.3) * left
+        base = c[2] - h / 2
+        if agent.cls.value == "vehicle":
+            rows = [(base + 0.07, False), (base + 0.45 * h, True)]
+        else:
+            forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+            start_top = start + 0.4 * l * forward
+            origins.append([*start_top[:2], base + 0.97 * h])
+            dirs.append(left)
+            expect.append((agent.object_id, False))
+            rows = [(base + 0.6 * h, True)]
+        for z, hit in rows:
+            origins.append([*start[:2], z])
+            dirs.append(left)
+            expect.append((agent.object_id, hit))
+    hits = world.cast_rays(
+        np.array(origins), np.array(dirs)[:, None, :], np.full(len(origins), t_ns, np.int64)
+    )
+    got = hits.object_id[:, 0] == np.array([oid for oid, _ in expect])
+    want = np.array([hit for _, hit in expect])
+    kinds = {a.cls.value for a in world.agents}
+    assert kinds == {"vehicle", "person"}
+    assert np.array_equal(got, want), [(e, g) for e, g in zip(expect, got, strict=True)]
+
+
+def test_village_cars_are_parked_side_on_at_the_kerb() -> None:
+    """The village's parked cars line its streets a few metres from the lane, lengthwise."""
+    world = World(load_scenario("village"))
+    cars = [o for o in world.statics if o.cls.value == "vehicle"]
+    assert len(cars) >= 20
+    xy = world.route.xy
+    for car in cars:
+        d = np.hypot(*(xy - car.center[:2]).T)
+        i = int(np.argmin(d))
+        assert 2.2 + car.size[1] / 2 - 0.2 < d[i] < 2.2 + car.size[1] / 2 + 1.0
+        along = abs(np.cos(car.yaw - world.route.heading[i]))
+        assert along > 0.95

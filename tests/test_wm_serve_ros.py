@@ -206,24 +206,33 @@ def _polygon(corners: np.ndarray, z: float = 0.0) -> dict:
 
 
 def test_check_safety_around_true_objects_and_on_open_ground(served, log) -> None:  # noqa: F811
-    """Polygons around the simulator's static objects near the vehicle (their true footprints
-    grown by 0.5 m, in the KD's world) are unsafe, naming an entity or a blocked cell, with an
-    untraversable hull near the object; a polygon on the ground the vehicle drove over a
-    second ago, no object within 5 m, is safe, its cells known and passable."""
+    """Polygons around the simulator's static objects near the vehicle that its last sweep saw
+    (their true footprints grown by 0.5 m, in the KD's world) are unsafe, naming an entity or
+    a blocked cell, with an untraversable hull near the object; a polygon on the ground the
+    vehicle drove over a second ago, no object within 5 m, is safe, its cells known and
+    passable."""
     from alignment import move_boxes, move_points
 
     from maps.submap import inside_polygon
     from wm.client import Client
+    from wm.evaluation import EvalConfig
     from wm.serve_ros import box_corners
 
     live, base = served
     truth, T, t = _truth_in_kd_world(live, log)
-    boxes = move_boxes(truth.boxes[int(np.argmin(np.abs(truth.box_t_ns - t)))], T)
+    # the box set of the last sweep, which says how many of its returns hit each object
+    k_last = max(
+        i for i, b in enumerate(truth.boxes) if b.n_returns is not None and truth.box_t_ns[i] <= t
+    )
+    boxes = move_boxes(truth.boxes[k_last], T)
     me = np.array(_self(base)["position"][:2])
     dist = np.linalg.norm(boxes.centers[:, :2] - me, axis=1)
     still = np.linalg.norm(np.nan_to_num(boxes.velocities[:, :2]), axis=1) < 0.1
-    near = np.flatnonzero(still & (dist < 40.0))  # well inside the 102 m subsystem window
-    assert near.size, "no static true object within 40 m of the vehicle"
+    # seen as the evaluation protocol counts it (docs/evaluation.md): a post 36 m off with two
+    # returns a sweep is no object a user can expect the KD to hold
+    seen = boxes.n_returns >= EvalConfig().min_points
+    near = np.flatnonzero(still & seen & (dist < 40.0))  # well inside the 102 m subsystem window
+    assert near.size, "no static true object seen within 40 m of the vehicle"
     polys = [
         box_corners(boxes.centers[k], boxes.sizes[k, 0] + 1.0, boxes.sizes[k, 1] + 1.0,
                     boxes.yaws[k])
