@@ -59,7 +59,12 @@ class Discriminant:
     ``attributes`` (A,) names; ``eps`` (A,) the floors of ``f = log(x + eps) - centre``;
     ``centre`` (A,) the training mean of ``log(x + eps)``; ``weights`` (D, C) with
     D = A (f) + A (f missing) + A (A + 1) / 2 (f_i f_j, i <= j, row-major) + 1 (bias) and C
-    = len(classes). ``sp.classify.discriminant_probabilities`` evaluates it."""
+    = len(classes). ``sp.classify.discriminant_probabilities`` evaluates it.
+
+    ``prior`` (C,), summing to 1: the class shares the fit weighed its samples by (after its
+    class balance), so the prior its probabilities carry; ``views`` (C,): the mean number of
+    samples (views in sweeps) per training track of each class. None where the fit did not
+    say (``sp.scene_prior`` then cannot exchange the prior for the scene's)."""
 
     level: Level
     attributes: tuple[str, ...]
@@ -67,6 +72,8 @@ class Discriminant:
     centre: tuple[float, ...]
     classes: tuple[str, ...]
     weights: tuple[tuple[float, ...], ...]
+    prior: tuple[float, ...] | None = None
+    views: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         a, c = len(self.attributes), len(self.classes)
@@ -80,6 +87,18 @@ class Discriminant:
             )
         if not all(math.isfinite(v) for r in self.weights for v in r):
             raise KDError("discriminant: a weight is not finite")
+        if self.prior is not None and (
+            len(self.prior) != c
+            or not all(math.isfinite(v) and v > 0 for v in self.prior)
+            or abs(sum(self.prior) - 1.0) > 1e-3
+        ):
+            raise KDError(
+                f"discriminant: prior {self.prior} is not {c} positive shares summing to 1"
+            )
+        if self.views is not None and (
+            len(self.views) != c or not all(math.isfinite(v) and v >= 1 for v in self.views)
+        ):
+            raise KDError(f"discriminant: views {self.views} are not {c} counts of at least 1")
 
 
 def descendants(is_a: Mapping[str, str | None], name: str) -> set[str]:
@@ -140,6 +159,8 @@ class ClassLibrary:
                 tuple(map(float, d["centre"])),
                 tuple(map(str, d["classes"])),
                 tuple(tuple(map(float, r)) for r in d["weights"]),
+                None if d.get("prior") is None else tuple(map(float, d["prior"])),
+                None if d.get("views") is None else tuple(map(float, d["views"])),
             )  # fmt: skip
             for c in disc.classes if disc else ():
                 self.get(c)

@@ -82,6 +82,7 @@ import numpy as np
 
 from core.errors import EngineError
 from kd_store import ClassKind, ClassLibrary, ClassPrototype, Discriminant, Level
+from sp.scene_prior import ScenePrior, adjust
 
 
 class ClassifyError(EngineError, ValueError):
@@ -143,10 +144,16 @@ PLAUSIBLE: dict[str, dict[str, tuple[float, float]]] = {
 @dataclass(frozen=True)
 class ClassifyConfig:
     """match: best ``Match.fit`` below which a confirmed entity founds a new specific class;
-    scale: the feature distance ``s`` at which the cosine is shrunk by exp(-1/2)."""
+    scale: the feature distance ``s`` at which the cosine is shrunk by exp(-1/2);
+    scene_prior_strength: a level with a discriminant that states its training prior
+    exchanges that prior for the scene's as the run goes on (:mod:`sp.scene_prior`), with
+    this many pseudo-objects of the training mix in the estimate, which rests on the latest
+    ``scene_prior_window`` confirmed objects seen; None keeps the training prior."""
 
     match: float = 0.2
     scale: float = 1.5
+    scene_prior_strength: float | None = 20.0
+    scene_prior_window: int = 300
 
 
 @dataclass(frozen=True)
@@ -223,14 +230,23 @@ class Classifier:
         """Best class for ``attributes`` (name -> value, units in the names; NaN = missing)."""
         return self.classify_many([attributes])[0]
 
-    def classify_many(self, rows: Sequence[Mapping[str, float]]) -> list[Match]:
+    def classify_many(
+        self,
+        rows: Sequence[Mapping[str, float]],
+        scene: ScenePrior | None = None,
+        scene_ids: Sequence[int] | None = None,
+    ) -> list[Match]:
         """:meth:`classify` of every row at once (same scores to rounding): a features matrix
         (rows x attributes, NaN missing) against each prototype, so many entities cost a few
-        array operations per prototype, not a Python loop per entity."""
+        array operations per prototype, not a Python loop per entity.
+
+        ``scene``: for a level with a discriminant, the scene prior (:mod:`sp.scene_prior`,
+        over the discriminant's classes) the rows are classified under, updated first with
+        the rows whose ``scene_ids`` (R,) are object ids (>= 0; -1: not a view to count)."""
         if not rows:
             return []
         if self.disc is not None:
-            return self._classify_discriminant(rows)
+            return self._classify_discriminant(rows, scene, scene_ids)
         names = self.names
         X = attribute_matrix(rows, names)
         L = log_features(X, names)
@@ -261,10 +277,16 @@ class Classifier:
             for i in range(len(rows))
         ]
 
-    def _classify_discriminant(self, rows: Sequence[Mapping[str, float]]) -> list[Match]:
+    def _classify_discriminant(
+        self,
+        rows: Sequence[Mapping[str, float]],
+        scene: ScenePrior | None,
+        scene_ids: Sequence[int] | None,
+    ) -> list[Match]:
         """:meth:`classify_many` by the level's :class:`~kd_store.Discriminant`: each class's
         probability given the attributes, over the classes whose ``PLAUSIBLE`` bounds the row
-        keeps (the others score ``IMPLAUSIBLE``); a row with none of its attributes gets none."""
+        keeps (the others score ``IMPLAUSIBLE``), under the scene's prior if given; a row with
+        none of its attributes gets none."""
         disc = self.disc
         # the rows read once, over the prototypes' attributes and then the discriminant's
         cols = list(self.names) + [a for a in disc.attributes if a not in self.names]
@@ -278,6 +300,18 @@ class Classifier:
         )  # fmt: skip
         P = np.where(ok, P, 0.0)
         P /= np.maximum(P.sum(axis=1, keepdims=True), 1e-300)
+        if scene is not None:
+            # this sweep's views update the scene's mix first, and are then classified under
+            # it (the estimate and the decisions of one expectation maximisation)
+            if scene.classes != disc.classes:
+                raise ClassifyError(
+                    f"scene prior over {scene.classes}, discriminant over {disc.classes}"
+                )
+            if scene_ids is not None:
+                sid = np.asarray(scene_ids, dtype=np.int64)
+                count = (sid >= 0) & np.isfinite(Xd).any(axis=1)
+                scene.observe(sid[count].tolist(), P[count])
+            P = adjust(P, scene.weights)
         names_p = [p.name for p in self.protos]
         col = {c: j for j, c in enumerate(disc.classes)}
         S = np.where(ok, P, IMPLAUSIBLE)[:, [col[n] for n in names_p]]

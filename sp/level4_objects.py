@@ -34,6 +34,7 @@ from sp.egosphere import EgosphereImage
 from sp.events import EventClass
 from sp.level3_surfaces import GroundPixels, foot_rise_deg, terrain_patch
 from sp.observations import AppearanceObserved, ClassFounded, FrameChange, StatesObserved
+from sp.scene_prior import ScenePrior
 from sp.segments import (
     SegmentConfig,
     label_objects,
@@ -142,6 +143,7 @@ class ObjectLevel:
         self.ctx = ctx
         self.tracker = Tracker(ctx.config.tracker)
         self.classifier = Classifier(ctx.classes, Level.OBJECT, ctx.config.classify)
+        self.scene_prior: ScenePrior | None = None  # made for the classifier's discriminant
         self.track_class: dict[int, tuple[str | None, float]] = {}
         self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
         self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
@@ -438,7 +440,14 @@ class ObjectLevel:
         tr = self.tracker.tracks
         events: list[int] = []
         ks, rows = self.class_rows()
-        for k, m in zip(ks, self.classifier.classify_many(rows), strict=True):
+        # the measured views of confirmed objects count towards the scene's class mix
+        counted = (tr.status[ks] == TrackStatus.CONFIRMED) & np.array(
+            [self._seen_returns.get(int(i), 0) > 0 for i in tr.id[ks]], dtype=bool
+        )
+        matches = self.classifier.classify_many(
+            rows, self._scene_prior(), np.where(counted, tr.id[ks], -1)
+        )
+        for k, m in zip(ks, matches, strict=True):
             tid = int(tr.id[k])
             old, _ = self.track_class.get(tid, (None, -2.0))
             confirmed = tr.status[k] == TrackStatus.CONFIRMED
@@ -472,6 +481,29 @@ class ObjectLevel:
                 ctx.record(ClassFounded(tid))
                 ctx.classes_founded = True
         return events
+
+    def _scene_prior(self) -> ScenePrior | None:
+        """The scene prior for the classifier's discriminant (a new one, started at the
+        training prior, when the discriminant changed); None when the configuration keeps the
+        training prior or the discriminant does not state it."""
+        disc = self.classifier.disc
+        cfg = self.ctx.config.classify
+        if (
+            disc is None
+            or disc.prior is None
+            or disc.views is None
+            or cfg.scene_prior_strength is None
+        ):
+            return None
+        if self.scene_prior is None or self.scene_prior.classes != disc.classes:
+            self.scene_prior = ScenePrior(
+                disc.classes,
+                disc.prior,
+                disc.views,
+                cfg.scene_prior_strength,
+                cfg.scene_prior_window,
+            )
+        return self.scene_prior
 
     def class_rows(self) -> tuple[np.ndarray, list[dict[str, float]]]:
         """The attributes every framed track is classified by: its tracker slots (K,) and,

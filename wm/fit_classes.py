@@ -238,7 +238,9 @@ def fit_discriminant(
     """The level-4 :class:`~kd_store.Discriminant` of ``samples``: a softmax over ``classes``
     (default: those with ``MIN_SAMPLES``) of :func:`sp.classify.discriminant_features`,
     fitted by weighted maximum likelihood (L-BFGS, ``MAX_ITER``) with a ridge ``l2`` on all
-    but the biases; each sample weighs ``count(its class) ** -balance``."""
+    but the biases; each sample weighs ``count(its class) ** -balance``. It states the
+    class shares that weighting gives (``prior``, :func:`training_prior`) and the mean
+    samples per track of each class (``views``), for ``sp.scene_prior``."""
     from scipy.optimize import minimize
 
     from kd_store import Level
@@ -260,6 +262,13 @@ def fit_discriminant(
         raise FitError(f"attributes {list(attributes)}: one is never observed in the samples")
     Z = discriminant_features(L - centre)
     count = np.bincount(y, minlength=len(classes)).astype(np.float64)
+    if not np.all(count > 0):
+        raise FitError(
+            f"classes {[c for c, n in zip(classes, count, strict=True) if not n]} have no samples"
+        )
+    tracks: list[set[tuple[str, int]]] = [set() for _ in classes]
+    for i, k in zip(keep, y.tolist(), strict=True):
+        tracks[k].add(samples.tracks[i])
     sw = count[y] ** -balance
     sw /= sw.sum()
     D, C = Z.shape[1], len(classes)
@@ -293,7 +302,16 @@ def fit_discriminant(
         tuple(round(float(c), 6) for c in centre),
         tuple(classes),
         tuple(tuple(round(float(v), 6) for v in row) for row in W),
+        training_prior(count, balance),
+        tuple(round(float(count[c] / len(tracks[c])), 3) for c in range(C)),
     )
+
+
+def training_prior(count: np.ndarray, balance: float) -> tuple[float, ...]:
+    """The class shares (C,) a fit weighing each sample by ``count(its class) ** -balance``
+    gives the classes of ``count`` (C,) samples: ``count ** (1 - balance)``, normalised."""
+    share = np.asarray(count, dtype=np.float64) ** (1.0 - balance)
+    return tuple(float(v) for v in share / share.sum())
 
 
 def to_yaml(
@@ -327,6 +345,10 @@ def to_yaml(
             "classes": list(d.classes),
             "weights": [list(r) for r in d.weights],
         }
+        if d.prior is not None:
+            doc["discriminant"]["prior"] = list(d.prior)
+        if d.views is not None:
+            doc["discriminant"]["views"] = list(d.views)
     return head + yaml.safe_dump(
         doc,
         sort_keys=False,
