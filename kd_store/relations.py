@@ -42,6 +42,11 @@ class RelationKind(StrEnum):
 
 
 K = RelationKind
+# the relations the world model ends as what it observes changes (parts, places)
+ENDED = frozenset(
+    {K.BELONGS_TO, K.HAS_PART, K.ON_TOP_OF, K.BENEATH, K.BESIDE, K.IN_FRONT_OF, K.BEHIND,
+     K.INSIDE_OF, K.NEAR}
+)  # fmt: skip
 INVERSE: dict[RelationKind, RelationKind] = {
     K.BELONGS_TO: K.HAS_PART,
     K.HAS_PART: K.BELONGS_TO,
@@ -228,6 +233,21 @@ class RelationGraph:
         if found and inv is not None:
             self._close_one(dst, inv, src, t_to_ns)
         return found
+
+    def restart(self, t_end_ns: int, t_start_ns: int) -> int:
+        """A clock that went back (a log whose time restarts): every open part-of and spatial
+        relation ends at ``t_end_ns``, the last time of the old clock, and holds again from
+        ``t_start_ns`` on the new one, so a later end on the new clock does not precede its
+        start (an event's relations, which nothing ends, stay as they are). Returns how many
+        relations (each direction counted) were restarted."""
+        n = 0
+        for rels in self._out.values():
+            for r in list(rels):
+                if r.kind in ENDED and r.t_to_ns is None and r.t_from_ns <= t_end_ns:
+                    self._swap(replace(r, t_to_ns=int(t_end_ns)))
+                    self._put(replace(r, t_from_ns=int(t_start_ns)))
+                    n += 1
+        return n
 
     def remove_node(self, node: int) -> None:
         """Drop every relation touching ``node`` (used when short-term memory forgets it)."""

@@ -370,6 +370,12 @@ class KnowledgeDatabase:
         """End ``src --kind--> dst`` at ``t_ns`` (kept in history); False if it was not open."""
         return self._pointers.unrelate(src, kind, dst, t_ns)
 
+    def restart_relations(self, t_end_ns: int, t_start_ns: int) -> int:
+        """The log's clock went back to ``t_start_ns`` after ``t_end_ns``: every open relation
+        ends at ``t_end_ns`` and holds again from ``t_start_ns`` (the two clocks' intervals
+        kept apart, :meth:`kd_store.relations.RelationGraph.restart`); returns how many."""
+        return self._pointers.graph.restart(t_end_ns, t_start_ns)
+
     def pointers(
         self, frame_id: int, kind: RelationKind | str | None = None, t_ns: int | None = None
     ) -> list[int]:

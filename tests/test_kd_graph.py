@@ -44,6 +44,34 @@ def test_regrouping_closes_the_old_parent_and_time_travel() -> None:
     assert kd.parts_tree(0, t_ns=60) == [(0, 0), (1, 1), (3, 2), (5, 3), (2, 1), (4, 2)]
 
 
+def test_a_clock_that_goes_back_restarts_the_open_relations_on_the_new_clock() -> None:
+    """A log's time restarts at 220 after 1200: the part-of and spatial relations open then
+    end at 1200 and hold again from 220, so ending one at 500 is no end before its start;
+    the relations already ended and an event's stay as they were."""
+    kd = _tree_kd()  # belongs_to from 10
+    kd.relate(2, "beside", 1, t_ns=900)
+    kd.relate(3, "belongs_to", 2, t_ns=600)  # surface 3 moved to vehicle 2: 3 -> 1 ends
+    ev = kd.add_event("e", "obstacle_avoided", 1000, t_end_ns=1000)
+    kd.relate(ev.id, "involves", 1, t_ns=1000)
+    with pytest.raises(KDError, match="end t_ns=500 is before its start t_ns=900"):
+        _tree_kd_beside_ended_before_start()
+    # the five open part-of relations and beside, each in both directions
+    assert kd.restart_relations(1200, 220) == 2 * 6
+    assert kd.unrelate(2, "beside", 1, t_ns=500)
+    assert kd.pointers(2, "beside", t_ns=1100) == [1]  # on the old clock
+    assert kd.pointers(2, "beside", t_ns=300) == [1] and kd.pointers(2, "beside") == []
+    assert kd.parent(3) == 2 and kd.parent(3, t_ns=1100) == 2
+    assert kd.pointers(ev.id, "involves") == [1]
+    r = [x for x in kd.relations(3) if x.kind == K.BELONGS_TO and x.dst == 1]
+    assert [(x.t_from_ns, x.t_to_ns) for x in r] == [(10, 600)]  # ended before: untouched
+
+
+def _tree_kd_beside_ended_before_start() -> None:
+    kd = _tree_kd()
+    kd.relate(2, "beside", 1, t_ns=900)
+    kd.unrelate(2, "beside", 1, t_ns=500)
+
+
 def test_neighbourhood_and_symmetric_kinds() -> None:
     kd = _tree_kd()
     kd.relate(2, "beside", 1, t_ns=10)

@@ -453,6 +453,10 @@ class WorldModelNode:
         self.flush()
         self._restart_continuity()
         self.stats.events["time_jump_new_segment"] += 1
+        if last is not None and int(held[0].t_ns) < last:
+            # the entities go on, but their relations cannot end on the new clock before
+            # they began on the old one
+            self.kd.restart_relations(last, int(held[0].t_ns))
         jump_s = (int(held[0].t_ns) - (last or 0)) * 1e-9
         note = (
             f"new segment at t_ns={held[0].t_ns}: the log jumped {abs(jump_s):.4g} s "
