@@ -257,3 +257,50 @@ def test_village_cars_are_parked_side_on_at_the_kerb() -> None:
         assert 2.2 + car.size[1] / 2 - 0.2 < d[i] < 2.2 + car.size[1] / 2 + 1.0
         along = abs(np.cos(car.yaw - world.route.heading[i]))
         assert along > 0.95
+
+
+def test_people_stand_by_the_road_with_a_persons_body_and_no_speed() -> None:
+    """Some persons stand still: static, at the village's pavements, 1.8-3.6 m off the lane;
+    a level ray meets a standing person's body at chest height, and one just inside the top
+    corner of its box misses the narrower head."""
+    world = World(load_scenario("village"))
+    standing = [o for o in world.statics if o.cls.value == "person"]
+    assert len(standing) >= 5
+    boxes = world.object_boxes(world.t0_ns)
+    ids = np.asarray(boxes.ids)
+    for p in standing:
+        d = np.hypot(*(world.route.xy - p.center[:2]).T).min()
+        assert 1.8 + p.size[1] / 2 - 0.2 < d < 1.8 + p.size[1] / 2 + 1.7
+        k = int(np.flatnonzero(ids == p.object_id)[0])
+        assert boxes.classes[k] == "person" and np.all(boxes.velocities[k] == 0.0)
+    origins, dirs, expect = [], [], []
+    for p in standing:
+        (l, w, h), yaw = p.size, p.yaw
+        left = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+        forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        start = p.center - (w / 2 + 0.3) * left
+        base = p.center[2] - h / 2
+        for z, shift, hit in ((base + 0.6 * h, 0.0, True), (base + 0.97 * h, 0.4 * l, False)):
+            origins.append([*(start + shift * forward)[:2], z])
+            dirs.append(left)
+            expect.append((p.object_id, hit))
+    hits = world.cast_rays(
+        np.array(origins), np.array(dirs)[:, None, :], np.zeros(len(origins), np.int64)
+    )
+    got = hits.object_id[:, 0] == np.array([oid for oid, _ in expect])
+    assert np.array_equal(got, [hit for _, hit in expect])
+
+
+def test_persons_have_the_statures_of_people() -> None:
+    """Heights drawn for a range of 1.0-2.0 m are a street's: adults around 1.70 m and a
+    few children, not a uniform spread (under which 45 % would be below 1.45 m)."""
+    from fixtures.world import _member_size
+
+    spec = load_scenario("village").agents[0]  # the crowd: 1.0-2.0 m
+    assert spec.cls.value == "person" and spec.size[2] == 1.0 and spec.size_max[2] == 2.0
+    rng = np.random.default_rng(5)
+    h = np.array([_member_size(spec, rng)[2] for _ in range(4000)])
+    assert 0.11 < np.mean(h < 1.45) < 0.19
+    adults = h[h >= 1.45]
+    assert abs(np.median(adults) - 1.70) < 0.02 and 0.07 < adults.std() < 0.11
+    assert h.min() >= 1.0 and h.max() <= 2.0
