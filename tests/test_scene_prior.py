@@ -222,3 +222,44 @@ def test_the_classifier_takes_the_scene_prior_but_never_an_implausible_class() -
     persons.rho = np.where(np.array(disc.classes) == "person", 0.999, 0.001)
     tall = clf.classify_many([{"height_m": 2.5, "length_m": 1.0, "width_m": 0.5}], persons)[0]
     assert tall.scores["person"] == IMPLAUSIBLE and tall.name == "vehicle"
+
+
+# ------------------------------------------------------------------ in a run
+
+
+def test_a_run_learns_the_mix_of_its_scene_from_the_objects_it_confirmed(tmp_path) -> None:
+    """A parking lot is mostly parked cars: the mix a run estimates there gives vehicles more
+    than the training mix did, and rests on the confirmed objects it measured, each once."""
+    import dataclasses
+
+    from fixtures.simulate import simulate_to_log
+    from kd_store import Status
+    from wm.config import NodeConfig, PoseSource
+    from wm.engine_config import EngineConfig
+    from wm.run import run_node
+
+    path = tmp_path / "parking.mcap"
+    simulate_to_log("parking", path, seconds=4.0, seed=7, progress=False)
+    node = run_node(path, ":memory:", NodeConfig(pose_source=PoseSource.TRUTH))
+    try:
+        scene = node.sp.level4.scene_prior
+        confirmed = [
+            f for f in node.kd.entities() if f.level == Level.OBJECT and f.status in
+            (Status.CONFIRMED, Status.GONE)
+        ]  # fmt: skip
+        assert 0.8 * len(confirmed) <= scene.n_objects <= len(confirmed)
+        vehicle = scene.classes.index("vehicle")
+        assert scene.rho[vehicle] > scene.rho_t[vehicle] + 0.1
+        assert int(np.argmax(scene.weights)) == vehicle
+    finally:
+        node.kd.close()
+    # switched off, the run keeps the training mix
+    cfg = EngineConfig(node=NodeConfig(pose_source=PoseSource.TRUTH))
+    sp = dataclasses.replace(
+        cfg.sp, classify=dataclasses.replace(cfg.sp.classify, scene_prior_strength=None)
+    )
+    node = run_node(path, ":memory:", dataclasses.replace(cfg, sp=sp), seconds=1.0)
+    try:
+        assert node.sp.level4.scene_prior is None
+    finally:
+        node.kd.close()
