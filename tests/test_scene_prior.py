@@ -11,7 +11,7 @@ import pytest
 from kd_store import ClassLibrary, KDError, Level
 from sp.classify import IMPLAUSIBLE, Classifier
 from sp.scene_prior import ScenePrior, ScenePriorError, adjust
-from wm.fit_classes import Samples, fit, fit_discriminant, to_yaml, training_prior
+from wm.fit_classes import FitError, Samples, fit, fit_discriminant, to_yaml, training_prior
 
 # two classes of one attribute, each a unit normal around its mean (the Bayes posterior under
 # any prior is then known in closed form, not through the code under test)
@@ -183,6 +183,9 @@ def test_the_discriminant_states_the_prior_its_probabilities_carry() -> None:
     w = np.array([{"person": 500, "vehicle": 4000}[c] ** -0.75 for c in s.labels])
     assert np.allclose((P * w[:, None]).sum(axis=0) / w.sum(), disc.prior, atol=2e-3)
     assert training_prior(np.array([1.0, 1.0]), 0.3) == (0.5, 0.5)
+    # a class asked for without samples has no share to state
+    with pytest.raises(FitError, match=r"classes \['rock'\] have no samples"):
+        fit_discriminant(s, attributes, ["person", "rock", "vehicle"])
 
 
 def test_the_prior_survives_the_overlay_and_a_bad_one_is_refused() -> None:
