@@ -35,7 +35,6 @@ samples are (``wm.fit_classes``).
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -85,9 +84,13 @@ class ScenePrior:
         # the training mix in objects: view shares over views per object
         self.rho_t = _unit(self.pi_t / v)
         self.rho = self.rho_t.copy()  # (C,) the scene's object shares as estimated (sum 1)
-        # object id -> its latest view's posterior under the training prior (C,), the object
-        # seen longest ago first
-        self._objects: OrderedDict[int, np.ndarray] = OrderedDict()
+        # each held object's likelihoods (its latest view's posterior over pi_t) in a slot of
+        # (window, C) rows, and when it was last seen (count of observe calls)
+        self._slot: dict[int, int] = {}
+        self._id_of = np.zeros(self.window, dtype=np.int64)
+        self._L = np.zeros((self.window, C))
+        self._seen = np.zeros(self.window, dtype=np.int64)
+        self._calls = 0
 
     @property
     def pi_s(self) -> np.ndarray:
@@ -102,7 +105,7 @@ class ScenePrior:
     @property
     def n_objects(self) -> int:
         """Objects the estimate rests on."""
-        return len(self._objects)
+        return len(self._slot)
 
     def observe(
         self, ids: Sequence[int], P: np.ndarray, iterations: int = 20, tol: float = 1e-4
@@ -119,22 +122,32 @@ class ScenePrior:
         s = P.sum(axis=1)
         if not np.all(np.isfinite(P)) or np.any(np.abs(s[s > 0] - 1.0) > 1e-6):
             raise ScenePriorError("posteriors must be finite rows summing to 1 (or 0)")
-        for i, row, ok in zip(ids, P, s > 0, strict=True):
-            if ok:
-                self._objects.pop(int(i), None)
-                self._objects[int(i)] = row
-        while len(self._objects) > self.window:
-            self._objects.popitem(last=False)
-        if not self._objects:
-            return
+        self._calls += 1
+        keep = s > 0
         # each object's likelihood of each class (to a factor per object)
-        L = np.stack(list(self._objects.values())) / self.pi_t
+        for i, row in zip(np.asarray(ids)[keep].tolist(), P[keep] / self.pi_t, strict=True):
+            k = self._slot.get(i)
+            if k is None and len(self._slot) < self.window:  # a free slot
+                k = len(self._slot)
+                self._slot[i] = k
+                self._id_of[k] = i
+            elif k is None:  # the slot of the object seen longest ago
+                k = int(self._seen.argmin())
+                del self._slot[int(self._id_of[k])]
+                self._slot[i] = k
+                self._id_of[k] = i
+            self._L[k] = row
+            self._seen[k] = self._calls
+        if not self._slot:
+            return
+        L = self._L[: len(self._slot)]
+        Q = np.empty_like(L)
         for _ in range(iterations):
-            # E: each object's posterior under the present object shares; M: their mean, with
-            # the training mix's pseudo-objects
-            rho = (adjust(L, self.rho).sum(axis=0) + self.strength * self.rho_t) / (
-                len(L) + self.strength
-            )
+            # E: each object's posterior under the present object shares (every held row has
+            # a plausible class); M: their mean, with the training mix's pseudo-objects
+            np.multiply(L, self.rho, out=Q)
+            Q /= Q.sum(axis=1, keepdims=True)
+            rho = (Q.sum(axis=0) + self.strength * self.rho_t) / (len(L) + self.strength)
             moved = float(np.abs(rho - self.rho).max())
             self.rho = rho
             if moved < tol:
