@@ -42,11 +42,6 @@ class RelationKind(StrEnum):
 
 
 K = RelationKind
-# the relations the world model ends as what it observes changes (parts, places)
-ENDED = frozenset(
-    {K.BELONGS_TO, K.HAS_PART, K.ON_TOP_OF, K.BENEATH, K.BESIDE, K.IN_FRONT_OF, K.BEHIND,
-     K.INSIDE_OF, K.NEAR}
-)  # fmt: skip
 INVERSE: dict[RelationKind, RelationKind] = {
     K.BELONGS_TO: K.HAS_PART,
     K.HAS_PART: K.BELONGS_TO,
@@ -299,6 +294,9 @@ class RelationGraph:
 SPATIAL = frozenset(
     {K.ON_TOP_OF, K.BENEATH, K.BESIDE, K.IN_FRONT_OF, K.BEHIND, K.INSIDE_OF, K.NEAR}
 )
+#: The kinds the world model ends as what it observes changes (parts, places); an event's
+#: relations are never ended.
+ENDED = frozenset({K.BELONGS_TO, K.HAS_PART}) | SPATIAL
 
 
 class FramePointers:

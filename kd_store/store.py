@@ -371,10 +371,11 @@ class KnowledgeDatabase:
         return self._pointers.unrelate(src, kind, dst, t_ns)
 
     def restart_relations(self, t_end_ns: int, t_start_ns: int) -> int:
-        """The log's clock went back to ``t_start_ns`` after ``t_end_ns``: every open relation
-        ends at ``t_end_ns`` and holds again from ``t_start_ns`` (the two clocks' intervals
-        kept apart, :meth:`kd_store.relations.RelationGraph.restart`); returns how many."""
-        return self._pointers.graph.restart(t_end_ns, t_start_ns)
+        """The log's clock went back to ``t_start_ns`` after ``t_end_ns``: every open part-of
+        and spatial relation ends at ``t_end_ns`` and holds again from ``t_start_ns`` (the two
+        clocks' intervals kept apart, :meth:`kd_store.relations.RelationGraph.restart`);
+        returns how many, each direction counted."""
+        return self.graph.restart(t_end_ns, t_start_ns)
 
     def pointers(
         self, frame_id: int, kind: RelationKind | str | None = None, t_ns: int | None = None
