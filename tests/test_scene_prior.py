@@ -114,9 +114,12 @@ def test_the_estimate_starts_at_the_training_mix_and_counts_objects_not_views() 
 def test_the_window_forgets_the_objects_seen_longest_ago() -> None:
     prior = ScenePrior(("a", "b"), (0.5, 0.5), (1, 1), strength=1.0, window=5)
     prior.observe(list(range(5)), np.array([[1.0, 0.0]] * 5))
-    assert prior.rho[0] > 0.9
-    prior.observe(list(range(5, 10)), np.array([[0.0, 1.0]] * 5))
-    assert prior.n_objects == 5 and prior.rho[1] > 0.9
+    assert np.allclose(prior.rho, [5.5 / 6, 0.5 / 6])
+    # object 0 is seen again, now looking like a "b", then four new objects of "b" take the
+    # slots of objects 1-4, not its (by first sighting, 4 would stay and 0 go: 1.5 / 6 "a")
+    prior.observe([0], np.array([[0.0, 1.0]]))
+    prior.observe(list(range(5, 9)), np.array([[0.0, 1.0]] * 4))
+    assert prior.n_objects == 5 and np.allclose(prior.rho, [0.5 / 6, 5.5 / 6])
 
 
 def test_adjusting_moves_probability_towards_the_likelier_class_and_keeps_zeros() -> None:
