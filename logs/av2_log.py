@@ -1,9 +1,19 @@
 """Argoverse 2 sensor logs (the folder of one log: ``sensors/lidar/<t_ns>.feather`` ...).
 
 * ``sensors/lidar/<t_ns>.feather`` (x, y, z float16 in the ego-vehicle frame, intensity uint8,
-  laser_number uint8, offset_ns int32) -> :class:`LadarScan` on ``/ladar/points`` in frame
-  ``base_link`` (the ego vehicle), stamped with the file's ``t_ns``, ``ring`` =
-  laser_number, ``t_offset_ns`` = offset_ns, intensity 0..255 as float32.
+  laser_number uint8, offset_ns int32) -> :class:`LadarScan` on ``/ladar/points``, stamped
+  with the file's ``t_ns``, ``t_offset_ns`` = offset_ns, intensity 0..255 as float32.
+  The points are moved into frame ``ladar``, the upper LiDAR's (``up_lidar`` of
+  ``calibration/egovehicle_SE3_sensor.feather``, published as the static transform
+  ``base_link -> ladar`` on ``/tf_static``): the ego frame's origin lies on the ground under
+  the rear axle, 1.6 m below the sensors, and SP's egosphere and ground segmentation look
+  from the sensor. The lower LiDAR's points keep their own positions (its origin is 0.12 m
+  below the upper one's). Without the calibration file they stay in ``base_link``.
+* ``ring``: the rows of the two stacked 32-beam Velodynes in elevation order, 0 the lowest.
+  AV2's ``laser_number`` is each unit's firing index (0-31 the upper unit, 32-63 the lower,
+  mounted upside down), which interleaves elevations: the lasers are ranked by the median
+  elevation of their returns (seen from the ``ladar`` origin) in the log's first sweep, and
+  every sweep uses that ranking.
 * ``city_SE3_egovehicle.feather`` -> :class:`GroundTruthPose` ``world`` (the AV2 city frame)
   -> ``base_link`` on ``/ground_truth/pose``.
 * ``annotations.feather`` (cuboids in the ego frame at their timestamp) ->
@@ -26,13 +36,23 @@ from pathlib import Path
 
 import numpy as np
 
-from core.geometry import BODY, WORLD, interpolate_pose, quat_to_matrix
+from core.geometry import BODY, LADAR, WORLD, interpolate_pose, quat_to_matrix
 from logs.source import LogSource, TopicInfo
-from logs.types import GroundTruthPose, LadarScan, LogError, LogMessage, ObjectBoxes
+from logs.types import (
+    GroundTruthPose,
+    LadarScan,
+    LogError,
+    LogMessage,
+    ObjectBoxes,
+    TransformFrame,
+)
 
 LADAR_TOPIC = "/ladar/points"
 POSE_TOPIC = "/ground_truth/pose"
 BOXES_TOPIC = "/ground_truth/objects"
+TF_STATIC_TOPIC = "/tf_static"
+# the calibration entry whose pose is the ``ladar`` frame
+LADAR_SENSOR = "up_lidar"
 
 
 def _read_feather(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
@@ -72,6 +92,64 @@ class Av2LogSource(LogSource):
             raise LogError(f"{self.path}: lidar files must be named <t_ns>.feather") from exc
         self._poses: tuple[np.ndarray, np.ndarray] | None = None
         self._boxes: list[ObjectBoxes] | None = None
+        self._T_body_ladar: np.ndarray | None = None
+        self._calibrated: bool | None = None
+        self._ring_rows: np.ndarray | None = None
+
+    # -------------------------------------------------------------- sensor geometry
+    @property
+    def T_body_ladar(self) -> np.ndarray | None:
+        """(4, 4) pose of the ``ladar`` frame (the upper LiDAR) in ``base_link``, from the
+        calibration file; None when the log has none (scans then stay in ``base_link``)."""
+        if self._calibrated is None:
+            self._calibrated = False
+            path = self.path / "calibration" / "egovehicle_SE3_sensor.feather"
+            if path.is_file():
+                cols = ["sensor_name", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m"]
+                c = _read_feather(path, cols)
+                names = [str(n) for n in c["sensor_name"]]
+                if LADAR_SENSOR not in names:
+                    raise LogError(f"{path}: no {LADAR_SENSOR!r} among sensors {names}")
+                k = names.index(LADAR_SENSOR)
+                T = np.eye(4)
+                T[:3, :3] = _quat_wxyz_to_matrices(
+                    c["qw"][k : k + 1], c["qx"][k : k + 1], c["qy"][k : k + 1], c["qz"][k : k + 1]
+                )[0]
+                T[:3, 3] = [c["tx_m"][k], c["ty_m"][k], c["tz_m"][k]]
+                self._T_body_ladar = T
+                self._calibrated = True
+        return self._T_body_ladar
+
+    def ring_rows(self) -> np.ndarray:
+        """(256,) int64: the row of each ``laser_number``, lasers ranked by the median
+        elevation (seen from the scans' origin) of their returns in the first sweep, 0 the
+        lowest; lasers absent from it follow in laser order."""
+        if self._ring_rows is None:
+            xyz, laser, _, _ = self._read_points(0)
+            elevation = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
+            lasers = np.unique(laser)
+            median = np.array([np.median(elevation[laser == k]) for k in lasers])
+            rows = np.arange(256, dtype=np.int64)
+            ranked = lasers[np.argsort(median, kind="stable")]
+            rest = np.setdiff1d(rows, ranked)
+            rows[np.concatenate([ranked, rest])] = np.arange(256)
+            self._ring_rows = rows
+        return self._ring_rows
+
+    def _read_points(self, i: int) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], int]:
+        """Sweep ``i``'s finite points (N, 3) float64 in the scans' frame, their laser
+        numbers (N,), the file's columns (finite rows only) and how many rows were not
+        finite."""
+        path = self.sweep_files[i]
+        c = _read_feather(path, ["x", "y", "z", "intensity", "laser_number", "offset_ns"])
+        xyz = np.stack([c["x"], c["y"], c["z"]], axis=1).astype(np.float64)
+        finite = np.isfinite(xyz).all(axis=1)
+        c = {k: v[finite] for k, v in c.items()}
+        xyz = xyz[finite]
+        T = self.T_body_ladar
+        if T is not None:  # p_ladar = R^T (p_body - t)
+            xyz = (xyz - T[:3, 3]) @ T[:3, :3]
+        return xyz, c["laser_number"].astype(np.int64), c, int(finite.size - finite.sum())
 
     # -------------------------------------------------------------- ground truth tables
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -165,22 +243,25 @@ class Av2LogSource(LogSource):
 
     # -------------------------------------------------------------- LogSource
     def _sweep(self, i: int) -> LadarScan:
-        path = self.sweep_files[i]
-        c = _read_feather(path, ["x", "y", "z", "intensity", "laser_number", "offset_ns"])
-        xyz = np.stack([c["x"], c["y"], c["z"]], axis=1).astype(np.float32)
-        finite = np.isfinite(xyz).all(axis=1)
-        n_bad = int(finite.size - finite.sum())
+        xyz, laser, c, n_bad = self._read_points(i)
         if n_bad:
             self.stats.dropped_nonfinite_points += n_bad
         return LadarScan(
             t_ns=int(self.sweep_t_ns[i]),
-            frame_id=BODY,
-            points_xyz=xyz[finite],
-            intensity=c["intensity"][finite].astype(np.float32),
-            t_offset_ns=c["offset_ns"][finite].astype(np.int64),
-            ring=c["laser_number"][finite].astype(np.uint16),
+            frame_id=BODY if self.T_body_ladar is None else LADAR,
+            points_xyz=xyz.astype(np.float32),
+            intensity=c["intensity"].astype(np.float32),
+            t_offset_ns=c["offset_ns"].astype(np.int64),
+            ring=self.ring_rows()[laser].astype(np.uint16),
             topic=LADAR_TOPIC,
         )
+
+    def _first_t_ns(self) -> int | None:
+        """The earliest stamp of any message of the log, or None when it has none."""
+        times = [int(t[0]) for t in (self.sweep_t_ns, self.poses()[0]) if t.size]
+        if self.boxes():
+            times.append(self.boxes()[0].t_ns)
+        return min(times) if times else None
 
     def _streams(
         self, kinds: tuple[type, ...] | None, topics: frozenset[str] | None
@@ -189,6 +270,12 @@ class Av2LogSource(LogSource):
             return (kinds is None or kind in kinds) and (topics is None or topic in topics)
 
         streams = []
+        t0 = self._first_t_ns()
+        if wanted(TransformFrame, TF_STATIC_TOPIC) and self.T_body_ladar is not None and t0:
+            tf = TransformFrame(
+                t0, BODY, LADAR, self.T_body_ladar.copy(), static=True, topic=TF_STATIC_TOPIC
+            )
+            streams.append(iter([(t0, -1, tf)]))
         if wanted(LadarScan, LADAR_TOPIC):
             streams.append((int(t), 0, self._sweep(i)) for i, t in enumerate(self.sweep_t_ns))
         if wanted(GroundTruthPose, POSE_TOPIC):
@@ -209,6 +296,9 @@ class Av2LogSource(LogSource):
 
     def _topics(self) -> list[TopicInfo]:
         out = []
+        t0 = self._first_t_ns()
+        if self.T_body_ladar is not None and t0 is not None:
+            out.append(TopicInfo(TF_STATIC_TOPIC, "TransformFrame", 1, t0, t0))
         if self.sweep_t_ns.size:
             t = self.sweep_t_ns
             out.append(TopicInfo(LADAR_TOPIC, "LadarScan", t.size, int(t.min()), int(t.max())))

@@ -35,7 +35,7 @@ def test_av2_sweeps_poses_and_boxes(real_data) -> None:
     scans = list(src.frames(kinds=LadarScan))
     assert [s.n_points for s in scans] == [99_229, 99_466]
     first = scans[0]
-    assert first.t_ns == 315966265259836000 and first.frame_id == "base_link"
+    assert first.t_ns == 315966265259836000 and first.frame_id == "ladar"
     assert first.points_xyz.dtype == np.float32 and first.ring.dtype == np.uint16
     assert set(np.unique(first.ring)) == set(range(64))  # two stacked 32-beam Velodynes
     assert first.t_offset_ns.min() >= 0
@@ -49,7 +49,41 @@ def test_av2_sweeps_poses_and_boxes(real_data) -> None:
         GroundTruthPose: 2706,
         ObjectBoxes: 156,
         LadarScan: 2,
+        TransformFrame: 1,
     }
+    assert isinstance(frames[0], TransformFrame)  # the mount comes before any sweep
+
+
+def test_av2_scans_are_in_the_lidar_frame_with_rings_in_elevation_order(real_data) -> None:
+    """The points come back in base_link through the published mount (the file's own
+    numbers, to float16 precision), and every sweep's rows rise in elevation: AV2's laser
+    numbers interleave the elevations of its two 32-beam units."""
+    import pyarrow.feather as feather
+
+    src = open_log(real_data / "av2")
+    tf = next(iter(src.frames(kinds=TransformFrame)))
+    assert (tf.parent_frame_id, tf.child_frame_id, tf.static) == ("base_link", "ladar", True)
+    calib = feather.read_table(real_data / "av2" / "calibration" / "egovehicle_SE3_sensor.feather")
+    k = calib["sensor_name"].to_pylist().index("up_lidar")
+    assert tf.T_parent_child[:3, 3] == pytest.approx(
+        [calib[c][k].as_py() for c in ("tx_m", "ty_m", "tz_m")]
+    )
+    for scan, path in zip(src.frames(kinds=LadarScan), src.sweep_files, strict=True):
+        raw = feather.read_table(path, columns=["x", "y", "z", "laser_number"])
+        xyz = np.stack([raw[c].to_numpy().astype(np.float64) for c in "xyz"], axis=1)
+        T = tf.T_parent_child
+        back = scan.points_xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        np.testing.assert_allclose(back, xyz, atol=1e-5)
+        p = scan.points_xyz.astype(np.float64)
+        elevation = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+        median = np.array([np.median(elevation[scan.ring == r]) for r in range(64)])
+        # pairs of lasers, one of each unit, share an elevation to within a few hundredths
+        assert np.all(np.diff(median) > -0.05), np.round(median, 2)
+        assert median[0] < -24 and median[-1] > 24  # the lowest and highest beams
+        # the laser numbers themselves are not in elevation order
+        laser = raw["laser_number"].to_numpy()
+        by_laser = np.array([np.median(elevation[laser == n]) for n in range(64)])
+        assert np.any(np.diff(by_laser) < -5.0)
 
 
 def test_av2_box_ids_are_stable_and_static_objects_stand_still(real_data) -> None:

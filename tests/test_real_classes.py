@@ -153,7 +153,9 @@ def av2_scores(folder: Path) -> dict:
         scan, b = sweeps.get(int(r.t_ns)), boxes.get(int(r.t_ns))
         if scan is None or b is None:
             continue
-        pts = scan.points_xyz[r.point_index].astype(np.float64)
+        # the scan's frame (the LiDAR's) -> base_link, the cuboids' frame
+        T = node.T_body_ladar
+        pts = scan.points_xyz[r.point_index].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         for j in range(len(b.ids)):
             member = _inside(pts, b.centers[j], b.sizes[j], float(b.yaws[j]))
             if member.sum() < MIN_CUBOID_POINTS:
@@ -229,16 +231,15 @@ def test_av2_cuboids_are_found(real_data: Path) -> None:
     # the log's two sweeps are 0.1 s apart: the vehicle moves a few centimetres between them,
     # and the odometry (LADAR alone: no wheel odometry in the log) must find that motion
     assert s["moved_m"] < 1.0 and s["odometry_error_m"] < 0.2, s
-    # the target (0.9) is missed: measured on odometry poses 20 of 24 cuboids with >= 20
-    # interior points found (recall 0.833; the misses two pedestrians and a bicycle that
-    # segmentation merges with their surroundings, and a vehicle), class agreement 10 of 19
-    # (0.526) with the fitted level-4 discriminant (6 of 19 with the fitted prototypes' own
-    # likelihood; 0.21-0.26 written down; 0.42, then 0.368, before the rule that takes a low
-    # segment lying on the ground the map knows back to the terrain took part of a parked
-    # vehicle for terrain, which on a log of two sweeps leaves it a "bush"). These bounds
-    # guard against losing more
-    assert s["recall"] >= 0.8, s
-    assert s["class_agreement"] >= 0.45, s
+    # the target (0.9) is missed: measured on odometry poses 23 of 26 cuboids with >= 20
+    # interior points found (recall 0.885; missed: two vehicles and a bicycle), class agreement
+    # 12 of 21 (0.571). Before the log reader gave the scans from the LiDAR's origin with rows
+    # in elevation order (they were seen from the ground under the rear axle, rows in firing
+    # order, so every column of the egosphere jumped between elevations and a pedestrian broke
+    # into five pieces): 20 of 24 (0.833), 10 of 19 (0.526). These bounds guard against losing
+    # more
+    assert s["recall"] >= 0.85, s
+    assert s["class_agreement"] >= 0.5, s
 
 
 if __name__ == "__main__":
