@@ -12,11 +12,18 @@ or one after a gap of more than ``deskew_max_gap_s``, is taken at the one pose. 
 deskewed the sweep itself (the world model's node, on its pose track) gives those points
 instead, and every pixel takes its return's point from them, so SP and the maps see the same
 points.
+
+The egosphere takes a sweep's ``ring`` for its row, so the rings must run in elevation order.
+Drivers differ: a Velodyne's ROS driver numbers them so, an Ouster numbers them from the
+top, and a raw ``laser_number`` is the firing order, which interleaves elevations. Level 1
+checks the first sweep that has rings: when their median elevations do not run the way the
+egosphere expects (``ring_zero_at_bottom``), every ring is given the row of its rank in
+elevation (:func:`ring_rows`) from then on.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -27,7 +34,11 @@ from sp.context import SPConfig
 from sp.egosphere import EgosphereImage, to_egosphere
 from sp.sweep_points import sweep_points
 
-__all__ = ["PixelLevel", "PixelLevelError", "PixelsObserved", "column_poses"]
+__all__ = ["PixelLevel", "PixelLevelError", "PixelsObserved", "column_poses", "ring_rows"]
+
+# Rings whose median elevations differ by less than this (rad) may come in either order: the
+# two units of a stacked pair share elevations to a few hundredths of a degree.
+RING_TIE_RAD = float(np.deg2rad(0.1))
 
 
 class PixelLevelError(EngineError, ValueError):
@@ -65,6 +76,9 @@ class PixelLevel:
     def __init__(self, config: SPConfig) -> None:
         self.config = config
         self._last_pose: tuple[int, np.ndarray] | None = None  # (pose_t_ns, T_world_ladar)
+        # ring -> row when the sensor's rings are not in elevation order; checked once
+        self._ring_rows: np.ndarray | None = None
+        self._rings_checked = False
 
     def step(
         self,
@@ -78,7 +92,7 @@ class PixelLevel:
         sweep's points already deskewed into the world by the caller, in the scan's order;
         None: each column is deskewed here (:func:`column_poses`). Raises
         :class:`PixelLevelError` when ``points_world`` does not match the sweep."""
-        img = to_egosphere(scan, self.config.egosphere)
+        img = to_egosphere(self._in_elevation_order(scan), self.config.egosphere)
         valid = img.valid_first
         if points_world is None:
             T_cols = self._column_poses(img, int(scan.t_ns), T_world_ladar, pose_t_ns)
@@ -90,6 +104,23 @@ class PixelLevel:
         range_m = np.where(valid, img.range_first, np.inf)
         return PixelsObserved(img, valid, xyz_s, xyz_g, xyz_w, row_el, range_m)
 
+    def _in_elevation_order(self, scan: LadarScan) -> LadarScan:
+        """``scan`` with its rings renumbered by elevation when the first sweep with rings
+        showed them out of order (module docstring); else ``scan`` itself."""
+        if scan.ring is None or not self.config.egosphere.use_ring:
+            return scan
+        if not self._rings_checked:
+            self._rings_checked = True
+            self._ring_rows = ring_rows(
+                scan.points_xyz, scan.ring, self.config.egosphere.ring_zero_at_bottom
+            )
+        if self._ring_rows is None:
+            return scan
+        ring = np.asarray(scan.ring, dtype=np.int64)
+        known = ring < self._ring_rows.size  # a ring the first sweep lacked keeps its number
+        rows = np.where(known, self._ring_rows[np.where(known, ring, 0)], ring)
+        return replace(scan, ring=rows.astype(np.uint16))
+
     def _column_poses(
         self, img: EgosphereImage, t_ns: int, T_world_ladar: np.ndarray, pose_t_ns: int
     ) -> np.ndarray:
@@ -100,6 +131,37 @@ class PixelLevel:
         if last is None or not 0 < gap_ns <= self.config.deskew_max_gap_s * 1e9:
             return T_world_ladar[None]
         return column_poses(img, t_ns, last[1], last[0], T_world_ladar, pose_t_ns)
+
+
+def ring_rows(
+    points_xyz: np.ndarray, ring: np.ndarray, zero_at_bottom: bool = True
+) -> np.ndarray | None:
+    """The row of each ring number (R,) int64, R = max ring + 1, when the rings of one sweep
+    are not in elevation order, else None.
+
+    points_xyz (N, 3) m in the sensor frame, ring (N,) its beam numbers. Each ring's median
+    elevation ranks it, the lowest first when ``zero_at_bottom``, else the highest: the k-th
+    ring so ranked takes the k-th smallest number present, and rings without a return keep
+    theirs. Order is judged up to ties of ``RING_TIE_RAD``, so a sensor already in order is
+    left alone.
+    """
+    xyz = np.asarray(points_xyz, dtype=np.float64)
+    r = np.asarray(ring, dtype=np.int64)
+    if r.size == 0:
+        return None
+    elevation = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
+    order = np.lexsort((elevation, r))
+    rings, first, count = np.unique(r[order], return_index=True, return_counts=True)
+    median = 0.5 * (
+        elevation[order[first + (count - 1) // 2]] + elevation[order[first + count // 2]]
+    )
+    up = median if zero_at_bottom else -median
+    if np.all(np.diff(up) > -RING_TIE_RAD):
+        return None
+    # the ring k-th in elevation takes the k-th of the numbers present; the others stay
+    rows = np.arange(int(rings[-1]) + 1, dtype=np.int64)
+    rows[rings[np.argsort(up, kind="stable")]] = rings
+    return rows
 
 
 def _place(xyz_w: np.ndarray, img: EgosphereImage, points_world: np.ndarray, n: int) -> None:
