@@ -16,6 +16,7 @@ maps and the knowledge database can all stand on it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -33,6 +34,16 @@ NS_PER_S = 1_000_000_000
 
 class GeometryError(EngineError, ValueError):
     """A pose, rotation or quaternion that is not what its name promises."""
+
+
+def mount_of(frame_id: str, mounts: Mapping[str, np.ndarray]) -> np.ndarray | None:
+    """``T_body_frame`` (4, 4) of data given in ``frame_id``: the identity for ``base_link``
+    itself, the log's transform ``base_link -> frame_id`` when ``mounts`` (child frame id ->
+    4x4) holds one, else None (unknown)."""
+    if frame_id == BODY:
+        return np.eye(4)
+    T = mounts.get(frame_id)
+    return None if T is None else np.asarray(T, dtype=np.float64)
 
 
 def seconds_to_ns(t_s: float | np.ndarray) -> int | np.ndarray:

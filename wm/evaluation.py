@@ -26,7 +26,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.errors import EngineError
-from core.geometry import pose_from_xyz_quat, se3_inverse, transform_points
+from core.geometry import BODY, mount_of, pose_from_xyz_quat, se3_inverse, transform_points
 from wm.poses import PoseTrack, deskew_to_world
 from wm.truth import CLASS_ALIASES, footprint_distance
 
@@ -104,8 +104,8 @@ class Seen:
 class Truth:
     """A log's ground truth: true body poses, truth boxes in the truth world (time order),
     what each LADAR sweep saw of them (:class:`Seen`, in time order) and the static mount
-    ``T_body_ladar`` (4x4). The sweeps themselves are not kept: a long log's points would not
-    fit in memory."""
+    ``T_body_ladar`` (4x4) of the sweeps' frame (the identity for sweeps in ``base_link``).
+    The sweeps themselves are not kept: a long log's points would not fit in memory."""
 
     poses: PoseTrack
     boxes: list[Any]  # logs.types.ObjectBoxes, frame "world", classes after CLASS_ALIASES
@@ -208,6 +208,8 @@ def _load_truth(log_path: str | Path, config: EvalConfig, source: Any) -> Truth:
     waiting: deque[Sweep] = deque()
     last_box_ns = -(2**62)
     kinds = (GroundTruthPose, ObjectBoxes, LadarScan, TransformFrame)
+    mounts: dict[str, np.ndarray] = {}  # child frame -> T_body_child, from /tf_static
+    mount_fixed = False
     for f in source.frames(kinds=kinds):
         if isinstance(f, GroundTruthPose):
             truth.poses.add(f.t_ns, f.T_parent_child)
@@ -216,9 +218,13 @@ def _load_truth(log_path: str | Path, config: EvalConfig, source: Any) -> Truth:
                 waiting_boxes.append(f)
                 last_box_ns = max(last_box_ns, int(f.t_ns))
         elif isinstance(f, LadarScan):
+            if not mount_fixed:  # the first sweep's frame and the mounts then known
+                mount_fixed = True
+                T = mount_of(f.frame_id, mounts)
+                truth.T_body_ladar = np.eye(4) if T is None else T
             waiting.append(Sweep(f.t_ns, f.points_xyz, np.asarray(f.t_offset_ns, np.int64)))
-        elif f.static and f.child_frame_id == "ladar":
-            truth.T_body_ladar = np.asarray(f.T_parent_child, dtype=np.float64)
+        elif f.static and f.parent_frame_id == BODY:
+            mounts[f.child_frame_id] = np.asarray(f.T_parent_child, dtype=np.float64)
         waiting_boxes = _boxes_to_world(truth, waiting_boxes)
         last_pose_ns = truth.poses.t_ns[-1] if len(truth.poses) else -(2**62)
         while (

@@ -66,6 +66,7 @@ from core.geometry import (
     check_pose,
     matrix_to_quat,
     matrix_to_rpy,
+    mount_of,
     rpy_to_matrix,
     se3,
 )
@@ -252,8 +253,9 @@ class WorldModelNode:
             self.stack.level(self.config.ground_prior_level)
         if self.sp is None:
             self.stats.notes.append("SP levels 2..5 off (NodeConfig.use_sp)")
-        self.T_body_ladar: np.ndarray | None = None
+        self.T_body_ladar: np.ndarray | None = None  # fixed by the first sweep
         self.T_body_camera: np.ndarray | None = None
+        self.mounts: dict[str, np.ndarray] = {}  # child frame -> T_body_child, from /tf
         self.truth = PoseTrack()
         self.track = PoseTrack()  # the poses the node uses (estimated, or truth)
         self.odometry: Any | None = None
@@ -359,6 +361,7 @@ class WorldModelNode:
         elif isinstance(frame, ObjectBoxes):
             self.truth_boxes = self._boxes_in_world(frame)
         elif isinstance(frame, LadarScan):
+            frame = self._in_ladar_frame(frame)
             self.last_sweep_t_ns = frame.t_ns
             self.pending.append(frame)
         self._learn_gap(int(frame.t_ns))
@@ -616,10 +619,34 @@ class WorldModelNode:
     def _transform(self, frame: TransformFrame) -> None:
         if frame.parent_frame_id != BODY:
             return
-        if frame.child_frame_id == LADAR or frame.child_frame_id.startswith(LADAR):
-            self.T_body_ladar = frame.T_parent_child
-        elif frame.child_frame_id.startswith(CAMERA):
+        self.mounts[frame.child_frame_id] = frame.T_parent_child
+        if frame.child_frame_id.startswith(CAMERA):
             self.T_body_camera = frame.T_parent_child
+
+    def _in_ladar_frame(self, scan: LadarScan) -> LadarScan:
+        """``scan`` in the LADAR's own frame, whose origin SP's egosphere looks from.
+
+        The first sweep fixes the mount ``T_body_ladar``: the log's transform from
+        ``base_link`` to the sweep's frame; for a sweep given in ``base_link``, the log's
+        ``ladar`` mount, into which its points are moved (seen from the body's origin, on
+        the ground under a car, every elevation would be wrong); with neither, the body
+        itself (noted in ``stats.notes``)."""
+        if self.T_body_ladar is None:
+            T = mount_of(scan.frame_id, self.mounts)
+            if scan.frame_id == BODY:
+                T = self.mounts.get(LADAR)
+            if T is None:
+                T = np.eye(4)
+                self.stats.notes.append(
+                    f"no {BODY}->{LADAR if scan.frame_id == BODY else scan.frame_id} transform"
+                    f" in the log: LADAR taken at the body"
+                )
+            self.T_body_ladar = np.asarray(T, dtype=np.float64)
+        if scan.frame_id != BODY:
+            return scan
+        R, t = self.T_body_ladar[:3, :3], self.T_body_ladar[:3, 3]
+        xyz = ((scan.points_xyz.astype(np.float64) - t) @ R).astype(np.float32)
+        return dataclasses.replace(scan, points_xyz=xyz, frame_id=LADAR)
 
     def _boxes_in_world(self, boxes: ObjectBoxes) -> ObjectBoxes | None:
         """Ground-truth boxes in the world frame (body-frame boxes moved with the true pose)."""
@@ -661,12 +688,7 @@ class WorldModelNode:
         image when the sweep's poses came in. None when the odometry could not place the
         sweep (counted in ``stats.skipped["odometry failed"]``): nothing else is done."""
         clock = _StageClock(self.stats)
-        if self.T_body_ladar is None:
-            self.T_body_ladar = np.eye(4)
-            if scan.frame_id != BODY:
-                self.stats.notes.append(
-                    f"no {BODY}->{scan.frame_id} transform in the log: LADAR taken at the body"
-                )
+        scan = self._in_ladar_frame(scan)
         status = self._pose(scan)
         if status is None:
             return None
