@@ -204,19 +204,21 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
     # each car's own entity: 8 of 10 (car 209, in the shadow of 210 and 504, is mostly part of
     # 504's entity; car 219 is never confirmed)
     assert s["recall_alone"] >= 0.8, s
-    # targets missed, recorded above: 5 of the 9 cars found classified vehicle (0.56; 0.8
+    # target missed, recorded above: 5 of the 9 cars found classified vehicle (0.56; 0.8
     # wanted: two partly seen cars 26-34 m out, 1.5-2.3 m of them in view, and a third are
-    # called rock or bush, and car 211 tree since the level-4 discriminant, 6 of 9 before it),
-    # and 1 object called person where the labels have none (the classes fitted on the
-    # simulator's sensors take real clutter of person size, such as trunks and
-    # poles thicker than the simulated posts, for persons); no crowd or convoy. Car 213 was
+    # called rock or bush, and car 211 tree since the level-4 discriminant, 6 of 9 before it).
+    # No person, crowd or convoy: the last object called person where the labels have none,
+    # 207 "other-object" returns on an upright plane 1.09 m high and 0.9 x 0.6 m across, is
+    # street furniture since the simulator has bins and cabinets (version 6) to learn that
+    # class from; before, the classes fitted on the simulator's sensors took such real
+    # clutter of person size for persons (2 of them before the scene's class mix). Car 213 was
     # called a wall while a sliver of it that had joined its track gave the track its shape
     # (sp.level4_objects.largest_segment_of_track). The vehicle share was 0.78 while three
     # cars parked nose to tail were one entity and that one "vehicle" counted for each (a
     # grouping link across the returns between them, since removed). These bounds guard
     # against worse
     assert s["vehicle_of_found"] >= 0.55, s
-    assert s["person"] <= 2 and s["crowd"] == 0 and s["convoy"] == 0, s
+    assert s["person"] == 0 and s["crowd"] == 0 and s["convoy"] == 0, s
 
 
 @pytest.mark.real_data

@@ -293,7 +293,8 @@ def test_sizes_stray_beyond_the_class_prototypes() -> None:
         heights.append(boxes.sizes[classes == "person", 2])
     lengths, heights = np.concatenate(lengths), np.concatenate(heights)
     assert lengths.min() < 3.8 and lengths.max() > 6.5
-    assert heights.min() < 1.3 and heights.max() > 1.9
+    # children well under it, adults over it by more than a standard deviation (0.09 m)
+    assert heights.min() < 1.3 and heights.max() > 1.85
     # the jitter leaves a population's range: 20 objects all drawn at exactly 10 x 8 x 6 m
     pop = PopulationSpec(BUILDING, 20, (10.0, 8.0, 6.0), (10.0, 8.0, 6.0), 2.0, 2.0, None)
     world = World(flat_scenario([], [dataclasses.replace(pop, size_jitter=0.1)]))

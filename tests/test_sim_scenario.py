@@ -61,7 +61,7 @@ def test_missing_file_is_named(tmp_path) -> None:
 def test_default_scenario_has_what_the_demo_needs() -> None:
     sc = load_scenario("default")
     static_counts = Counter(p.cls for p in sc.populations for _ in range(p.count))
-    assert 35 <= sum(static_counts.values()) <= 50
+    assert 45 <= sum(static_counts.values()) <= 60
     assert {
         ObjectClass.BUILDING,
         ObjectClass.TREE,
@@ -69,6 +69,8 @@ def test_default_scenario_has_what_the_demo_needs() -> None:
         ObjectClass.ROCK,
         ObjectClass.POST,
         ObjectClass.WALL,
+        ObjectClass.PERSON,
+        ObjectClass.FURNITURE,
     } <= set(static_counts)
     members = [a.members for a in sc.agents]
     assert 7 <= sum(members) <= 10 and max(members) > 1  # some move together

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from core.geometry import NS_PER_S, check_pose, yaw_of
-from fixtures.scenario import load_scenario
-from fixtures.world import World
+from fixtures.scenario import ObjectClass, load_scenario
+from fixtures.world import CLASS_INDEX, World
 
 
 @pytest.fixture(scope="module")
@@ -304,3 +304,37 @@ def test_persons_have_the_statures_of_people() -> None:
     adults = h[h >= 1.45]
     assert abs(np.median(adults) - 1.70) < 0.02 and 0.07 < adults.std() < 0.11
     assert h.min() >= 1.0 and h.max() <= 2.0
+
+
+def test_street_furniture_stands_by_the_roads_with_upright_faces() -> None:
+    """Bins, cabinets and machines (simulator 6) stand by the village's street and in the car
+    park, of published sizes, never moving; a level ray at half height meets one's face, a
+    ray over its top misses, and its returns are labelled with its class."""
+    for name, at_least in (("village", 12), ("parking", 8), ("default", 6)):
+        world = World(load_scenario(name))
+        pieces = [o for o in world.statics if o.cls.value == "street furniture"]
+        assert len(pieces) >= at_least, name
+        boxes = world.object_boxes(world.t0_ns)
+        ids = np.asarray(boxes.ids)
+        sizes = np.array([o.size for o in pieces])
+        assert np.all(sizes[:, 2] > 0.8) and np.all(sizes[:, 2] < 1.9)  # knee to head high
+        assert np.all(np.max(sizes[:, :2], axis=1) < 1.65)  # a 1100 l container at most
+        for o in pieces:
+            k = int(np.flatnonzero(ids == o.object_id)[0])
+            assert boxes.classes[k] == "street furniture" and np.all(boxes.velocities[k] == 0)
+        origins, dirs, expect = [], [], []
+        for o in pieces:
+            h = o.size[2]
+            base = o.center[2] - h / 2
+            toward = np.array([1.0, 0.0, 0.0])
+            for z, hit in ((base + 0.5 * h, True), (base + h + 0.05, False)):
+                origins.append([o.center[0] - np.hypot(*o.size[:2]) / 2 - 0.2, o.center[1], z])
+                dirs.append(toward)
+                expect.append((o.object_id, hit))
+        hits = world.cast_rays(
+            np.array(origins), np.array(dirs)[:, None, :], np.zeros(len(origins), np.int64)
+        )
+        got = hits.object_id[:, 0] == np.array([oid for oid, _ in expect])
+        assert np.array_equal(got, [hit for _, hit in expect]), name
+        hit_cls = hits.cls[:, 0][np.array([hit for _, hit in expect])]
+        assert np.all(hit_cls == CLASS_INDEX[ObjectClass.FURNITURE])
