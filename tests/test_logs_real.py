@@ -86,6 +86,32 @@ def test_av2_scans_are_in_the_lidar_frame_with_rings_in_elevation_order(real_dat
         assert np.any(np.diff(by_laser) < -5.0)
 
 
+def test_av2_without_calibration_stays_in_the_ego_frame_and_says_so(real_data, tmp_path) -> None:
+    """A log folder without its calibration file keeps the ego frame: no mount is published,
+    the node takes the LADAR at the body and notes it; the rows are still ranked by
+    elevation."""
+    import kd_store
+    from wm.config import NodeConfig, PoseSource
+    from wm.node import WorldModelNode
+
+    for name in ("sensors", "city_SE3_egovehicle.feather", "annotations.feather"):
+        (tmp_path / name).symlink_to((real_data / "av2" / name).resolve())
+    src = open_log(tmp_path)
+    assert src.T_body_ladar is None and not list(src.frames(kinds=TransformFrame))
+    assert "/tf_static" not in [t.name for t in src.info().topics]
+    scan = next(iter(src.frames(kinds=LadarScan)))
+    assert scan.frame_id == "base_link" and set(np.unique(scan.ring)) == set(range(64))
+    p = scan.points_xyz.astype(np.float64)
+    elevation = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+    median = np.array([np.median(elevation[scan.ring == r]) for r in range(64)])
+    assert np.all(np.diff(median) > -np.deg2rad(0.05))
+    node = WorldModelNode(kd_store.open(":memory:"), NodeConfig(pose_source=PoseSource.TRUTH))
+    for f in src.frames(kinds=(LadarScan,)):
+        node.feed(f)
+    assert np.array_equal(node.T_body_ladar, np.eye(4))
+    assert any("no base_link->ladar transform" in n for n in node.stats.notes)
+
+
 def test_av2_box_ids_are_stable_and_static_objects_stand_still(real_data) -> None:
     import pyarrow.feather as feather
 
