@@ -9,11 +9,9 @@
   the rear axle, 1.6 m below the sensors, and SP's egosphere and ground segmentation look
   from the sensor. The lower LiDAR's points keep their own positions (its origin is 0.12 m
   below the upper one's). Without the calibration file they stay in ``base_link``.
-* ``ring``: the rows of the two stacked 32-beam Velodynes in elevation order, 0 the lowest.
-  AV2's ``laser_number`` is each unit's firing index (0-31 the upper unit, 32-63 the lower,
-  mounted upside down), which interleaves elevations: the lasers are ranked by the median
-  elevation of their returns (seen from the ``ladar`` origin) in the log's first sweep, and
-  every sweep uses that ranking.
+* ``ring`` = laser_number: each of the two stacked 32-beam units' firing index (0-31 the
+  upper unit, 32-63 the lower, mounted upside down), which interleaves elevations; SP's
+  level 1 ranks such rings by elevation (:func:`sp.level1.ring_rows`).
 * ``city_SE3_egovehicle.feather`` -> :class:`GroundTruthPose` ``world`` (the AV2 city frame)
   -> ``base_link`` on ``/ground_truth/pose``.
 * ``annotations.feather`` (cuboids in the ego frame at their timestamp) ->
@@ -94,7 +92,6 @@ class Av2LogSource(LogSource):
         self._boxes: list[ObjectBoxes] | None = None
         self._T_body_ladar: np.ndarray | None = None
         self._calibrated: bool | None = None
-        self._ring_rows: np.ndarray | None = None
 
     # -------------------------------------------------------------- sensor geometry
     @property
@@ -119,37 +116,6 @@ class Av2LogSource(LogSource):
                 self._T_body_ladar = T
                 self._calibrated = True
         return self._T_body_ladar
-
-    def ring_rows(self) -> np.ndarray:
-        """(256,) int64: the row of each ``laser_number``, lasers ranked by the median
-        elevation (seen from the scans' origin) of their returns in the first sweep, 0 the
-        lowest; lasers absent from it follow in laser order."""
-        if self._ring_rows is None:
-            xyz, laser, _, _ = self._read_points(0)
-            elevation = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
-            lasers = np.unique(laser)
-            median = np.array([np.median(elevation[laser == k]) for k in lasers])
-            rows = np.arange(256, dtype=np.int64)
-            ranked = lasers[np.argsort(median, kind="stable")]
-            rest = np.setdiff1d(rows, ranked)
-            rows[np.concatenate([ranked, rest])] = np.arange(256)
-            self._ring_rows = rows
-        return self._ring_rows
-
-    def _read_points(self, i: int) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], int]:
-        """Sweep ``i``'s finite points (N, 3) float64 in the scans' frame, their laser
-        numbers (N,), the file's columns (finite rows only) and how many rows were not
-        finite."""
-        path = self.sweep_files[i]
-        c = _read_feather(path, ["x", "y", "z", "intensity", "laser_number", "offset_ns"])
-        xyz = np.stack([c["x"], c["y"], c["z"]], axis=1).astype(np.float64)
-        finite = np.isfinite(xyz).all(axis=1)
-        c = {k: v[finite] for k, v in c.items()}
-        xyz = xyz[finite]
-        T = self.T_body_ladar
-        if T is not None:  # p_ladar = R^T (p_body - t)
-            xyz = (xyz - T[:3, 3]) @ T[:3, :3]
-        return xyz, c["laser_number"].astype(np.int64), c, int(finite.size - finite.sum())
 
     # -------------------------------------------------------------- ground truth tables
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -243,16 +209,24 @@ class Av2LogSource(LogSource):
 
     # -------------------------------------------------------------- LogSource
     def _sweep(self, i: int) -> LadarScan:
-        xyz, laser, c, n_bad = self._read_points(i)
+        path = self.sweep_files[i]
+        c = _read_feather(path, ["x", "y", "z", "intensity", "laser_number", "offset_ns"])
+        xyz = np.stack([c["x"], c["y"], c["z"]], axis=1).astype(np.float64)
+        finite = np.isfinite(xyz).all(axis=1)
+        n_bad = int(finite.size - finite.sum())
         if n_bad:
             self.stats.dropped_nonfinite_points += n_bad
+        xyz = xyz[finite]
+        T = self.T_body_ladar
+        if T is not None:  # p_ladar = R^T (p_body - t)
+            xyz = (xyz - T[:3, 3]) @ T[:3, :3]
         return LadarScan(
             t_ns=int(self.sweep_t_ns[i]),
-            frame_id=BODY if self.T_body_ladar is None else LADAR,
+            frame_id=BODY if T is None else LADAR,
             points_xyz=xyz.astype(np.float32),
-            intensity=c["intensity"].astype(np.float32),
-            t_offset_ns=c["offset_ns"].astype(np.int64),
-            ring=self.ring_rows()[laser].astype(np.uint16),
+            intensity=c["intensity"][finite].astype(np.float32),
+            t_offset_ns=c["offset_ns"][finite].astype(np.int64),
+            ring=c["laser_number"][finite].astype(np.uint16),
             topic=LADAR_TOPIC,
         )
 

@@ -54,11 +54,14 @@ def test_av2_sweeps_poses_and_boxes(real_data) -> None:
     assert isinstance(frames[0], TransformFrame)  # the mount comes before any sweep
 
 
-def test_av2_scans_are_in_the_lidar_frame_with_rings_in_elevation_order(real_data) -> None:
+def test_av2_scans_are_in_the_lidar_frame_and_level_1_orders_their_rings(real_data) -> None:
     """The points come back in base_link through the published mount (the file's own
-    numbers, to float16 precision), and every sweep's rows rise in elevation: AV2's laser
-    numbers interleave the elevations of its two 32-beam units."""
+    numbers, to float16 precision). The rings are AV2's laser numbers, which interleave the
+    elevations of its two 32-beam units; level 1's ranking (sp.level1.ring_rows) makes every
+    sweep's rows rise in elevation."""
     import pyarrow.feather as feather
+
+    from sp.level1 import ring_rows
 
     src = open_log(real_data / "av2")
     tf = next(iter(src.frames(kinds=TransformFrame)))
@@ -68,28 +71,29 @@ def test_av2_scans_are_in_the_lidar_frame_with_rings_in_elevation_order(real_dat
     assert tf.T_parent_child[:3, 3] == pytest.approx(
         [calib[c][k].as_py() for c in ("tx_m", "ty_m", "tz_m")]
     )
+    first_rows = None
     for scan, path in zip(src.frames(kinds=LadarScan), src.sweep_files, strict=True):
         raw = feather.read_table(path, columns=["x", "y", "z", "laser_number"])
         xyz = np.stack([raw[c].to_numpy().astype(np.float64) for c in "xyz"], axis=1)
         T = tf.T_parent_child
         back = scan.points_xyz.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         np.testing.assert_allclose(back, xyz, atol=1e-5)
+        assert np.array_equal(scan.ring, raw["laser_number"].to_numpy())
         p = scan.points_xyz.astype(np.float64)
         elevation = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
-        median = np.array([np.median(elevation[scan.ring == r]) for r in range(64)])
+        by_laser = np.array([np.median(elevation[scan.ring == n]) for n in range(64)])
+        assert np.any(np.diff(by_laser) < -5.0)  # the laser numbers are out of order
+        first_rows = ring_rows(scan.points_xyz, scan.ring) if first_rows is None else first_rows
+        row = first_rows[scan.ring]  # level 1 keeps the first sweep's ranking
+        median = np.array([np.median(elevation[row == r]) for r in range(64)])
         # pairs of lasers, one of each unit, share an elevation to within a few hundredths
         assert np.all(np.diff(median) > -0.05), np.round(median, 2)
         assert median[0] < -24 and median[-1] > 24  # the lowest and highest beams
-        # the laser numbers themselves are not in elevation order
-        laser = raw["laser_number"].to_numpy()
-        by_laser = np.array([np.median(elevation[laser == n]) for n in range(64)])
-        assert np.any(np.diff(by_laser) < -5.0)
 
 
 def test_av2_without_calibration_stays_in_the_ego_frame_and_says_so(real_data, tmp_path) -> None:
     """A log folder without its calibration file keeps the ego frame: no mount is published,
-    the node takes the LADAR at the body and notes it; the rows are still ranked by
-    elevation."""
+    and the node takes the LADAR at the body and notes it."""
     import kd_store
     from wm.config import NodeConfig, PoseSource
     from wm.node import WorldModelNode
@@ -101,10 +105,6 @@ def test_av2_without_calibration_stays_in_the_ego_frame_and_says_so(real_data, t
     assert "/tf_static" not in [t.name for t in src.info().topics]
     scan = next(iter(src.frames(kinds=LadarScan)))
     assert scan.frame_id == "base_link" and set(np.unique(scan.ring)) == set(range(64))
-    p = scan.points_xyz.astype(np.float64)
-    elevation = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
-    median = np.array([np.median(elevation[scan.ring == r]) for r in range(64)])
-    assert np.all(np.diff(median) > -np.deg2rad(0.05))
     node = WorldModelNode(kd_store.open(":memory:"), NodeConfig(pose_source=PoseSource.TRUTH))
     for f in src.frames(kinds=(LadarScan,)):
         node.feed(f)
