@@ -256,6 +256,7 @@ class WorldModelNode:
         self.T_body_ladar: np.ndarray | None = None  # fixed by the first sweep
         self.T_body_camera: np.ndarray | None = None
         self.mounts: dict[str, np.ndarray] = {}  # child frame -> T_body_child, from /tf
+        self._body_to_ladar = False  # sweeps come in base_link and go into the ladar mount
         self.truth = PoseTrack()
         self.track = PoseTrack()  # the poses the node uses (estimated, or truth)
         self.odometry: Any | None = None
@@ -632,17 +633,17 @@ class WorldModelNode:
         the ground under a car, every elevation would be wrong); with neither, the body
         itself (noted in ``stats.notes``)."""
         if self.T_body_ladar is None:
-            T = mount_of(scan.frame_id, self.mounts)
-            if scan.frame_id == BODY:
-                T = self.mounts.get(LADAR)
+            in_body = scan.frame_id == BODY
+            T = self.mounts.get(LADAR) if in_body else mount_of(scan.frame_id, self.mounts)
+            self._body_to_ladar = in_body and T is not None
             if T is None:
                 T = np.eye(4)
                 self.stats.notes.append(
-                    f"no {BODY}->{LADAR if scan.frame_id == BODY else scan.frame_id} transform"
-                    f" in the log: LADAR taken at the body"
+                    f"no {BODY}->{LADAR if in_body else scan.frame_id} transform in the log:"
+                    f" LADAR taken at the body"
                 )
             self.T_body_ladar = np.asarray(T, dtype=np.float64)
-        if scan.frame_id != BODY:
+        if scan.frame_id != BODY or not self._body_to_ladar:
             return scan
         R, t = self.T_body_ladar[:3, :3], self.T_body_ladar[:3, 3]
         xyz = ((scan.points_xyz.astype(np.float64) - t) @ R).astype(np.float32)
