@@ -8,6 +8,14 @@ last ground return and calls it ground. The terrain map already knows the ground
 fused from nearer views in earlier sweeps. A far return standing well above the lowest ground
 the map knows nearby is not ground.
 
+A low object far out is met by one row only, a few decimetres up, and nothing in one sweep
+tells that row's hits from a crest of rough terrain that shades the ground behind it. Several
+sweeps do: as the vehicle closes in, one row's hits climb a rock's face, all in the same cell,
+while its hits on a crest slide over the terrain, each cell's returns at the one height of the
+surface there. So a cell whose lowest and highest returns seen (the map's ``elevation_min``
+and ``elevation_max`` layers) lie far apart holds something upright, and a far return in it
+standing clear of its lowest is not ground (``span_m``, ``span_rise_m``).
+
 The map is given as its storage: a toroidal (n, n) grid of ground heights, world z in metres,
 NaN where unknown; cell ``(ix, iy)`` (``ix = floor(x / resolution_m)``) lives at
 ``[iy % n, ix % n]`` and is in the window when ``origin_cell <= (ix, iy) < origin_cell + n``
@@ -62,6 +70,11 @@ class GroundPriorConfig:
     on_ground_min_range_m: the marking's own nearest range (m): near, the map knows the
                   terrain best, and the column walk misjudges a fold there as it does a
                   crest far out.
+    span_m, span_rise_m: a ground return (at least ``min_range_m`` away) in a cell whose
+                  returns seen so far span more than ``span_m`` in height, standing more than
+                  ``span_rise_m`` over the lowest of them, makes its segment an object
+                  (module docstring). A 0.4 m cell of terrain sloping 20 degrees spans 0.15 m;
+                  the one row on a 0.6-1.2 m rock spans its face over a few sweeps.
     radius_m:     the expected ground at a point is the lowest known ground within this
                   distance of it, each cell raised by ``slope_deg`` over its distance (a slope
                   is not taken for an object; a car's roof is judged against the ground
@@ -76,6 +89,8 @@ class GroundPriorConfig:
     on_ground_share: float = 0.9
     on_ground_below_m: float = 1.0
     on_ground_min_range_m: float = 0.0
+    span_m: float = 0.5
+    span_rise_m: float = 0.2
     radius_m: float = 2.0
     slope_deg: float = 15.0
 
@@ -99,6 +114,10 @@ class GroundPriorConfig:
             raise GroundPriorError(
                 f"ground prior object_margin_m {self.object_margin_m} is not >= 0"
             )
+        if not (self.span_m > 0 and self.span_rise_m >= 0):
+            raise GroundPriorError(
+                f"ground prior span_m {self.span_m}, span_rise_m {self.span_rise_m}: need > 0, >= 0"
+            )
         if not 0 <= self.slope_deg < 80:
             raise GroundPriorError(f"ground prior slope_deg {self.slope_deg} is not in [0, 80)")
 
@@ -110,11 +129,15 @@ class GroundPrior:
     z_m:          (n, n) float world z of the ground (m), NaN unknown; toroidal storage.
     origin_cell:  (ix0, iy0) the window's lowest cell.
     resolution_m: cell edge (m).
+    z_min_m, z_max_m: (n, n) float world z of the lowest and highest returns seen in each
+                  cell (m), NaN none, same storage; None: not known (no span test).
     """
 
     z_m: np.ndarray
     origin_cell: tuple[int, int]
     resolution_m: float
+    z_min_m: np.ndarray | None = None
+    z_max_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         z = np.asarray(self.z_m)
@@ -122,6 +145,14 @@ class GroundPrior:
             raise GroundPriorError(f"ground prior grid has shape {z.shape}; needs (n, n)")
         if not self.resolution_m > 0:
             raise GroundPriorError(f"ground prior resolution_m {self.resolution_m} is not > 0")
+        if (self.z_min_m is None) != (self.z_max_m is None):
+            raise GroundPriorError("ground prior needs both z_min_m and z_max_m, or neither")
+        for name in ("z_min_m", "z_max_m"):
+            a = getattr(self, name)
+            if a is not None and np.shape(a) != z.shape:
+                raise GroundPriorError(
+                    f"ground prior {name} has shape {np.shape(a)}; needs {z.shape} as z_m"
+                )
 
     def lowest_around(self, radius_m: float) -> np.ndarray:
         """(n, n) float32 toroidal grid: the lowest known height in the square of (2k + 1)^2
@@ -171,11 +202,16 @@ def above_prior(
     ``range_m`` (H, W) m of at least ``min_range_m`` whose world point ``xyz_w`` (H, W, 3) m
     lies more than ``above_m`` above the ground ``prior`` expects there (module docstring:
     the lowest known cell within ``radius_m``, raised by ``slope_deg`` over its distance),
-    ``OBJECT`` for those more than ``above_m + object_margin_m`` above it, ``GROUND``
-    elsewhere."""
+    ``OBJECT`` for those more than ``above_m + object_margin_m`` above it, or in a cell whose
+    returns span more than ``span_m`` and more than ``span_rise_m`` over its lowest (when the
+    prior knows the cells' lowest and highest returns), ``GROUND`` elsewhere."""
     obj = config.above_m + config.object_margin_m
     args = _kernel_args(xyz_w, range_m, ground, prior, config, config.min_range_m, obj)
-    return _above_prior_kernel(*args)
+    if prior.z_min_m is None or prior.z_max_m is None:
+        lo = hi = np.empty((0, 0), dtype=np.float32)
+    else:
+        lo, hi = np.asarray(prior.z_min_m), np.asarray(prior.z_max_m)
+    return _above_prior_kernel(*args, lo, hi, float(config.span_m), float(config.span_rise_m))
 
 
 def on_known_ground(
@@ -264,12 +300,15 @@ def _expected_at(cx, cy, z, memo, ix0, iy0, off_x, off_y, rise):  # pragma: no c
 
 @numba.njit(cache=True, nogil=True)
 def _above_prior_kernel(  # pragma: no cover
-    xyz_w, range_m, ground, low, z, ix0, iy0, res, min_range, above, obj, k, off_x, off_y, rise
-):
+    xyz_w, range_m, ground, low, z, ix0, iy0, res, min_range, above, obj, k, off_x, off_y, rise,
+    z_lo, z_hi, span, span_rise,
+):  # fmt: skip
     """:func:`above_prior` pixel by pixel. Most far ground is ground: where the dilated
-    square shows it (:func:`_surely_not_above`) the exact expected ground is not needed."""
+    square shows it (:func:`_surely_not_above`) the exact expected ground is not needed.
+    ``z_lo``, ``z_hi``: the cells' lowest and highest returns, (0, 0) when not known."""
     H, W = ground.shape
     n = z.shape[0]
+    spans = z_lo.shape[0] == n
     out = np.zeros((H, W), dtype=np.int8)
     memo = np.empty((0, 0))
     for i in range(H):
@@ -279,6 +318,12 @@ def _above_prior_kernel(  # pragma: no cover
             zp = xyz_w[i, j, 2] - above
             cx = np.int64(np.floor(xyz_w[i, j, 0] / res))
             cy = np.int64(np.floor(xyz_w[i, j, 1] / res))
+            if spans and ix0 <= cx < ix0 + n and iy0 <= cy < iy0 + n:
+                lo = z_lo[cy % n, cx % n]
+                # NaN (nothing seen) compares False
+                if z_hi[cy % n, cx % n] - lo > span and xyz_w[i, j, 2] - lo > span_rise:
+                    out[i, j] = OBJECT
+                    continue
             if _surely_not_above(zp, cx, cy, low, n, ix0, iy0, k):
                 continue
             if memo.shape[0] == 0:

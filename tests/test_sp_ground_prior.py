@@ -121,6 +121,45 @@ def test_the_one_row_on_a_low_rock_far_out_is_not_ground_with_the_prior() -> Non
     assert not not_ground(xyz, rng, ground, _flat_prior(-SENSOR_H), GroundPriorConfig()).any()
 
 
+def _span_prior(low_m: float, high_m: float, n: int = 256) -> GroundPrior:
+    """Flat ground at the sensor's foot, every cell's returns seen so far spanning
+    ``low_m``..``high_m`` (world z) in the map's lowest and highest layers."""
+    flat = _flat_prior(-SENSOR_H, n)
+    lo = np.full((n, n), low_m, dtype=np.float32)
+    hi = np.full((n, n), high_m, dtype=np.float32)
+    return GroundPrior(flat.z_m, flat.origin_cell, RES, lo, hi)
+
+
+def test_the_one_row_on_a_rock_face_is_not_ground_once_the_map_saw_the_face() -> None:
+    # the one row on a low rock at 30 m hits it 0.35 m up: below above_m, so one sweep alone
+    # leaves it ground ...
+    ground_z = -SENSOR_H
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, ground_z + 0.35)])
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert ground[0].all()
+    cfg = GroundPriorConfig()
+    assert not not_ground(xyz, rng, ground, _flat_prior(ground_z), cfg).any()
+    # ... but earlier sweeps' rows climbed its face: its cells hold returns from the foot to
+    # 0.7 m up, and the return stands 0.35 m over the lowest of them
+    code = above_prior(xyz, rng, ground, _span_prior(ground_z, ground_z + 0.7), cfg)
+    assert (code[0] == OBJECT).all() and (code[1:] == GROUND).all()
+    # terrain: its cells' returns lie at one height give or take a slope's 0.15 m ...
+    gentle = _span_prior(ground_z + 0.2, ground_z + 0.35)
+    assert (above_prior(xyz, rng, ground, gentle, cfg) == GROUND).all()
+    # ... and the foot of something tall (a person walked there) is still ground
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, ground_z + 0.1)])
+    tall = _span_prior(ground_z, ground_z + 1.8)
+    assert (above_prior(xyz, rng, ground, tall, cfg) == GROUND).all()
+
+
+def test_a_prior_with_only_one_of_the_span_layers_is_refused() -> None:
+    z = np.zeros((4, 4), dtype=np.float32)
+    with pytest.raises(GroundPriorError, match="both z_min_m and z_max_m"):
+        GroundPrior(z, (0, 0), RES, z_min_m=z)
+    with pytest.raises(GroundPriorError, match=r"z_max_m has shape \(3, 3\)"):
+        GroundPrior(z, (0, 0), RES, z, np.zeros((3, 3), dtype=np.float32))
+
+
 def test_a_far_slope_the_prior_knows_stays_ground() -> None:
     # the ground rises at 10 degrees from 20 m; the map holds the slope (its cells' heights)
     rise = math.tan(math.radians(10.0))

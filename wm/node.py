@@ -868,7 +868,10 @@ class WorldModelNode:
             return None
         lvl = self.stack.level(name)
         ix0, iy0 = (int(v) for v in lvl.origin_cell)
-        return GroundPrior(lvl.storage("elevation"), (ix0, iy0), lvl.resolution_m)
+        return GroundPrior(
+            lvl.storage("elevation"), (ix0, iy0), lvl.resolution_m,
+            lvl.storage("elevation_min"), lvl.storage("elevation_max"),
+        )  # fmt: skip
 
     def _update_entities(self, sp_result: SPResult | None) -> None:
         """Step 4, the world model's part: SP's observations into the KD (entity and event
