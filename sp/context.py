@@ -27,6 +27,7 @@ from sp.groups import GroupConfig
 from sp.images import ClassTable
 from sp.lists import ListConfig
 from sp.observations import EventObserved, NewEntity, Observation
+from sp.reid import ReidConfig
 from sp.segments import SegmentConfig
 from sp.surfaces import SurfaceConfig
 from sp.tracking import TrackerConfig, TrackStatus
@@ -54,6 +55,7 @@ class SPConfig:
     ground_prior: GroundPriorConfig = field(default_factory=GroundPriorConfig)
     segments: SegmentConfig = field(default_factory=SegmentConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    reid: ReidConfig = field(default_factory=ReidConfig)
     classify: ClassifyConfig = field(default_factory=ClassifyConfig)
     groups: GroupConfig = field(default_factory=GroupConfig)
     window: WindowConfig = field(default_factory=WindowConfig)

@@ -34,6 +34,7 @@ from sp.egosphere import EgosphereImage
 from sp.events import EventClass
 from sp.level3_surfaces import GroundPixels, foot_rise_deg, terrain_patch
 from sp.observations import AppearanceObserved, ClassFounded, FrameChange, StatesObserved
+from sp.reid import Lost, LostObjects
 from sp.scene_prior import ScenePrior
 from sp.segments import (
     SegmentConfig,
@@ -43,7 +44,7 @@ from sp.segments import (
     split_at_gap,
     split_by_predictions,
 )
-from sp.tracking import Measurements, Tracker, TrackStatus
+from sp.tracking import Measurements, Tracker, Tracks, TrackStatus
 from sp.windowing import window_mask
 
 # shape attributes of an object's points, observed per sweep (sp.computation.SegmentAttributes,
@@ -157,6 +158,8 @@ class ObjectLevel:
         self._seen_returns: dict[int, int] = {}
         self.class_evidence: dict[int, ClassEvidence] = {}
         self._denied_ids = np.zeros(0, np.int64)
+        self.lost = LostObjects(ctx.config.reid)  # objects gone moments ago (sp.reid)
+        self._revived: dict[int, Lost] = {}  # found again, not confirmed again yet
 
     # ------------------------------------------------------------------ windowing
 
@@ -340,21 +343,29 @@ class ObjectLevel:
             & ((tr.hits >= cfg.birth_hits) | (tr.status == TrackStatus.CONFIRMED))
             & (tr.status != TrackStatus.DENIED)
         )
+        # ... unless it is an object lost moments ago, which takes up its frame again
+        self.lost.forget_before(t_ns)
+        again = self.lost.match(tr.t_ns[promote], tr.x[promote, :2], tr.w[promote, 2])
         born: list[int] = []
-        for k in promote:
-            oid = ctx.new_entity(
-                f"object@{t_ns}",
-                Level.OBJECT,
-                images=(IMAGE_NAMES[4],),
-                confidence=unit(tr.confidence[k]),
-            )
+        for k, old in zip(promote, again, strict=True):
+            if old >= 0:
+                oid = int(old)
+                self._recall(oid)
+            else:
+                oid = ctx.new_entity(
+                    f"object@{t_ns}",
+                    Level.OBJECT,
+                    images=(IMAGE_NAMES[4],),
+                    confidence=unit(tr.confidence[k]),
+                )
             tr.id[k] = oid
             prev[k] = -1
             born.append(oid)
         self._born_ids = np.array(born, dtype=np.int64)
         events: list[int] = []
         for i in born:
-            events.append(ctx.event(EventClass.APPEARED, t_ns, [i], 4, cfg.tracker.confidence0))
+            if i not in self._revived:  # a lost object found again appears once confirmed
+                events.append(ctx.event(EventClass.APPEARED, t_ns, [i], 4, cfg.tracker.confidence0))
         # only tracks with a frame are written: provisional ones stay inside the tracker
         framed = tr.id >= 0
         track_of = np.where(
@@ -400,6 +411,14 @@ class ObjectLevel:
                 self.observe_appearance(self.track_reflectance, tid, float(a.intensity[s]))
                 self.observe_shape(tid, a, int(s))
             confidence = unit(tr.confidence[k])
+            if tid in self._revived:
+                if status != Status.CONFIRMED:
+                    # a lost object found again stays gone until its track is confirmed, and
+                    # for good if it is denied: its confirmed life stands
+                    ctx.record(FrameChange(tid, Status.GONE, confidence, attributes))
+                    continue
+                del self._revived[tid]
+                events.append(ctx.event(EventClass.APPEARED, t_ns, [tid], 4, confidence))
             ctx.record(FrameChange(tid, status, confidence, attributes))
             if was == int(status_code(status)) or (was < 0 and status == Status.HYPOTHESIZED):
                 continue
@@ -412,12 +431,9 @@ class ObjectLevel:
                 events.append(ctx.event(cls, t_ns, [tid], 4, float(tr.confidence[k])))
         finished = self.tracker.drop_finished()
         self._denied_ids = finished.id[(finished.status == TrackStatus.DENIED) & (finished.id >= 0)]
+        self._remember_lost(finished)
         for tid in finished.id:
-            self.track_class.pop(int(tid), None)
-            self.class_evidence.pop(int(tid), None)
-            self.track_reflectance.pop(int(tid), None)
-            self.track_camera.pop(int(tid), None)
-            self.track_shape.pop(int(tid), None)
+            self._forget_track(int(tid))
         self._provisional_segments = np.flatnonzero(track_of == -2)
         # object id per segment
         ids_all = np.concatenate([tr.id])
@@ -425,6 +441,59 @@ class ObjectLevel:
         ok = track_of >= 0
         obj[ok] = ids_all[track_of[ok]]
         return ObjectsObserved(obj, events, finished.id.astype(np.int64))
+
+    def _per_track(self) -> dict[str, dict]:
+        """What this level keeps of each framed track, by name."""
+        return {
+            "class": self.track_class,
+            "evidence": self.class_evidence,
+            "reflectance": self.track_reflectance,
+            "camera": self.track_camera,
+            "shape": self.track_shape,
+        }
+
+    def _forget_track(self, tid: int) -> dict:
+        """Drop what this level keeps of track ``tid``; returns it, by name."""
+        kept = {}
+        for name, table in self._per_track().items():
+            if tid in table:
+                kept[name] = table.pop(tid)
+        return kept
+
+    def _recall(self, tid: int) -> None:
+        """Track ``tid``, lost and found again, takes back what this level kept of it."""
+        lost = self.lost.taken.pop(tid, None)
+        if lost is None:
+            return
+        tables = self._per_track()
+        for name, value in lost.kept.items():
+            tables[name][tid] = value
+        self._revived[tid] = lost
+
+    def _remember_lost(self, finished: Tracks) -> None:
+        """The framed tracks of ``finished`` that went unseen until gone (not those denied,
+        nor those gone while still measured: they had lost their object) are remembered for
+        :mod:`sp.reid`, with their class, appearance and shape."""
+        cfg = self.ctx.config
+        for tid in finished.id[finished.status == TrackStatus.DENIED].tolist():
+            # found again by a hypothesis that was denied: still lost as it was
+            lost = self._revived.pop(int(tid), None)
+            if lost is not None:
+                lost.kept = self._forget_track(int(tid))
+                self.lost.add(lost)
+        gone = np.flatnonzero(
+            (finished.status == TrackStatus.GONE) & (finished.id >= 0) & (finished.misses > 0)
+        )
+        if not gone.size or not cfg.reid.enabled:
+            return
+        x_rep, _ = finished.reported(cfg.tracker)
+        moving = finished.moving(cfg.tracker)
+        for j in gone.tolist():
+            tid = int(finished.id[j])
+            self.lost.add(
+                Lost(tid, int(finished.t_ns[j]), x_rep[j, :2].copy(), x_rep[j, 3:5].copy(),
+                     float(finished.w[j, 2]), bool(moving[j]), self._forget_track(tid))
+            )  # fmt: skip
 
     # ------------------------------------------------------------------ classification
 
