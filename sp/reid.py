@@ -10,8 +10,8 @@ entities for one object: a user asking how many persons the vehicle passed would
 twice. So each object that goes is remembered for ``max_gap_s`` (:class:`LostObjects`), and a
 hypothesis that earns its frame (level 4's M-of-N birth) takes instead the frame of a lost
 object it may be: one whose position, carried on at its last velocity, lies within
-``radius_m`` of it, plus ``speed_mps`` for each second lost if the object may move (a walker
-turns, a car brakes), and whose height is within ``height_m`` of it. Several candidates are
+``radius_m`` of it, plus ``speed_mps`` for each second lost if the object was moving (a
+walker turns, a car brakes), and whose height is within ``height_m`` of it. Several candidates are
 paired by the optimal assignment of distances relative to each gate
 (``scipy.optimize.linear_sum_assignment``). An object at rest comes back where it was: only
 one the tracker had moving gets the speed allowance (a car parked in a row, lost behind a
@@ -43,7 +43,7 @@ class ReidConfig:
                 about 3 s behind a 4 m van seen side-on.
     radius_m:   the gate around the lost object's predicted position (m): a body's footprint
                 and the wander of its visible centre.
-    speed_mps:  the gate's growth per second lost for an object that may move (m/s): how far
+    speed_mps:  the gate's growth per second lost for an object that was moving (m/s): how far
                 a walker strays from a straight path.
     height_m:   the largest difference of height (m) between the two (a person is not a car).
     """
