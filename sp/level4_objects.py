@@ -345,12 +345,12 @@ class ObjectLevel:
         )
         # ... unless it is an object lost moments ago, which takes up its frame again
         self.lost.forget_before(t_ns)
-        again = self.lost.match(tr.t_ns[promote], tr.x[promote, :2], tr.w[promote, 2])
+        found = self.lost.match(tr.t_ns[promote], tr.x[promote, :2], tr.w[promote, 2])
         born: list[int] = []
-        for k, old in zip(promote, again, strict=True):
-            if old >= 0:
-                oid = int(old)
-                self._recall(oid)
+        for k, lost in zip(promote, found, strict=True):
+            if lost is not None:
+                oid = lost.id
+                self._recall(lost)
             else:
                 oid = ctx.new_entity(
                     f"object@{t_ns}",
@@ -460,15 +460,12 @@ class ObjectLevel:
                 kept[name] = table.pop(tid)
         return kept
 
-    def _recall(self, tid: int) -> None:
-        """Track ``tid``, lost and found again, takes back what this level kept of it."""
-        lost = self.lost.taken.pop(tid, None)
-        if lost is None:
-            return
+    def _recall(self, lost: Lost) -> None:
+        """Object ``lost``, found again, takes back what this level kept of it."""
         tables = self._per_track()
         for name, value in lost.kept.items():
-            tables[name][tid] = value
-        self._revived[tid] = lost
+            tables[name][lost.id] = value
+        self._revived[lost.id] = lost
 
     def _remember_lost(self, finished: Tracks) -> None:
         """The framed tracks of ``finished`` that went unseen until gone (not those denied,
@@ -484,7 +481,7 @@ class ObjectLevel:
         gone = np.flatnonzero(
             (finished.status == TrackStatus.GONE) & (finished.id >= 0) & (finished.misses > 0)
         )
-        if not gone.size or not cfg.reid.enabled:
+        if not gone.size:
             return
         x_rep, _ = finished.reported(cfg.tracker)
         moving = finished.moving(cfg.tracker)

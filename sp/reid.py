@@ -88,9 +88,6 @@ class LostObjects:
     def __init__(self, config: ReidConfig | None = None) -> None:
         self.config = config or ReidConfig()
         self.lost: dict[int, Lost] = {}
-        self.taken: dict[
-            int, Lost
-        ] = {}  # matched by the last match(), until their owner takes them
 
     def __len__(self) -> int:
         return len(self.lost)
@@ -106,13 +103,13 @@ class LostObjects:
         for i in [i for i, o in self.lost.items() if o.t_ns < horizon]:
             del self.lost[i]
 
-    def match(self, t_ns: np.ndarray, xy: np.ndarray, height_m: np.ndarray) -> np.ndarray:
-        """The lost object each new hypothesis is, by frame id (N,) int64, -1 for none:
-        hypotheses seen at ``t_ns`` (N,) int64 ns at world ``xy`` (N, 2) m, ``height_m`` (N,).
-        Each lost object goes to at most one; a matched one moves to ``taken``."""
+    def match(self, t_ns: np.ndarray, xy: np.ndarray, height_m: np.ndarray) -> list[Lost | None]:
+        """The lost object each new hypothesis is (None: none), for hypotheses seen at
+        ``t_ns`` (N,) int64 ns at world ``xy`` (N, 2) m, ``height_m`` (N,) m. Each lost object
+        goes to at most one, and a matched one is no longer remembered."""
         t_ns = np.asarray(t_ns, dtype=np.int64).reshape(-1)
         n = t_ns.size
-        out = np.full(n, -1, dtype=np.int64)
+        out: list[Lost | None] = [None] * n
         if not n or not self.lost:
             return out
         xy = np.asarray(xy, dtype=np.float64).reshape(n, 2)
@@ -135,8 +132,7 @@ class LostObjects:
             return out
         cost = np.where(ok, d / gate, 1e6)
         rows, cols = linear_sum_assignment(cost)
-        good = ok[rows, cols]
-        out[rows[good]] = ids[cols[good]]
-        for i in ids[cols[good]].tolist():
-            self.taken[i] = self.lost.pop(i)
+        for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
+            if ok[r, c]:
+                out[r] = self.lost.pop(int(ids[c]))
         return out

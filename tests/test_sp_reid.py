@@ -23,15 +23,23 @@ def _walker(oid: int = 7, t_s: float = 10.0) -> Lost:
     return Lost(oid, round(t_s * S), np.zeros(2), np.array([1.4, 0.0]), 1.7, moving=True)
 
 
+def _ids(lost: LostObjects, t_s: list[float], xy: list, height_m: list[float]) -> list[int]:
+    """The frame ids ``lost.match`` finds for hypotheses at times ``t_s``, -1 for none."""
+    found = lost.match(
+        np.array([round(t * S) for t in t_s]), np.array(xy, dtype=float), np.array(height_m)
+    )
+    return [-1 if o is None else o.id for o in found]
+
+
 def test_a_walker_found_along_its_path_takes_its_frame_back() -> None:
     lost = LostObjects()
-    lost.add(_walker())
+    walker = _walker()
+    lost.add(walker)
     # 2 s later, 2.8 m along its path and 1.5 m to the side (it turned): within 1 + 1.5 * 2 m
-    got = lost.match(np.array([12 * S]), np.array([[2.8, 1.5]]), np.array([1.6]))
-    assert got.tolist() == [7]
-    assert len(lost) == 0 and 7 in lost.taken
+    found = lost.match(np.array([12 * S]), np.array([[2.8, 1.5]]), np.array([1.6]))
+    assert found == [walker] and len(lost) == 0
     # once taken, it is not found a second time
-    assert lost.match(np.array([12 * S]), np.array([[2.8, 1.5]]), np.array([1.6])).tolist() == [-1]
+    assert _ids(lost, [12.0], [(2.8, 1.5)], [1.6]) == [-1]
 
 
 @pytest.mark.parametrize(
@@ -46,8 +54,7 @@ def test_a_walker_found_along_its_path_takes_its_frame_back() -> None:
 def test_a_hypothesis_elsewhere_is_new(t_s: float, xy: tuple, height_m: float, why: str) -> None:
     lost = LostObjects()
     lost.add(_walker())
-    got = lost.match(np.array([round(t_s * S)]), np.array([xy]), np.array([height_m]))
-    assert got.tolist() == [-1], why
+    assert _ids(lost, [t_s], [xy], [height_m]) == [-1], why
     assert len(lost) == 1
 
 
@@ -55,8 +62,8 @@ def test_an_object_at_rest_comes_back_where_it_was() -> None:
     lost = LostObjects()
     lost.add(Lost(3, 10 * S, np.array([5.0, 5.0]), np.zeros(2), 1.0, moving=False))
     # 2 s later, 2 m away: a walker's gate would take it, a bush's does not
-    assert lost.match(np.array([12 * S]), np.array([[7.0, 5.0]]), np.array([1.0])).tolist() == [-1]
-    assert lost.match(np.array([12 * S]), np.array([[5.6, 5.4]]), np.array([1.0])).tolist() == [3]
+    assert _ids(lost, [12.0], [(7.0, 5.0)], [1.0]) == [-1]
+    assert _ids(lost, [12.0], [(5.6, 5.4)], [1.0]) == [3]
 
 
 def test_two_walkers_are_paired_by_the_nearest_predictions() -> None:
@@ -64,10 +71,7 @@ def test_two_walkers_are_paired_by_the_nearest_predictions() -> None:
     lost.add(_walker(1))  # from (0, 0) at +1.4 m/s in x
     lost.add(Lost(2, 10 * S, np.array([0.0, 1.0]), np.array([0.0, 1.4]), 1.7, True))
     # 1 s later: one at (1.4, 0), one at (0, 2.4); given in the other order
-    got = lost.match(
-        np.array([11 * S, 11 * S]), np.array([[0.1, 2.3], [1.3, 0.1]]), np.array([1.7, 1.7])
-    )
-    assert got.tolist() == [2, 1]
+    assert _ids(lost, [11.0, 11.0], [(0.1, 2.3), (1.3, 0.1)], [1.7, 1.7]) == [2, 1]
 
 
 def test_objects_lost_long_ago_are_forgotten_and_a_disabled_memory_keeps_none() -> None:
