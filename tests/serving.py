@@ -21,12 +21,16 @@ def free_port() -> int:
 
 @contextlib.contextmanager
 def served(app) -> Iterator[str]:
-    """``app`` served by uvicorn in a thread until the block ends; yields its base URL."""
+    """``app`` served by uvicorn in a thread until the block ends; yields its base URL. The
+    socket is bound here and handed to uvicorn: a port found free and bound later may be
+    taken in between (another test's outgoing connection draws from the same ports)."""
     import uvicorn
 
-    port = free_port()
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = int(sock.getsockname()[1])
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=srv.run, daemon=True)
+    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.time() + 30
     while not srv.started and time.time() < deadline:
@@ -37,6 +41,7 @@ def served(app) -> Iterator[str]:
     finally:
         srv.should_exit = True
         thread.join(10)
+        sock.close()
 
 
 # --- a live node in either mode ----------------------------------------------------------------
