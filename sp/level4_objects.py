@@ -28,7 +28,12 @@ from kd_store import Attribute, ClassKind, Level, StateBatch, Status
 from logs.types import CameraFrame
 from sp.appearance import object_appearance
 from sp.classify import Classifier
-from sp.computation import SegmentAttributes, ground_below, segment_attributes
+from sp.computation import (
+    SegmentAttributes,
+    ground_below,
+    segment_attributes,
+    segment_roughness,
+)
 from sp.context import IMAGE_NAMES, KD_STATUS, SPContext, row_step, unit
 from sp.egosphere import EgosphereImage
 from sp.events import EventClass
@@ -69,11 +74,14 @@ class Segments:
     labels:      (H, W) int64 segment index per pixel, -1 none.
     attributes:  per segment (K of them) attributes, world frame.
     ground:      (H, W) bool ground pixels, with the low and terrain-like segments added.
+    roughness_m: (K,) float64 texture of each segment's returns (NaN unknown), m
+                 (:func:`sp.computation.segment_roughness`).
     """
 
     labels: np.ndarray
     attributes: SegmentAttributes
     ground: np.ndarray
+    roughness_m: np.ndarray
 
 
 @dataclass
@@ -149,6 +157,7 @@ class ObjectLevel:
         self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
         self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
         self.track_shape: dict[int, np.ndarray] = {}  # object id -> running shape (SHAPE_KEYS)
+        self.track_roughness: dict[int, float] = {}  # object id -> mean texture, m
         self.attention = np.zeros((0, 0), dtype=bool)  # last sweep's unexplained pixels
         self._sensor_xy: np.ndarray | None = None  # the sensor's world xy this sweep
         self._next_provisional = -2  # ids of hypotheses without a frame yet: -2, -3, ...
@@ -313,7 +322,7 @@ class ObjectLevel:
             remap[~low] = np.arange(int((~low).sum()))
             labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
             attrs = attrs.take(~low)
-        return Segments(labels, attrs, ground)
+        return Segments(labels, attrs, ground, segment_roughness(labels, range0_m, len(attrs)))
 
     # ------------------------------------------------------------------ filtering
 
@@ -410,6 +419,10 @@ class ObjectLevel:
                 attributes = _attributes(a, s, tr.w[k], tr.Pw[k], x_rep[k])
                 self.observe_appearance(self.track_reflectance, tid, float(a.intensity[s]))
                 self.observe_shape(tid, a, int(s))
+                rough = float(seg.roughness_m[s])
+                self.observe_appearance(self.track_roughness, tid, rough)
+                if math.isfinite(rough):
+                    attributes["roughness_m"] = Attribute(observed=rough)
             confidence = unit(tr.confidence[k])
             if tid in self._revived:
                 if status != Status.CONFIRMED:
@@ -450,6 +463,7 @@ class ObjectLevel:
             "reflectance": self.track_reflectance,
             "camera": self.track_camera,
             "shape": self.track_shape,
+            "roughness": self.track_roughness,
         }
 
     def _forget_track(self, tid: int) -> dict:
@@ -658,7 +672,8 @@ class ObjectLevel:
 
     def observe_appearance(self, table: dict[int, float], tid: int, value: float) -> None:
         """Running mean (exponential, ``appearance_gain``) of an object's observed appearance
-        (LADAR intensity or camera grey), for classification."""
+        (LADAR intensity or camera grey) or texture, for classification; an unknown value
+        (NaN) leaves it as it was."""
         if not math.isfinite(value):
             return
         old = table.get(tid)
@@ -687,11 +702,15 @@ class ObjectLevel:
         self.track_shape[tid] = new
 
     def shape_of(self, tid: int) -> dict[str, float]:
-        """The shape attributes object ``tid`` has been observed with (none if never)."""
+        """The shape attributes object ``tid`` has been observed with (none if never): those
+        of :data:`SHAPE_KEYS` and ``roughness_m``, the running mean of its texture."""
         v = self.track_shape.get(tid)
-        if v is None:
-            return {}
-        return {k: float(x) for k, x in zip(SHAPE_KEYS, v, strict=True) if np.isfinite(x)}
+        out = {}
+        if v is not None:
+            out = {k: float(x) for k, x in zip(SHAPE_KEYS, v, strict=True) if np.isfinite(x)}
+        if tid in self.track_roughness:
+            out["roughness_m"] = self.track_roughness[tid]
+        return out
 
     def appearance_of(self, tid: int) -> dict[str, float]:
         """The appearance attributes object ``tid`` has been observed with: ``reflectance``

@@ -1,6 +1,7 @@
 """Per-segment attributes (sp.computation.segment_attributes) beyond their oracle: the
 arguments it refuses (by name, and as the numpy reference fails), and the NaN its minima and
-maxima keep. Its equivalence to ``segment_attributes_reference`` is a case family of
+maxima keep; and each segment's texture (segment_roughness) on surfaces and foliage. Its
+equivalence to ``segment_attributes_reference`` is a case family of
 test_kernel_equivalence.py."""
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from sp.computation import (
     _segment_runs,
     _segment_sums,
     segment_attributes,
+    segment_roughness,
 )
 
 
@@ -61,3 +63,49 @@ def test_kernel_minima_and_maxima_are_nan_with_a_nan_point():
     )
     assert length[0] == 3.0 and width[0] == 3.0
     assert np.isnan(length[1]) and np.isnan(width[1])
+
+
+def _range_image(rng: np.random.Generator, H: int = 8, W: int = 360) -> tuple:
+    """Labels and ranges (m) of three segments seen by a LADAR with 2 cm range noise: 0 a
+    plane seen obliquely (range growing along the row), 1 a bush whose returns come from
+    0.2 m inside it on average (exponentially distributed), 2 a smooth curved body (a car's
+    flank or a rock) across the wrap of the columns."""
+    labels = np.full((H, W), -1, np.int64)
+    r = np.full((H, W), 50.0)
+    cols = np.arange(W)
+    labels[2:6, 100:140] = 0
+    r[2:6, 100:140] = 10.0 / np.cos(np.deg2rad(np.linspace(20, 60, 40)))
+    labels[2:6, 200:230] = 1
+    r[2:6, 200:230] = 15.0 + rng.exponential(0.2, (4, 30))
+    body = (cols < 10) | (cols >= W - 10)
+    labels[1:7, body] = 2
+    x = ((cols[body] + 10) % W - 10) / 10.0  # -1 .. 1 across the wrap
+    r[1:7, body] = 8.0 + 0.5 * x**2
+    r += rng.normal(0.0, 0.02, r.shape)
+    return labels, r
+
+
+def test_roughness_tells_foliage_from_surfaces():
+    labels, r = _range_image(np.random.default_rng(5))
+    plane, bush, body = segment_roughness(labels, r, 3)
+    # 2 cm noise: a second difference of it has a mean |.| of 0.02 * sqrt(6) * sqrt(2 / pi)
+    assert 0.02 < plane < 0.06 and 0.02 < body < 0.06
+    assert bush > 0.2
+
+
+def test_roughness_needs_triples_of_one_segment_in_a_row():
+    labels = np.full((3, 20), -1, np.int64)
+    r = np.full((3, 20), 10.0)
+    labels[0, 2:6] = 0  # 2 triples
+    labels[1, 2:9] = 1  # 5 triples
+    labels[2, ::2] = 2  # every other column: no two side by side
+    r[1, 5] = 30.0  # a mixed pixel: its second differences count 1 m at most
+    rough = segment_roughness(labels, r, 4)
+    assert np.isnan(rough[0]) and np.isnan(rough[2]) and np.isnan(rough[3])
+    assert rough[1] == pytest.approx(3 * 1.0 / 5)
+
+
+def test_roughness_refuses_a_range_image_of_another_shape():
+    labels = np.zeros((4, 10), np.int64)
+    with pytest.raises(ComputationError, match=r"range_m \(4, 9\)"):
+        segment_roughness(labels, np.zeros((4, 9)), 1)

@@ -62,10 +62,11 @@ TRAINING_SETS: dict[str, tuple[int, ...]] = {
 }
 TRAINING_SCENARIOS: tuple[str, ...] = tuple(TRAINING_SETS)
 TRAINING_SEEDS: tuple[int, ...] = tuple(sorted(set().union(*TRAINING_SETS.values())))
-#: attributes fitted by default: geometry, motion and the shape of the points (not appearance)
+#: attributes fitted by default: geometry, motion, the shape of the points and their texture
+#: (not appearance)
 FIT_ATTRIBUTES: tuple[str, ...] = (
     "height_m", "width_m", "length_m", "speed_mps", "thickness_m", "curvature",
-    "verticality", "breadth_m", "clearance_m", "longest_m",
+    "verticality", "breadth_m", "clearance_m", "longest_m", "roughness_m",
 )  # fmt: skip
 #: the simulator's true classes -> the library's level-4 classes
 TRUE_TO_LIBRARY: dict[str, str] = {"wall": "freestanding wall"}
