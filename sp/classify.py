@@ -36,6 +36,9 @@ a post or an upright person; a car's hood and roof face up), ``thickness_m`` (th
 across that plane: a wall piece is a plane, a car a bent one, a crown a volume of leaves) and
 ``breadth_m`` (their spread along the middle axis: an upright person is narrow, at most a
 0.9 m wide body's 0.26 m, where a wall piece of person height is as broad as it is long).
+Neither tells a bush from a rock of its size, and a crown from a car's body only in part; the
+texture of the points does (``roughness_m``, :func:`sp.computation.segment_roughness`,
+averaged over the sweeps): leaves scatter a LADAR's returns in depth, a smooth body does not.
 
 Fitted prototypes (``ClassPrototype.fitted``: ``kd_store/classes_fitted.yaml``, made by
 ``wm.fit_classes`` from SP's own attributes of labelled tracks on training seeds) replace the

@@ -230,9 +230,6 @@ def segment_attributes(
 #: a segment needs this many row triples (three returns of it side by side in one scan row)
 #: for its roughness to be known: fewer are a few noisy second differences
 ROUGHNESS_MIN_TRIPLES = 5
-#: one triple's second difference counts at most this much (m), so that the odd mixed pixel
-#: at an edge does not outweigh a whole segment's surface
-ROUGHNESS_CLIP_M = 1.0
 
 
 def segment_roughness(
@@ -240,19 +237,21 @@ def segment_roughness(
     range_m: np.ndarray,
     n_segments: int,
     min_triples: int = ROUGHNESS_MIN_TRIPLES,
-    clip_m: float = ROUGHNESS_CLIP_M,
 ) -> np.ndarray:
     """(K,) float64 texture of each segment (reference 001, 4.5.6: "differences in range at
     adjacent pixels can be used to compute ... surface roughness, or texture"), metres: the
-    mean over its row triples of ``|r[j-1] - 2 r[j] + r[j+1]|``, the range's second difference
-    along a scan row between three returns of the segment, each clipped at ``clip_m``; NaN
-    for a segment with fewer than ``min_triples`` triples.
+    median over its row triples of ``|r[j-1] - 2 r[j] + r[j+1]|``, the range's second
+    difference along a scan row between three returns of the segment; NaN for a segment with
+    fewer than ``min_triples`` triples.
 
     labels: (H, W) int segment per pixel (-1 none), 0..n_segments-1; range_m: (H, W) float
     range of each pixel, m. Columns wrap (a full turn of azimuth). A smooth surface (a car's
     body, a rock, a wall) gives about the range noise (a few centimetres) whatever its slope,
     as its ranges change linearly along a row; leaves scatter a LADAR's returns in depth
-    (a bush or a crown gives decimetres). Only the labelled pixels are visited.
+    (a bush or a crown gives decimetres). The median, not the mean, because a real car's
+    windows let some returns through to its inside, and a segment over two objects side by
+    side jumps in range where one meets the other: a few triples, not the surface. Only the
+    labelled pixels are visited.
     """
     if np.shape(range_m) != np.shape(labels):
         raise ComputationError(f"range_m {np.shape(range_m)} does not match labels {labels.shape}")
@@ -266,11 +265,16 @@ def segment_roughness(
     s = lab[i]
     ok = (lab[left] == s) & (lab[right] == s)
     i, left, right, s = i[ok], left[ok], right[ok], s[ok]
-    d2 = np.minimum(np.abs(r[left] - 2.0 * r[i] + r[right]), clip_m)
+    d2 = np.abs(r[left] - 2.0 * r[i] + r[right])
+    # each segment's triples in ascending order, the segments one after the other
+    order = np.lexsort((d2, s))
+    s, d2 = s[order], d2[order]
     n = np.bincount(s, minlength=n_segments)[:n_segments]
-    total = np.bincount(s, weights=d2, minlength=n_segments)[:n_segments]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n >= min_triples, total / n, np.nan)
+    first = np.searchsorted(s, np.arange(n_segments))
+    out = np.full(n_segments, np.nan)
+    known = n >= min_triples
+    out[known] = d2[first[known] + n[known] // 2]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)

@@ -99,10 +99,15 @@ def test_roughness_needs_triples_of_one_segment_in_a_row():
     labels[0, 2:6] = 0  # 2 triples
     labels[1, 2:9] = 1  # 5 triples
     labels[2, ::2] = 2  # every other column: no two side by side
-    r[1, 5] = 30.0  # a mixed pixel: its second differences count 1 m at most
+    r[1, 2:9] = 10.0 + 0.01 * np.array([0, 1, 0, 1, 0, 1, 0])  # second differences of 2 cm
+    r[1, 5] = 30.0  # a return through a window, or from the object beside: 3 triples of 5
     rough = segment_roughness(labels, r, 4)
     assert np.isnan(rough[0]) and np.isnan(rough[2]) and np.isnan(rough[3])
-    assert rough[1] == pytest.approx(3 * 1.0 / 5)
+    assert rough[1] > 1.0  # 3 of the 5 triples are the jump: the median is one of them
+    # back on the surface; a jump at column 3 touches 2 triples of 5: the median is the surface's
+    r[1, 5] = 10.01
+    r[1, 3] = 30.0
+    assert segment_roughness(labels, r, 4)[1] == pytest.approx(0.02)
 
 
 def test_roughness_refuses_a_range_image_of_another_shape():
