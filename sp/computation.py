@@ -230,6 +230,10 @@ def segment_attributes(
 #: a segment needs this many row triples (three returns of it side by side in one scan row)
 #: for its roughness to be known: fewer are a few noisy second differences
 ROUGHNESS_MIN_TRIPLES = 5
+#: the texture is resolved to this (m); a second difference over the last bin's upper edge
+#: counts in the last bin, which holds the jumps between objects
+ROUGHNESS_BIN_M = 0.01
+ROUGHNESS_BINS = 128
 
 
 def segment_roughness(
@@ -241,8 +245,8 @@ def segment_roughness(
     """(K,) float64 texture of each segment (reference 001, 4.5.6: "differences in range at
     adjacent pixels can be used to compute ... surface roughness, or texture"), metres: the
     median over its row triples of ``|r[j-1] - 2 r[j] + r[j+1]|``, the range's second
-    difference along a scan row between three returns of the segment; NaN for a segment with
-    fewer than ``min_triples`` triples.
+    difference along a scan row between three returns of the segment, to
+    ``ROUGHNESS_BIN_M``; NaN for a segment with fewer than ``min_triples`` triples.
 
     labels: (H, W) int segment per pixel (-1 none), 0..n_segments-1; range_m: (H, W) float
     range of each pixel, m. Columns wrap (a full turn of azimuth). A smooth surface (a car's
@@ -250,30 +254,45 @@ def segment_roughness(
     as its ranges change linearly along a row; leaves scatter a LADAR's returns in depth
     (a bush or a crown gives decimetres). The median, not the mean, because a real car's
     windows let some returns through to its inside, and a segment over two objects side by
-    side jumps in range where one meets the other: a few triples, not the surface. Only the
-    labelled pixels are visited.
+    side jumps in range where one meets the other: a few triples, not the surface. One
+    compiled pass counts each segment's second differences in bins of ``ROUGHNESS_BIN_M``
+    (:func:`_roughness_histogram`); the median is the middle triple's bin centre.
     """
     if np.shape(range_m) != np.shape(labels):
         raise ComputationError(f"range_m {np.shape(range_m)} does not match labels {labels.shape}")
-    W = labels.shape[1]
-    lab = np.ascontiguousarray(labels).reshape(-1)
-    r = np.ascontiguousarray(range_m, dtype=np.float64).reshape(-1)
-    i = np.flatnonzero(lab >= 0)
-    col = i % W
-    left = np.where(col == 0, i + W - 1, i - 1)
-    right = np.where(col == W - 1, i - W + 1, i + 1)
-    s = lab[i]
-    ok = (lab[left] == s) & (lab[right] == s)
-    i, left, right, s = i[ok], left[ok], right[ok], s[ok]
-    d2 = np.abs(r[left] - 2.0 * r[i] + r[right])
-    # each segment's triples in ascending order, the segments one after the other
-    order = np.lexsort((d2, s))
-    s, d2 = s[order], d2[order]
-    n = np.bincount(s, minlength=n_segments)[:n_segments]
-    first = np.searchsorted(s, np.arange(n_segments))
-    out = np.full(n_segments, np.nan)
-    known = n >= min_triples
-    out[known] = d2[first[known] + n[known] // 2]
+    hist = _roughness_histogram(
+        np.ascontiguousarray(labels, dtype=np.int64),
+        np.ascontiguousarray(range_m, dtype=np.float64),
+        int(n_segments),
+        ROUGHNESS_BIN_M,
+        ROUGHNESS_BINS,
+    )
+    n = hist.sum(axis=1)
+    # the bin of each segment's middle triple (0-based rank n // 2)
+    below = np.cumsum(hist, axis=1) <= (n // 2)[:, None]
+    middle = below.sum(axis=1)
+    return np.where(n >= min_triples, (middle + 0.5) * ROUGHNESS_BIN_M, np.nan)
+
+
+@numba.njit(cache=True, nogil=True)
+def _roughness_histogram(labels, r, K, bin_m, n_bins):  # pragma: no cover
+    """(K, n_bins) int64: per segment of ``labels`` (H, W), how many of its row triples have a
+    second difference of range ``r`` (H, W) in each bin of ``bin_m`` (the last bin open)."""
+    H, W = labels.shape
+    out = np.zeros((K, n_bins), np.int64)
+    for i in range(H):
+        for j in range(W):
+            s = labels[i, j]
+            if s < 0 or s >= K:
+                continue
+            jl = j - 1 if j > 0 else W - 1
+            jr = j + 1 if j < W - 1 else 0
+            if labels[i, jl] != s or labels[i, jr] != s:
+                continue
+            d = abs(r[i, jl] - 2.0 * r[i, j] + r[i, jr]) / bin_m
+            if d != d:  # a range unknown: no triple
+                continue
+            out[s, int(d) if d < n_bins else n_bins - 1] += 1
     return out
 
 
