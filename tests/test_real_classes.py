@@ -204,9 +204,12 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
     # each car's own entity: 8 of 10 (car 209, in the shadow of 210 and 504, is mostly part of
     # 504's entity; car 219 is never confirmed)
     assert s["recall_alone"] >= 0.8, s
-    # target missed, recorded above: 5 of the 9 cars found classified vehicle (0.56; 0.8
-    # wanted: two partly seen cars 26-34 m out, 1.5-2.3 m of them in view, and a third are
-    # called rock or bush, and car 211 tree since the level-4 discriminant, 6 of 9 before it).
+    # target missed, recorded above: 7 of the 9 cars found classified vehicle (0.78; 0.8
+    # wanted): cars 210 and 216, seen in part (1.5-2 m of them, 1.2-1.5 m high), are called
+    # rock. 5 of 9 before level 4 measured texture (sp.computation.segment_roughness:
+    # the cars' returns are as smooth as the simulator's vehicles', 0.02-0.09 m, where its
+    # bushes and crowns scatter 0.25-0.5 m), when 210 was called bush and 211 tree; 6 of 9
+    # before the level-4 discriminant.
     # No person, crowd or convoy: the last object called person where the labels have none,
     # 207 "other-object" returns on an upright plane 1.09 m high and 0.9 x 0.6 m across, is
     # street furniture since the simulator has bins and cabinets (version 6) to learn that
@@ -217,7 +220,7 @@ def test_kitti_cars_are_found_and_are_vehicles(real_data: Path) -> None:
     # cars parked nose to tail were one entity and that one "vehicle" counted for each (a
     # grouping link across the returns between them, since removed). These bounds guard
     # against worse
-    assert s["vehicle_of_found"] >= 0.55, s
+    assert s["vehicle_of_found"] >= 0.75, s
     assert s["person"] == 0 and s["crowd"] == 0 and s["convoy"] == 0, s
 
 
@@ -235,13 +238,13 @@ def test_av2_cuboids_are_found(real_data: Path) -> None:
     assert s["moved_m"] < 1.0 and s["odometry_error_m"] < 0.2, s
     # the target (0.9) is missed: measured on odometry poses 23 of 26 cuboids with >= 20
     # interior points found (recall 0.885; missed: two vehicles and a bicycle), class agreement
-    # 12 of 21 (0.571). Before the log reader gave the scans from the LiDAR's origin with rows
-    # in elevation order (they were seen from the ground under the rear axle, rows in firing
-    # order, so every column of the egosphere jumped between elevations and a pedestrian broke
-    # into five pieces): 20 of 24 (0.833), 10 of 19 (0.526). These bounds guard against losing
-    # more
+    # 13 of 21 (0.619; 11 of 21 before level 4 measured texture). Before the log reader gave
+    # the scans from the LiDAR's origin with rows in elevation order (they were seen from the
+    # ground under the rear axle, rows in firing order, so every column of the egosphere
+    # jumped between elevations and a pedestrian broke into five pieces): 20 of 24 (0.833),
+    # 10 of 19 (0.526). These bounds guard against losing more
     assert s["recall"] >= 0.85, s
-    assert s["class_agreement"] >= 0.5, s
+    assert s["class_agreement"] >= 0.6, s
 
 
 if __name__ == "__main__":
