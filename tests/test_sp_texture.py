@@ -18,7 +18,7 @@ from wm.entities import KDSensoryProcessor
 def _run(foliage_depth_m: float, n_sweeps: int = 8):
     """SP over a 2 m box 10 m ahead, its returns pushed ``foliage_depth_m`` into it on average
     along their rays (exponentially distributed) and 1 cm range noise everywhere; the KD and
-    level 4."""
+    the sensory processor."""
     rng = np.random.default_rng(3)
     kd = kd_store.open(":memory:")
     cfg = SPConfig(egosphere=EgosphereConfig(n_rows=32, n_cols=360, max_returns=1))
