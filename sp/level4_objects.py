@@ -416,13 +416,11 @@ class ObjectLevel:
             s = seg_of_track[k]
             attributes = None
             if s >= 0:
-                attributes = _attributes(a, s, tr.w[k], tr.Pw[k], x_rep[k])
+                rough = float(seg.roughness_m[s])
+                attributes = _attributes(a, s, rough, tr.w[k], tr.Pw[k], x_rep[k])
                 self.observe_appearance(self.track_reflectance, tid, float(a.intensity[s]))
                 self.observe_shape(tid, a, int(s))
-                rough = float(seg.roughness_m[s])
                 self.observe_appearance(self.track_roughness, tid, rough)
-                if math.isfinite(rough):
-                    attributes["roughness_m"] = Attribute(observed=rough)
             confidence = unit(tr.confidence[k])
             if tid in self._revived:
                 if status != Status.CONFIRMED:
@@ -783,9 +781,10 @@ def largest_segment_of_track(
 
 
 def _attributes(
-    a: SegmentAttributes, s: int, w: np.ndarray, Pw: np.ndarray, x: np.ndarray
+    a: SegmentAttributes, s: int, roughness_m: float, w: np.ndarray, Pw: np.ndarray, x: np.ndarray
 ) -> dict[str, Attribute]:
-    """Observed (this segment) and estimated (the what-filter) attributes of one object."""
+    """Observed (this segment ``s``, whose texture is ``roughness_m``, NaN unknown) and
+    estimated (the what-filter) attributes of one object."""
     obs = {
         "length_m": float(a.length_m[s]),
         "width_m": float(a.width_m[s]),
@@ -807,4 +806,6 @@ def _attributes(
     out["intensity"] = Attribute(observed=float(a.intensity[s]))
     out["curvature"] = Attribute(observed=float(a.curvature[s]))
     out["n_pixels"] = Attribute(observed=float(a.n_pixels[s]))
+    if math.isfinite(roughness_m):
+        out["roughness_m"] = Attribute(observed=roughness_m)
     return out
