@@ -22,7 +22,7 @@ from fixtures.scenario import (
 )
 from fixtures.sensors import Camera, CameraConfig, Ladar, LadarConfig
 from fixtures.simulate import Simulator
-from fixtures.world import CLASS_INDEX, World
+from fixtures.world import CLASS_INDEX, LEAF_DEPTH_RANGE, World
 from logs.types import ObjectBoxes
 
 BUILDING = ObjectClass.BUILDING
@@ -119,28 +119,41 @@ def test_range_noise_matches_its_model_against_the_cast_truth(parking_sweeps) ->
 
 def test_foliage_returns_come_from_inside_the_leaves() -> None:
     """A bush's and a tree crown's returns lie behind the cast surface, on average by the
-    configured depth and scattered as much (exponential), where a trunk's, a wall's and the
-    ground's only carry the range noise: vegetation is rough to a LADAR, a hard shell is not."""
+    configured depth times the plant's own leaf depth and scattered as much (exponential),
+    where a trunk's, a wall's and the ground's only carry the range noise: vegetation is rough
+    to a LADAR, a hard shell is not. Plants differ: dense foliage stops a beam within
+    centimetres, an open crown lets it in for decimetres."""
     cfg = LadarConfig()
     sim = Simulator("default", seed=8)
+    world = sim.world
     depth: dict[str, list[np.ndarray]] = {"leaf": [], "hard": []}
     for k in range(8):
-        t_ns = sim.world.t0_ns + int((10.0 + k) * NS_PER_S)
+        t_ns = world.t0_ns + int((10.0 + k) * NS_PER_S)
         scan, truth = sim.ladar.sweep_with_truth(t_ns)
         r_meas = np.linalg.norm(scan.points_xyz.astype(np.float64), axis=1)
         _, origins, dirs = sim.ladar.rays_world(t_ns)
         z = origins[truth.ray // cfg.n_beams, 2] + dirs.reshape(-1, 3)[truth.ray, 2] * truth.range_m
-        leaf = sim.world.is_foliage(truth.object_id, z)
-        depth["leaf"].append((r_meas - truth.range_m)[leaf])
+        leaf = world.is_foliage(truth.object_id, z)
+        scale = cfg.foliage_depth_m * world.leaf_depth_of(truth.object_id[leaf])
+        depth["leaf"].append((r_meas - truth.range_m)[leaf] / scale)
         depth["hard"].append((r_meas - truth.range_m)[~leaf])
     leaf, hard = np.concatenate(depth["leaf"]), np.concatenate(depth["hard"])
     assert leaf.size > 300, leaf.size
-    assert np.mean(leaf) == pytest.approx(cfg.foliage_depth_m, rel=0.15)
-    assert np.std(leaf) == pytest.approx(cfg.foliage_depth_m, rel=0.2)  # exponential
+    # in units of each plant's own mean depth: a standard exponential
+    assert np.mean(leaf) == pytest.approx(1.0, rel=0.15)
+    assert np.std(leaf) == pytest.approx(1.0, rel=0.2)
     assert np.mean(leaf < 0.0) < 0.15  # mostly behind the surface, not noise about it
     assert abs(np.mean(hard)) < 0.003 and np.std(hard) < 0.05
+    plants = [o.object_id for o in world.statics if o.cls in (ObjectClass.BUSH, ObjectClass.TREE)]
+    others = [
+        o.object_id for o in world.statics if o.cls not in (ObjectClass.BUSH, ObjectClass.TREE)
+    ]
+    own = world.leaf_depth_of(np.array(plants))
+    lo, hi = LEAF_DEPTH_RANGE
+    assert len(plants) >= 10 and np.all((own >= lo) & (own <= hi))
+    assert own.max() > 3 * own.min()  # dense and open foliage in one world
+    assert np.all(world.leaf_depth_of(np.array(others)) == 1.0)
     # tree trunks are hard: only a tree's crown is leaves
-    world = sim.world
     tree = next(o for o in world.statics if o.cls is ObjectClass.TREE)
     base = tree.center[2] - tree.size[2] / 2
     ids = np.array([tree.object_id, tree.object_id])
