@@ -241,13 +241,12 @@ def test_av2_cuboids_are_found(real_data: Path) -> None:
     # 10 of 21 (0.476): 11 of 21 before level 4 measured texture, 13 with the classes fitted on
     # simulator 6, whose plants all scattered returns by one depth (texture told a tree from a
     # car by construction there; fitted on plants as smooth as a hedge or as open as a crown,
-    # 9 of the 18 vehicles found are called vehicle, against 12, and 4 tree and 1 bush, against 1
-    # and 0).
-    # Before the log reader gave
-    # the scans from the LiDAR's origin with rows in elevation order (they were seen from the
-    # ground under the rear axle, rows in firing order, so every column of the egosphere
-    # jumped between elevations and a pedestrian broke into five pieces): 20 of 24 (0.833),
-    # 10 of 19 (0.526). These bounds guard against losing more
+    # 9 of the 18 vehicles found are called vehicle, against 12, and 4 tree and 1 bush,
+    # against 1 and 0). Before the log reader gave the scans from the LiDAR's origin with rows
+    # in elevation order (they were seen from the ground under the rear axle, rows in firing
+    # order, so every column of the egosphere jumped between elevations and a pedestrian
+    # broke into five pieces): 20 of 24 (0.833), 10 of 19 (0.526). These bounds guard against
+    # losing more
     assert s["recall"] >= 0.85, s
     assert s["class_agreement"] >= 0.45, s
 
