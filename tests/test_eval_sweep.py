@@ -9,7 +9,7 @@ import math
 import pytest
 
 from bench.results import RESULTS_DIR
-from wm.eval_sweep import EVAL_SEEDS, check_eval_seeds, scenarios_available, sweep
+from wm.eval_sweep import EVAL_SEEDS, check_eval_seeds, pooled, scenarios_available, sweep, table
 
 
 def test_evaluation_seeds_are_not_development_seeds():
@@ -50,3 +50,32 @@ def test_a_cached_log_without_return_counts_is_simulated_again(tmp_path):
     assert not counts_returns(stale)
     log = simulate_cached("default", 3, 0.3, tmp_path, timeout_s=120)
     assert log == stale and counts_returns(log)
+
+
+def _run(objects, misses, fps, switches, bands):
+    """A seed's scores: CLEAR MOT counts and (recall, box-frames) per range band."""
+    r = {"num_objects": objects, "num_misses": misses, "num_false_positives": fps,
+         "num_switches": switches, "mota": 1 - (misses + fps + switches) / objects}  # fmt: skip
+    for b, (rec, n) in zip(("0_20m", "20_30m", "30_40m"), bands, strict=True):
+        r[f"recall_{b}"], r[f"box_frames_{b}"] = rec, n
+    return r
+
+
+def test_pooled_figures_weigh_each_seed_by_its_frames():
+    # a seed with 2 scored box-frames and 12 false positives (MOTA -5) beside one of 100
+    runs = [
+        _run(2, 0, 12, 0, [(1.0, 2), (math.nan, 0), (math.nan, 0)]),
+        _run(100, 10, 0, 2, [(1.0, 40), (0.8, 40), (0.5, 20)]),
+    ]
+    p = pooled(runs)
+    assert p["mota_pooled"] == pytest.approx(1 - (12 + 10 + 2) / 102)
+    assert p["recall_0_20m_pooled"] == pytest.approx(1.0)
+    assert p["recall_20_30m_pooled"] == pytest.approx(0.8)
+    assert p["recall_30_40m_pooled"] == pytest.approx(0.5)
+    assert p["box_frames_0_20m_pooled"] == 42
+    text = table("open", runs, "test")
+    assert "pooled over the seeds: MOTA 0.7647" in text
+    assert "20-30 m: 0.8 of 40 box-frames" in text
+    # no seed scored a band: NaN, not a division by zero
+    assert math.isnan(pooled([_run(5, 0, 0, 0, [(1.0, 5), (math.nan, 0), (math.nan, 0)])])
+                      ["recall_30_40m_pooled"])  # fmt: skip

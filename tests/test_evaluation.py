@@ -17,10 +17,12 @@ from kd_store import Level, State, Status
 from logs.types import ObjectBoxes
 from wm.evaluation import (
     EvalConfig,
+    EvaluationError,
     Sweep,
     Truth,
     evaluate_run,
     load_kd,
+    range_bands,
     trajectory_scores,
     unbounded_track,
 )
@@ -177,6 +179,35 @@ def test_a_pair_is_in_range_when_its_box_is():
     s = _score(_truth(STILL, boxes, {8: 50}), _kd(STILL, tracks))
     assert s["num_objects"] == 10 and s["num_detections"] == 10
     assert s["num_false_positives"] == 0 and s["mota"] == pytest.approx(1.0)
+
+
+def test_recall_by_band_of_box_range_by_construction():
+    # a rock 10 m out found every frame, one 25 m out from the sixth on, a wall whose near face
+    # is 34.5 m out (centre 35 m) never; the bands are [0, 20), [20, 30), [30, 40] m
+    boxes = [
+        (1, "rock", (10.0, 0.0), (1.0, 1.0), 0.0),
+        (2, "rock", (0.0, 25.0), (1.0, 1.0), 0.0),
+        (3, "wall", (-35.0, 0.0), (1.0, 1.0), 0.0),
+    ]
+    tracks = {
+        "near": (("rock",), {k: ((10.0, 0.0), 0.0) for k in range(10)}),
+        "mid": (("rock",), {k: ((0.0, 25.0), 0.0) for k in range(5, 10)}),
+    }
+    s = _score(_truth(STILL, boxes), _kd(STILL, tracks))
+    assert s["box_frames_0_20m"] == 10 and s["recall_0_20m"] == pytest.approx(1.0)
+    assert s["box_frames_20_30m"] == 10 and s["recall_20_30m"] == pytest.approx(0.5)
+    assert s["box_frames_30_40m"] == 10 and s["recall_30_40m"] == pytest.approx(0.0)
+    # the bands partition the scored box-frames: their hits are the run's detections
+    hits = sum(s[f"recall_{b}"] * s[f"box_frames_{b}"] for b in ("0_20m", "20_30m", "30_40m"))
+    assert hits == pytest.approx(s["num_detections"])
+
+
+def test_range_bands_that_do_not_rise_within_the_range_are_refused():
+    with pytest.raises(EvaluationError, match=r"range_bands_m \(30.0, 20.0\)"):
+        range_bands(EvalConfig(range_bands_m=(30.0, 20.0)))
+    with pytest.raises(EvaluationError, match="range_bands_m"):
+        range_bands(EvalConfig(range_bands_m=(20.0, 45.0)))  # past the 40 m range
+    assert range_bands(EvalConfig()) == [(0.0, 20.0), (20.0, 30.0), (30.0, 40.0)]
 
 
 def _circle_poses(n: int) -> list[np.ndarray]:

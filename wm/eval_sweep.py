@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from wm.evaluation import EvalConfig, band_name, range_bands
+
 REPO = Path(__file__).resolve().parents[1]
 SCENARIO_DIR = REPO / "fixtures" / "scenarios"
 
@@ -200,6 +202,28 @@ def summarize(values: list[float], fig: Figure) -> tuple[float, float, int]:
     return float(np.median(v)), worst, len(v)
 
 
+def pooled(runs: list[dict[str, float]]) -> dict[str, float]:
+    """Figures over all the seeds' frames together, as a benchmark of many sequences pools
+    them: MOTA from the summed misses, false positives, switches and objects (a seed with two
+    scored frames weighs two frames, where in the median it weighs as much as any), and the
+    recall of each range band (``wm.evaluation.range_bands``) from its summed box-frames.
+    Reported beside the medians, without targets."""
+    out: dict[str, float] = {}
+    n_obj = sum(r.get("num_objects", 0.0) for r in runs)
+    errors = sum(
+        r.get("num_misses", 0.0) + r.get("num_false_positives", 0.0) + r.get("num_switches", 0.0)
+        for r in runs
+    )
+    out["mota_pooled"] = 1.0 - errors / n_obj if n_obj else math.nan
+    for lo, hi in range_bands(EvalConfig()):
+        b = band_name(lo, hi)
+        n = sum(r.get(f"box_frames_{b}", 0.0) for r in runs)
+        hit = sum(r[f"recall_{b}"] * r[f"box_frames_{b}"] for r in runs if r.get(f"box_frames_{b}"))
+        out[f"recall_{b}_pooled"] = hit / n if n else math.nan
+        out[f"box_frames_{b}_pooled"] = n
+    return out
+
+
 def table(scenario: str, runs: list[dict[str, float]], label: str) -> str:
     """The per-scenario table: median, worst seed and target of each figure."""
     lines = [
@@ -212,6 +236,14 @@ def table(scenario: str, runs: list[dict[str, float]], label: str) -> str:
         mark = "" if ok == [None, None] else ("  ok" if False not in ok else "  MISS")
         lines.append(
             f"  {fig.key:26s} {med:9.4g} {worst:9.4g} {n:3d}  {fig.target_text() or '-'}{mark}"
+        )
+    p = pooled(runs)
+    lines.append(f"  pooled over the seeds: MOTA {p['mota_pooled']:.4g}; recall by box range")
+    for lo, hi in range_bands(EvalConfig()):
+        b = band_name(lo, hi)
+        lines.append(
+            f"    {lo:g}-{hi:g} m: {p[f'recall_{b}_pooled']:.4g} "
+            f"of {p[f'box_frames_{b}_pooled']:.0f} box-frames"
         )
     return "\n".join(lines)
 
@@ -233,6 +265,11 @@ def record_figures(
             continue
         with contextlib.redirect_stdout(io.StringIO()):  # the table already shows them
             _record_pair(results, f"{prefix}_{scenario}_{fig.key}", fig, med, worst, command)
+    with contextlib.redirect_stdout(io.StringIO()):
+        for key, value in pooled(runs).items():
+            if key.startswith("box_frames") or not math.isfinite(value):
+                continue
+            results.record(f"{prefix}_{scenario}_{key}", value, "ratio", command=command)
 
 
 def _record_pair(results, name: str, fig: Figure, med: float, worst: float, command: str) -> None:

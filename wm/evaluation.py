@@ -19,6 +19,7 @@ import io
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +58,8 @@ class EvalConfig:
     deskew_bins: int = 8  # slices of a sweep moved each with its own true pose
     rpe_delta_m: float = 10.0  # RPE segment length
     statuses: tuple[str, ...] = SCORED_STATUSES
+    # recall is also given per band of box range: [0, 20), [20, 30), [30, range_m] m
+    range_bands_m: tuple[float, ...] = (20.0, 30.0)
 
 
 # --- ground truth from a log ---------------------------------------------------------------
@@ -584,8 +587,10 @@ def _pair_figures(
         if fd.ospeed[oi] < config.static_speed_mps and np.isfinite(fd.hspeed[hi]):
             speeds.append(float(fd.hspeed[hi]))
     by_class = _recall_by_class(ev, kept)
+    by_range = _recall_by_range(ev, kept, config)
     return {
         **by_class,
+        **by_range,
         "tp_pairs": float(total),
         "classification_accuracy": right / total if total else math.nan,
         "static_pairs": float(len(speeds)),
@@ -609,6 +614,47 @@ def _recall_by_class(ev: Any, kept: list[tuple[FrameData, Filtered]]) -> dict[st
         n[c] = n.get(c, 0) + 1
         hit[c] = hit.get(c, 0) + int(typ != "MISS")
     return {f"recall_{c}": hit[c] / n[c] for c in sorted(n)}
+
+
+def range_bands(config: EvalConfig) -> list[tuple[float, float]]:
+    """The bands of box range (m) recall is given in: ``range_bands_m`` cut [0, range_m]."""
+    edges = [0.0, *config.range_bands_m, config.range_m]
+    if any(b <= a for a, b in pairwise(edges)):
+        raise EvaluationError(
+            f"range_bands_m {config.range_bands_m} must rise within (0, {config.range_m})"
+        )
+    return list(pairwise(edges))
+
+
+def band_name(lo: float, hi: float) -> str:
+    """``"20_30m"`` for the band [20, 30) m."""
+    return f"{lo:g}_{hi:g}m"
+
+
+def _recall_by_range(
+    ev: Any, kept: list[tuple[FrameData, Filtered]], config: EvalConfig
+) -> dict[str, float]:
+    """``recall_<band>`` and ``box_frames_<band>``: of the scored box-frames whose box lies
+    in each band of range (:func:`range_bands`, the box's footprint distance from the body),
+    the fraction matched and their number. Far objects are met by fewer rows, so this says
+    where detection gives out; the counts let a sweep pool the bands over its seeds."""
+    bands = range_bands(config)
+    hit = np.zeros(len(bands), dtype=np.int64)
+    n = np.zeros(len(bands), dtype=np.int64)
+    top = np.array([hi for _, hi in bands[:-1]])
+    for (frame, _), row in zip(ev.index, ev.itertuples(index=False), strict=True):
+        if row.Type not in ("MATCH", "SWITCH", "MISS"):
+            continue
+        fd, _f = kept[int(frame)]
+        oi = int(np.flatnonzero(fd.oid == int(row.OId))[0])
+        b = int(np.searchsorted(top, fd.orange[oi], side="right"))
+        n[b] += 1
+        hit[b] += int(row.Type != "MISS")
+    out: dict[str, float] = {}
+    for (lo, hi), h, k in zip(bands, hit, n, strict=True):
+        out[f"recall_{band_name(lo, hi)}"] = h / k if k else math.nan
+        out[f"box_frames_{band_name(lo, hi)}"] = float(k)
+    return out
 
 
 def hota(kept: list[tuple[FrameData, Filtered]], config: EvalConfig) -> float:
