@@ -306,6 +306,29 @@ def test_persons_have_the_statures_of_people() -> None:
     assert h.min() >= 1.0 and h.max() <= 2.0
 
 
+def test_a_persons_breadth_and_depth_scale_with_the_stature() -> None:
+    """Simulator 8: a child is slim (a body's breadth is about a quarter of its stature at
+    every age), not an adult's footprint under a child's height, which is a bin's."""
+    from fixtures.world import ADULT_M, _member_size, _person_size
+
+    spec = load_scenario("village").agents[0]  # the crowd: 1.0-2.0 m
+    rng = np.random.default_rng(11)
+    s = np.array([_member_size(spec, rng) for _ in range(4000)])
+    child, adult = s[s[:, 2] < 1.45], s[s[:, 2] >= 1.45]
+    assert len(child) > 300
+    # breadth over stature has one spread for children and adults (only the jitter and the
+    # uniform footprint draw vary it), so the children are narrower in proportion
+    ratio_c, ratio_a = child[:, 1] / child[:, 2], adult[:, 1] / adult[:, 2]
+    assert abs(np.median(ratio_c) - np.median(ratio_a)) < 0.02
+    assert np.median(child[:, 1]) < 0.8 * np.median(adult[:, 1])
+    assert np.median(child[:, :2].max(axis=1)) < 0.45  # a wheelie bin is 0.48-0.75 m wide
+    # the scaling itself: an adult of ADULT_M keeps the drawn footprint, a 1.02 m child 0.6
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        p = _person_size(np.array([0.4, 0.6, 0.0]), rng, 1.0, 2.0)
+        assert np.allclose(p[:2], np.array([0.4, 0.6]) * p[2] / ADULT_M)
+
+
 def test_street_furniture_stands_by_the_roads_with_upright_faces() -> None:
     """Bins, cabinets and machines (simulator 6) stand by the village's street and in the car
     park, of published sizes, never moving; a level ray at half height meets one's face, a
