@@ -197,6 +197,8 @@ def test_recall_by_band_of_box_range_by_construction():
     assert s["box_frames_0_20m"] == 10 and s["recall_0_20m"] == pytest.approx(1.0)
     assert s["box_frames_20_30m"] == 10 and s["recall_20_30m"] == pytest.approx(0.5)
     assert s["box_frames_30_40m"] == 10 and s["recall_30_40m"] == pytest.approx(0.0)
+    # by class the same box-frames: the rocks 15 of 20, the wall none
+    assert s["recall_rock"] == pytest.approx(0.75) and s["recall_wall"] == 0.0
     # the bands partition the scored box-frames: their hits are the run's detections
     hits = sum(s[f"recall_{b}"] * s[f"box_frames_{b}"] for b in ("0_20m", "20_30m", "30_40m"))
     assert hits == pytest.approx(s["num_detections"])

@@ -18,6 +18,7 @@ import contextlib
 import io
 import math
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
@@ -598,21 +599,27 @@ def _pair_figures(
     }
 
 
+def _box_events(
+    ev: Any, kept: list[tuple[FrameData, Filtered]]
+) -> Iterator[tuple[FrameData, int, bool]]:
+    """Each scored box-frame of motmetrics' events (``MATCH``, ``SWITCH`` or ``MISS``): its
+    frame's data, the box's index in it, and whether it was matched."""
+    for (frame, _), row in zip(ev.index, ev.itertuples(index=False), strict=True):
+        if row.Type not in ("MATCH", "SWITCH", "MISS"):
+            continue
+        fd, _f = kept[int(frame)]
+        yield fd, int(np.flatnonzero(fd.oid == int(row.OId))[0]), row.Type != "MISS"
+
+
 def _recall_by_class(ev: Any, kept: list[tuple[FrameData, Filtered]]) -> dict[str, float]:
     """``recall_<class>``: the fraction of scored box-frames of each true class that were
     matched (motmetrics' MATCH or SWITCH events against its MISS events)."""
-    cls_of: dict[int, str] = {}
-    for fd, f in kept:
-        for i in f.o:
-            cls_of.setdefault(int(fd.oid[i]), fd.ocls[i])
     hit: dict[str, int] = {}
     n: dict[str, int] = {}
-    for typ, oid in zip(ev["Type"], ev["OId"], strict=True):
-        if typ not in ("MATCH", "SWITCH", "MISS"):
-            continue
-        c = cls_of.get(int(oid), "unknown")
+    for fd, oi, matched in _box_events(ev, kept):
+        c = fd.ocls[oi]
         n[c] = n.get(c, 0) + 1
-        hit[c] = hit.get(c, 0) + int(typ != "MISS")
+        hit[c] = hit.get(c, 0) + int(matched)
     return {f"recall_{c}": hit[c] / n[c] for c in sorted(n)}
 
 
@@ -642,14 +649,10 @@ def _recall_by_range(
     hit = np.zeros(len(bands), dtype=np.int64)
     n = np.zeros(len(bands), dtype=np.int64)
     top = np.array([hi for _, hi in bands[:-1]])
-    for (frame, _), row in zip(ev.index, ev.itertuples(index=False), strict=True):
-        if row.Type not in ("MATCH", "SWITCH", "MISS"):
-            continue
-        fd, _f = kept[int(frame)]
-        oi = int(np.flatnonzero(fd.oid == int(row.OId))[0])
+    for fd, oi, matched in _box_events(ev, kept):
         b = int(np.searchsorted(top, fd.orange[oi], side="right"))
         n[b] += 1
-        hit[b] += int(row.Type != "MISS")
+        hit[b] += int(matched)
     out: dict[str, float] = {}
     for (lo, hi), h, k in zip(bands, hit, n, strict=True):
         out[f"recall_{band_name(lo, hi)}"] = h / k if k else math.nan
