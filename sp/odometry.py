@@ -21,7 +21,10 @@ Per sweep (one :class:`~logs.types.LadarScan`):
    point-to-plane information of the registered points (:func:`registration_information`),
    so a direction the scene does not constrain (along a bare slope, around the vertical in
    open country) gets a large variance and follows the wheels, while a well-constrained one
-   follows the registration (degeneracy as in Zhang, Kaess and Singh, ICRA 2016).
+   follows the registration (degeneracy as in Zhang, Kaess and Singh, ICRA 2016); ``R`` is
+   then scaled by how far the registrations' innovations against the wheels have exceeded
+   what ``P + R`` predicts over the last second (covariance matching,
+   :meth:`LadarOdometry._consistency`).
 
 Poses: KISS-ICP deskews a sweep to the end of its per-point times once the motion is known; a
 sweep taken as it is (no per-point times, deskew off, or the first sweeps before any motion is
@@ -112,6 +115,10 @@ class OdometryConfig:
                     register to a local map of a few sweeps, which holds them back).
     gate_sigma:     per axis, a registration further than this many standard deviations from
                     the wheel odometry is not used on that axis.
+    consistency_sweeps: the registrations' covariance is matched to their innovations against
+                    the wheels (:meth:`LadarOdometry._consistency`) over about this many
+                    sweeps (the time constant of a running mean of the normalised
+                    innovation squared); 0 turns the matching off.
     info_neighbours, info_radius_m: the neighbours (and their farthest distance) that fit the
                     local plane of each registered point for the information matrix, found
                     in the sweep thinned to one point per ``info_voxel_m``, for at most
@@ -160,6 +167,7 @@ class OdometryConfig:
     icp_sigma_m: float = 0.02
     icp_sigma_rad: float = 0.002
     gate_sigma: float = 3.0
+    consistency_sweeps: int = 10
     tilt_sigma_rad: float = 0.01
     max_tilt_sigma_rad: float = 0.1
     ground_share: float = 0.2
@@ -345,6 +353,9 @@ class LadarOdometry:
         self.wheel_scale_P = cfg.wheel_scale_sigma**2
         self._wheel_body_delta: np.ndarray | None = None  # the last sweep's raw wheel motion
         self._scale_sweeps = 0  # registrations offered to the scale estimate
+        # running mean of the registrations' normalised innovation squared against the wheels
+        # (6 when their covariance is right; :meth:`_consistency`)
+        self.mean_nis = 6.0
         # the last accepted sweep: reference time and T_world_sensor (recover() restarts there)
         self.last_good: tuple[int, np.ndarray] | None = None
 
@@ -471,6 +482,7 @@ class LadarOdometry:
             cloud = self._down_sample(frame_down, cfg.info_voxel_m)
             info = registration_information(cloud, source[::stride], pose, kiss.last_pose, cfg)
             R = registration_covariance(info, quality, cfg)
+            R = R * self._consistency(delta_pred, delta_icp, R)
             self._estimate_wheel_scale(delta_icp, R)
             pose = kiss.last_pose @ self._fuse(delta_pred, delta_icp, R)
             pose = self._level(pose, t_ns)
@@ -528,12 +540,34 @@ class LadarOdometry:
             )
         return quality, ""
 
+    def _wheel_covariance(self) -> np.ndarray:
+        """Covariance (6, 6) of one sweep's wheel-odometry motion, axes x y z rx ry rz."""
+        cfg = self.config
+        return np.diag(np.array([cfg.wheel_sigma_m] * 3 + [cfg.wheel_sigma_rad] * 3) ** 2)
+
+    def _consistency(self, delta_pred: np.ndarray, delta_icp: np.ndarray, R: np.ndarray) -> float:
+        """The factor (>= 1) the registration's covariance ``R`` (6, 6) is scaled by: the
+        running mean of its normalised innovation squared against the wheels,
+        ``d = v^T (P + R)^-1 v`` with ``v`` the motions' difference, over the 6 it has when
+        ``R`` and ``P`` are right (covariance matching, as in Mehra's adaptive Kalman
+        filtering). The point-to-plane information takes each point's error as independent,
+        but on smooth ground a registration errs as a whole (the laser rings, the shape of a
+        bare slope) and its real spread can be ten times what the information says; never
+        below 1: the registration is not trusted beyond its information."""
+        n = self.config.consistency_sweeps
+        if n <= 0:
+            return 1.0
+        v = to_vector(delta_icp) - to_vector(delta_pred)
+        d = float(v @ np.linalg.solve(self._wheel_covariance() + R, v))
+        self.mean_nis += (d - self.mean_nis) / n
+        return max(1.0, self.mean_nis / 6.0)
+
     def _fuse(self, delta_pred: np.ndarray, delta_icp: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Kalman blend of the wheels (prediction, covariance P) and the registration
         (measurement, covariance ``R`` (6, 6), :func:`registration_covariance`, sensor frame,
         axes x y z rx ry rz), both sensor motions over one sweep (4x4)."""
         cfg = self.config
-        P = np.diag(np.array([cfg.wheel_sigma_m] * 3 + [cfg.wheel_sigma_rad] * 3) ** 2)
+        P = self._wheel_covariance()
         x_pred = to_vector(delta_pred)
         innovation = to_vector(delta_icp) - x_pred
         K = P @ np.linalg.inv(P + R)
