@@ -119,7 +119,9 @@ def occupancy_against_truth(seconds: float) -> dict[str, float]:
 
 def test_ray_casting_on_a_short_simulated_log() -> None:
     got = occupancy_against_truth(seconds=3.0)
-    assert got["free_cells"] > 1.5 * got["free_cells_points_only"]  # rays add free space
+    # rays add free space: a quarter again on ground as smooth as a field, whose returns
+    # alone already mark most of it (twice as much on the rougher ground of simulators 1-8)
+    assert got["free_cells"] > 1.15 * got["free_cells_points_only"]
     assert got["occupied_on_objects"] > 0.8
     assert got["free_in_solid_objects"] < 0.01
 

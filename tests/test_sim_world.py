@@ -35,6 +35,19 @@ def test_terrain_raster_is_the_height_function(world: World) -> None:
     assert np.ptp(r.heights) > 2.0  # rolling, not flat
 
 
+def test_every_world_is_as_rough_as_its_ground_is(world: World) -> None:
+    """The bumps the vehicle rides over (the height less its smooth part) are as rough as
+    the spec says: a ploughed field's 0.05 m RMS in the countryside, the open country and the
+    village, 0.02 m on the car park's asphalt; none is the 0.2 m of simulators 1-8, bumps no
+    field or street has."""
+    rng = np.random.default_rng(3)
+    for name, rms in (("default", 0.05), ("open", 0.05), ("village", 0.05), ("parking", 0.02)):
+        w = world if name == "default" else World(load_scenario(name))
+        x, y = rng.uniform(-80.0, 80.0, (2, 20000))
+        bumps = w.terrain.analytic_height(x, y) - w.terrain.smooth_height(x, y)
+        assert np.sqrt(np.mean(bumps**2)) == pytest.approx(rms, rel=0.15), name
+
+
 def test_vertical_rays_hit_the_terrain_at_its_height(world: World) -> None:
     rng = np.random.default_rng(0)
     xy = rng.uniform(-150, 150, (500, 2))

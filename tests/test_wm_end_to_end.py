@@ -343,7 +343,10 @@ def test_whatis_body_frames_move_the_world_answer_by_the_pose_at_its_time(node, 
             assert ans.frame == frame and ans.t_ns == a.t_ns
             T_f_w = se3_inverse(T)
             p = transform_points(T_f_w, a.position[None])[0]
-            np.testing.assert_allclose(ans.position, p, atol=0.05, err_msg=f"{frame} {f.id}")
+            # the KD holds the body pose at each sweep's middle, the node's track at its end:
+            # the two interpolations of a turn differ by up to a milliradian (0.08 m at 80 m)
+            tol = 0.05 + 1e-3 * float(np.linalg.norm(p))
+            np.testing.assert_allclose(ans.position, p, atol=tol, err_msg=f"{frame} {f.id}")
             np.testing.assert_allclose(ans.velocity, T_f_w[:3, :3] @ a.velocity, atol=0.05)
 
 
