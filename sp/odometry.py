@@ -208,6 +208,10 @@ class OdometryConfig:
             raise OdometryError(
                 f"max_points_per_voxel must be >= 1, got {self.max_points_per_voxel}"
             )
+        if self.consistency_sweeps < 0:
+            raise OdometryError(
+                f"consistency_sweeps must be >= 0 (0: off), got {self.consistency_sweeps}"
+            )
 
     @property
     def voxel_m(self) -> float:
@@ -555,7 +559,7 @@ class LadarOdometry:
         bare slope) and its real spread can be ten times what the information says; never
         below 1: the registration is not trusted beyond its information."""
         n = self.config.consistency_sweeps
-        if n <= 0:
+        if n == 0:
             return 1.0
         v = to_vector(delta_icp) - to_vector(delta_pred)
         d = float(v @ np.linalg.solve(self._wheel_covariance() + R, v))

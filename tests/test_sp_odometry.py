@@ -172,6 +172,8 @@ def test_bad_input_is_refused():
         od.update(scan_at(0))
     with pytest.raises(OdometryError, match="min_range_m"):
         OdometryConfig(min_range_m=5.0, max_range_m=2.0)
+    with pytest.raises(OdometryError, match=r"consistency_sweeps must be >= 0.*got -1"):
+        OdometryConfig(consistency_sweeps=-1)
 
 
 def swept_scan(k: int, n_cols: int = 64, seed: int = 5) -> LadarScan:
