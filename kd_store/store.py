@@ -274,9 +274,10 @@ class KnowledgeDatabase:
         """Change fields of an entity frame (not ``id``; states go through :meth:`observe`).
         A change the promotion rule admits (a confirmation) promotes at once: admission is
         one-way, and a track confirmed and fading before the next flush was still confirmed,
-        so long-term memory holds it."""
+        so long-term memory holds it. A frame long-term memory holds already needs no
+        promotion (the others wait for the next flush or :meth:`advance`, as they would)."""
         frame = self._entities.update(entity_id, changes)
-        if "status" in changes and self._admits(frame):
+        if "status" in changes and self._admits(frame) and not self._entities.in_ltm(entity_id):
             self._promote()
         return frame
 
