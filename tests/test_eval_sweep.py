@@ -76,6 +76,14 @@ def test_pooled_figures_weigh_each_seed_by_its_frames():
     text = table("open", runs, "test")
     assert "pooled over the seeds: MOTA 0.7647" in text
     assert "20-30 m: 0.8 of 40 box-frames" in text
+    # the log's start and the rest pool the same way
+    for r, (start, n_start) in zip(runs, [(0.5, 2), (0.25, 20)], strict=True):
+        r["recall_startup"], r["box_frames_startup"] = start, n_start
+        r["recall_steady"], r["box_frames_steady"] = 1.0, r["num_objects"] - n_start
+    p = pooled(runs)
+    assert p["recall_startup_pooled"] == pytest.approx((1 + 5) / 22)
+    assert p["recall_steady_pooled"] == pytest.approx(1.0)
+    assert "first 1 s: 0.2727 of 22 box-frames; after: 1 of 80" in table("open", runs, "test")
     # no seed scored a band: NaN, not a division by zero
     assert math.isnan(pooled([_run(5, 0, 0, 0, [(1.0, 5), (math.nan, 0), (math.nan, 0)])])
                       ["recall_30_40m_pooled"])  # fmt: skip

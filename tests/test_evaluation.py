@@ -204,6 +204,25 @@ def test_recall_by_band_of_box_range_by_construction():
     assert hits == pytest.approx(s["num_detections"])
 
 
+def test_recall_at_the_start_and_after_by_construction():
+    # 2 s of 10 Hz sweeps; a rock found from the fourth sweep on (its track confirmed late, as
+    # at a log's start), a post with states up to sweep 12, which the 0.25 s state window
+    # holds through sweep 14: found in every sweep but the last five
+    boxes = [(1, "rock", (10.0, 0.0), (1.0, 1.0), 0.0), (2, "post", (0.0, 15.0), (0.3, 0.3), 0.0)]
+    tracks = {
+        "rock": (("rock",), {k: ((10.0, 0.0), 0.0) for k in range(3, 20)}),
+        "post": (("post",), {k: ((0.0, 15.0), 0.0) for k in range(13)}),
+    }
+    still = [np.eye(4)] * 20
+    s = _score(_truth(still, boxes), _kd(still, tracks))
+    assert s["box_frames_startup"] == 20 and s["recall_startup"] == pytest.approx(17 / 20)
+    assert s["box_frames_steady"] == 20 and s["recall_steady"] == pytest.approx(15 / 20)
+    hits = s["recall_startup"] * 20 + s["recall_steady"] * 20
+    assert hits == pytest.approx(s["num_detections"])
+    with pytest.raises(EvaluationError, match="startup_s -1"):
+        evaluate_run(_truth(still, boxes), load_kd(_kd(still, tracks)), EvalConfig(startup_s=-1))
+
+
 def test_range_bands_that_do_not_rise_within_the_range_are_refused():
     with pytest.raises(EvaluationError, match=r"range_bands_m \(30.0, 20.0\)"):
         range_bands(EvalConfig(range_bands_m=(30.0, 20.0)))

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wm.evaluation import EvalConfig, band_name, range_bands
+from wm.evaluation import PHASES, EvalConfig, band_name, range_bands
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIO_DIR = REPO / "fixtures" / "scenarios"
@@ -206,8 +206,9 @@ def pooled(runs: list[dict[str, float]]) -> dict[str, float]:
     """Figures over all the seeds' frames together, as a benchmark of many sequences pools
     them: MOTA from the summed misses, false positives, switches and objects (a seed with two
     scored frames weighs two frames, where in the median it weighs as much as any), and the
-    recall of each range band (``wm.evaluation.range_bands``) from its summed box-frames.
-    Reported beside the medians, without targets."""
+    recall of each range band (``wm.evaluation.range_bands``) and of the log's start and the
+    rest (``wm.evaluation.PHASES``) from its summed box-frames. Reported beside the medians,
+    without targets."""
     out: dict[str, float] = {}
     n_obj = sum(r.get("num_objects", 0.0) for r in runs)
     errors = sum(
@@ -215,8 +216,7 @@ def pooled(runs: list[dict[str, float]]) -> dict[str, float]:
         for r in runs
     )
     out["mota_pooled"] = 1.0 - errors / n_obj if n_obj else math.nan
-    for lo, hi in range_bands(EvalConfig()):
-        b = band_name(lo, hi)
+    for b in [band_name(lo, hi) for lo, hi in range_bands(EvalConfig())] + list(PHASES):
         n = sum(r.get(f"box_frames_{b}", 0.0) for r in runs)
         hit = sum(r[f"recall_{b}"] * r[f"box_frames_{b}"] for r in runs if r.get(f"box_frames_{b}"))
         out[f"recall_{b}_pooled"] = hit / n if n else math.nan
@@ -245,6 +245,11 @@ def table(scenario: str, runs: list[dict[str, float]], label: str) -> str:
             f"    {lo:g}-{hi:g} m: {p[f'recall_{b}_pooled']:.4g} "
             f"of {p[f'box_frames_{b}_pooled']:.0f} box-frames"
         )
+    lines.append(
+        f"    first {EvalConfig().startup_s:g} s: {p['recall_startup_pooled']:.4g} of "
+        f"{p['box_frames_startup_pooled']:.0f} box-frames; after: "
+        f"{p['recall_steady_pooled']:.4g} of {p['box_frames_steady_pooled']:.0f}"
+    )
     return "\n".join(lines)
 
 

@@ -61,6 +61,9 @@ class EvalConfig:
     statuses: tuple[str, ...] = SCORED_STATUSES
     # recall is also given per band of box range: [0, 20), [20, 30), [30, range_m] m
     range_bands_m: tuple[float, ...] = (20.0, 30.0)
+    # ... and for the log's first seconds (from its first scored time), where every object in
+    # range is new at once and waits for its track's confirmation, and for the rest
+    startup_s: float = 1.0
 
 
 # --- ground truth from a log ---------------------------------------------------------------
@@ -589,9 +592,11 @@ def _pair_figures(
             speeds.append(float(fd.hspeed[hi]))
     by_class = _recall_by_class(ev, kept)
     by_range = _recall_by_range(ev, kept, config)
+    by_phase = _recall_by_phase(ev, kept, config)
     return {
         **by_class,
         **by_range,
+        **by_phase,
         "tp_pairs": float(total),
         "classification_accuracy": right / total if total else math.nan,
         "static_pairs": float(len(speeds)),
@@ -657,6 +662,36 @@ def _recall_by_range(
     for (lo, hi), h, k in zip(bands, hit, n, strict=True):
         out[f"recall_{band_name(lo, hi)}"] = h / k if k else math.nan
         out[f"box_frames_{band_name(lo, hi)}"] = float(k)
+    return out
+
+
+#: the phases of a log recall is given for (:func:`_recall_by_phase`)
+PHASES = ("startup", "steady")
+
+
+def _recall_by_phase(
+    ev: Any, kept: list[tuple[FrameData, Filtered]], config: EvalConfig
+) -> dict[str, float]:
+    """``recall_startup`` and ``recall_steady``, with ``box_frames_startup`` and
+    ``box_frames_steady``: of the scored box-frames in the first ``startup_s`` after the
+    log's first scored time and of those after, the fraction matched and their number. At the
+    start every object in range is new and is missed until its track is confirmed (three
+    sweeps or more); later most are confirmed while still out of range. So the start weighs
+    on a short log's recall as it does not on a long one's, and this says how much."""
+    if not config.startup_s >= 0:  # NaN too
+        raise EvaluationError(f"startup_s {config.startup_s} is not >= 0")
+    hit = dict.fromkeys(PHASES, 0)
+    n = dict.fromkeys(PHASES, 0)
+    if kept:
+        end_ns = kept[0][0].t_ns + round(config.startup_s * 1e9)
+        for fd, _oi, matched in _box_events(ev, kept):
+            phase = PHASES[0] if fd.t_ns < end_ns else PHASES[1]
+            n[phase] += 1
+            hit[phase] += int(matched)
+    out: dict[str, float] = {}
+    for phase in PHASES:
+        out[f"recall_{phase}"] = hit[phase] / n[phase] if n[phase] else math.nan
+        out[f"box_frames_{phase}"] = float(n[phase])
     return out
 
 
