@@ -60,13 +60,20 @@ class StateHistory:
 
     def rows_of(self, entity_ids: np.ndarray) -> list[StateColumns]:
         """The rows of ``entity_ids`` (any order), one list entry per non-empty chunk."""
-        if len(entity_ids) == 0:
+        if len(entity_ids) == 0 or not self.chunks:
             return []
+        # one membership test over every chunk's ids: a history holds dozens of small chunks
+        # (one a sweep), and a test per chunk costs more in calls than in comparisons
+        sizes = np.array([len(c.entity_id) for c in self.chunks])
+        all_ids = np.concatenate([c.entity_id for c in self.chunks])
+        hit = np.flatnonzero(np.isin(all_ids, entity_ids))
+        if not hit.size:
+            return []
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        which = np.searchsorted(starts, hit, side="right") - 1
         out = []
-        for c in self.chunks:
-            m = np.isin(c.entity_id, entity_ids)
-            if m.any():
-                out.append(c.take(m))
+        for k in np.unique(which).tolist():
+            out.append(self.chunks[k].take(hit[which == k] - starts[k]))
         return out
 
     def states_of(self, entity_id: int) -> list[State]:
