@@ -18,7 +18,7 @@ import contextlib
 import io
 import math
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
@@ -651,18 +651,11 @@ def _recall_by_range(
     the fraction matched and their number. Far objects are met by fewer rows, so this says
     where detection gives out; the counts let a sweep pool the bands over its seeds."""
     bands = range_bands(config)
-    hit = np.zeros(len(bands), dtype=np.int64)
-    n = np.zeros(len(bands), dtype=np.int64)
     top = np.array([hi for _, hi in bands[:-1]])
-    for fd, oi, matched in _box_events(ev, kept):
-        b = int(np.searchsorted(top, fd.orange[oi], side="right"))
-        n[b] += 1
-        hit[b] += int(matched)
-    out: dict[str, float] = {}
-    for (lo, hi), h, k in zip(bands, hit, n, strict=True):
-        out[f"recall_{band_name(lo, hi)}"] = h / k if k else math.nan
-        out[f"box_frames_{band_name(lo, hi)}"] = float(k)
-    return out
+    return _recall_by_bucket(
+        ev, kept, [band_name(lo, hi) for lo, hi in bands],
+        lambda fd, oi: int(np.searchsorted(top, fd.orange[oi], side="right")),
+    )  # fmt: skip
 
 
 #: the phases of a log recall is given for (:func:`_recall_by_phase`)
@@ -680,18 +673,28 @@ def _recall_by_phase(
     on a short log's recall as it does not on a long one's, and this says how much."""
     if not config.startup_s >= 0:  # NaN too
         raise EvaluationError(f"startup_s {config.startup_s} is not >= 0")
-    hit = dict.fromkeys(PHASES, 0)
-    n = dict.fromkeys(PHASES, 0)
-    if kept:
-        end_ns = kept[0][0].t_ns + round(config.startup_s * 1e9)
-        for fd, _oi, matched in _box_events(ev, kept):
-            phase = PHASES[0] if fd.t_ns < end_ns else PHASES[1]
-            n[phase] += 1
-            hit[phase] += int(matched)
+    end_ns = kept[0][0].t_ns + round(config.startup_s * 1e9) if kept else 0
+    return _recall_by_bucket(ev, kept, list(PHASES), lambda fd, _oi: int(fd.t_ns >= end_ns))
+
+
+def _recall_by_bucket(
+    ev: Any,
+    kept: list[tuple[FrameData, Filtered]],
+    names: list[str],
+    bucket: Callable[[FrameData, int], int],
+) -> dict[str, float]:
+    """``recall_<name>`` and ``box_frames_<name>`` of each bucket ``names[i]`` the scored
+    box-frames fall in by ``bucket(frame, box index) -> i`` (NaN recall where none)."""
+    hit = np.zeros(len(names), dtype=np.int64)
+    n = np.zeros(len(names), dtype=np.int64)
+    for fd, oi, matched in _box_events(ev, kept):
+        b = bucket(fd, oi)
+        n[b] += 1
+        hit[b] += int(matched)
     out: dict[str, float] = {}
-    for phase in PHASES:
-        out[f"recall_{phase}"] = hit[phase] / n[phase] if n[phase] else math.nan
-        out[f"box_frames_{phase}"] = float(n[phase])
+    for name, h, k in zip(names, hit, n, strict=True):
+        out[f"recall_{name}"] = h / k if k else math.nan
+        out[f"box_frames_{name}"] = float(k)
     return out
 
 
