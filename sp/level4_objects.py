@@ -44,6 +44,7 @@ from sp.scene_prior import ScenePrior
 from sp.segments import (
     SegmentConfig,
     label_objects,
+    merge_behind_occluders,
     merge_collinear,
     merge_grazing,
     split_at_gap,
@@ -266,6 +267,10 @@ class ObjectLevel:
         inten = np.nan_to_num(img.intensity[..., 0])
         range0_m = np.where(valid, img.range_first, 0.0)
         t_off = img.t_offset_ns[..., 0]
+        # a surface that something in front of it cut in two along a row is one
+        behind = merge_behind_occluders(labels, range0_m, 2 * math.pi / W, seg_cfg)
+        if behind.size and behind.max() + 1 < behind.size:
+            labels = np.where(labels >= 0, behind[np.maximum(labels, 0)], -1)
         attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
         # a face seen at a grazing angle breaks into strips along the line of sight: one face
         grazed = merge_grazing(

@@ -74,6 +74,17 @@ class SegmentConfig:
                      fewer returns than ``near_pixels`` whose points come closer than ``near_m``
                      (metres, 3D) are one piece.
     edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
+    hidden_span_m:   behind an occluder: two segments on one row whose returns at each end of
+                     a run of columns that hold returns in front of both (by the step
+                     threshold; a single column without a return between two such is a
+                     dropout), at ranges that continue each other (within the step
+                     threshold), are one, as long as the run hides at most this much
+                     (metres, across the line of sight at the nearer end's range; 0 turns
+                     the rule off) and the occluder stands at least ``hidden_front_m`` in
+                     front of both: one less than that in front of what it hides is as
+                     likely one of a group (a person among people walking together) as
+                     something passing before a surface, and the pieces seen past it may be
+                     two of that group.
     graze_*:         a face seen at a grazing angle: thin pieces (at most ``graze_thick_m``
                      across) at most ``graze_cols`` columns apart in azimuth, whose centres
                      lie along the line of sight (within ``graze_max_deg`` of it) at most
@@ -97,6 +108,8 @@ class SegmentConfig:
     line_thick_m: float = 0.4
     step_m: float = 0.2
     step_frac: float = 0.01
+    hidden_span_m: float = 2.0
+    hidden_front_m: float = 2.0
     graze_thick_m: float = 0.15
     graze_cols: float = 3.0
     graze_max_deg: float = 20.0
@@ -727,6 +740,105 @@ def split_at_gap(
         out[rows[far], cols[far]] = next_label
         next_label += 1
     return out
+
+
+def merge_behind_occluders(
+    labels: np.ndarray,
+    range_m: np.ndarray,
+    col_step_rad: float,
+    config: SegmentConfig | None = None,
+) -> np.ndarray:
+    """Continuity behind an occluder: (K,) int64 new label of each of the K segments of
+    ``labels`` (0..K'-1, in order of the smallest old label), the pieces of one surface that
+    something in front cut apart sharing a label.
+
+    A person or a post in front of a parked car splits the car's returns in the image into a
+    piece each side of it; contiguity cannot join them, and each piece becomes an object of
+    its own. Along a row, two segments whose facing ends are separated only by returns in
+    front of both (by the range-step threshold ``step_m + step_frac * r``; a single column
+    without a return between two of them is a dropout), at ranges that continue each
+    other (their difference within the same threshold), are one surface seen past the
+    occluder (reference 001, 4.5.1: grouping by continuity; 4.5.6: range boundaries separate
+    objects, and here the only boundary is the occluder's own). Where the run shows anything
+    behind the occluder, something farther than the pieces (the ground, or the far side of
+    a gap between two parked cars) or nothing at all (the sky through that gap), they stay
+    apart. The run may hide at most
+    ``hidden_span_m`` across the line of sight, and its returns must lie at least
+    ``hidden_front_m`` in front of both pieces: among people walking together one in front of
+    two others is less than that nearer, and the two are not one surface.
+
+    labels (H, W) int64 (-1 none, 0..K-1); range_m (H, W) m (non-finite or <= 0: no return);
+    col_step_rad the egosphere's column step (rad).
+    """
+    cfg = config or SegmentConfig()
+    K = int(labels.max(initial=-1)) + 1
+    if K < 2 or cfg.hidden_span_m <= 0:
+        return np.arange(K, dtype=np.int64)
+    r = np.where(np.isfinite(range_m) & (range_m > 0), range_m, np.nan).astype(np.float64)
+    a, b = _occluded_pairs(
+        np.ascontiguousarray(labels, dtype=np.int64), np.ascontiguousarray(r),
+        float(col_step_rad), float(cfg.step_m), float(cfg.step_frac), float(cfg.hidden_span_m),
+        float(cfg.hidden_front_m),
+    )  # fmt: skip
+    parent = np.arange(K)
+    for x, y in zip(a.tolist(), b.tolist(), strict=True):
+        rx, ry = _root(parent, x), _root(parent, y)
+        parent[max(rx, ry)] = min(rx, ry)
+    roots = np.array([_root(parent, k) for k in range(K)])
+    _, new = np.unique(roots, return_inverse=True)
+    return new.astype(np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _occluded_pairs(labels, r, col_step, step_m, step_frac, span_m, front_m):  # pragma: no cover
+    """(a, b) int64 label pairs of :func:`merge_behind_occluders`: from each labelled pixel
+    whose right neighbour is in front of it, the run to the right is followed while it stays
+    so; the first pixel behind the run closes it."""
+    H, W = labels.shape
+    out_a = []
+    out_b = []
+    for i in range(H):
+        for j in range(W):
+            a = labels[i, j]
+            ra = r[i, j]
+            if a < 0 or not (ra > 0.0):
+                continue
+            max_cols = min(int(span_m / (col_step * ra)) + 1, W // 4)
+            k = _wrap(j + 1, W)
+            hidden = 0
+            front = False  # the last pixel of the run holds a return in front
+            far_front = 0.0  # the farthest return in the run
+            while hidden <= max_cols:
+                rk = r[i, k]
+                if rk > 0.0 and rk < ra - (step_m + step_frac * rk):
+                    front = True
+                    far_front = max(far_front, rk)
+                elif not (rk > 0.0) and front:
+                    front = False  # a dropout within the occluder, not a gap beside it
+                else:
+                    break
+                hidden += 1
+                k = _wrap(k + 1, W)
+            if hidden == 0 or hidden > max_cols or not front:
+                continue
+            b = labels[i, k]
+            rb = r[i, k]
+            if b < 0 or b == a:
+                continue
+            near = min(ra, rb)
+            thr = step_m + step_frac * near
+            if abs(ra - rb) > thr or far_front > near - front_m:
+                continue
+            if hidden * col_step * near > span_m:
+                continue
+            out_a.append(a)
+            out_b.append(b)
+    na = np.empty(len(out_a), dtype=np.int64)
+    nb = np.empty(len(out_b), dtype=np.int64)
+    for n in range(len(out_a)):
+        na[n] = out_a[n]
+        nb[n] = out_b[n]
+    return na, nb
 
 
 def merge_collinear(

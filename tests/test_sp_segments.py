@@ -22,6 +22,7 @@ from sp.segments import (
     _range_step,
     label_objects,
     label_objects_reference,
+    merge_behind_occluders,
     merge_collinear,
     merge_grazing,
     split_at_gap,
@@ -515,3 +516,90 @@ def test_the_next_but_one_link_skips_an_occluder_in_front() -> None:
     labels = _groups(ranges, [True] * 9)
     assert len({labels[k] for k in range(9) if k != 4}) == 1
     assert labels[4] != labels[3]
+
+
+# --- continuity behind an occluder -------------------------------------------------------------
+
+
+def behind_occluders(boxes, config: SegmentConfig | None = None):
+    """Segments of a ray-cast scene after :func:`merge_behind_occluders`, with the truth hit."""
+    xyz, rng, hit = cast(boxes)
+    labels = label_objects(xyz, rng, hit >= 0, ROW_STEP, COL_STEP, config)
+    new = merge_behind_occluders(labels, rng, COL_STEP, config)
+    return labels, np.where(labels >= 0, new[np.maximum(labels, 0)], -1), hit
+
+
+def car_face(x_m: float, y0: float, y1: float):
+    """The side of a parked car ``x_m`` ahead from y0 to y1, 0.2-1.5 m above the ground (a
+    slab, so the scene has no roof seen at a grazing angle)."""
+    return ((x_m, y0, -SENSOR_H + 0.2), (x_m + 0.3, y1, -SENSOR_H + 1.5))
+
+
+def person_at(x_m: float, y_m: float):
+    return ((x_m - 0.25, y_m - 0.25, -SENSOR_H), (x_m, y_m + 0.25, 0.0))
+
+
+def test_a_car_cut_in_two_by_a_person_in_front_is_one_segment_again() -> None:
+    # a person 8 m out hides a metre of a car's side 16 m out: grouping alone leaves a piece of
+    # the car each side of the person
+    before, after, hit = behind_occluders([car_face(16.0, -2.0, 2.0), person_at(8.0, 0.0)])
+    assert len(np.unique(before[hit == 0])) >= 2
+    car = one_label(after, hit == 0)
+    assert car != one_label(after, hit == 1)
+
+
+def test_two_cars_behind_a_person_stay_apart_where_the_gap_between_them_shows() -> None:
+    # the person hides the near end of car A and the edge of the 0.9 m gap; past it the rays
+    # run through the gap (the far ground, or nothing), so nothing joins the cars
+    cars = [car_face(16.0, 0.5, 2.5), car_face(16.0, -2.5, -0.4)]
+    _, after, hit = behind_occluders([*cars, person_at(8.0, 0.4)])
+    assert apart(after, hit == 0, hit == 1)
+    assert one_label(after, hit == 2) not in set(after[(hit == 0) | (hit == 1)].tolist())
+
+
+def test_pieces_at_ranges_that_do_not_continue_stay_apart() -> None:
+    # a car 16 m out and one 19 m out, the person in front of where they meet in azimuth
+    cars = [car_face(16.0, 0.0, 2.0), car_face(19.0, -2.4, 0.0)]
+    _, after, hit = behind_occluders([*cars, person_at(8.0, 0.0)])
+    assert apart(after, hit == 0, hit == 1)
+
+
+def test_an_occluder_hiding_more_than_the_span_is_not_bridged() -> None:
+    # a van 7 m out hides about 7 m of a wall 16 m out: too much to say what is behind it
+    scene = [car_face(16.0, -6.0, 6.0), ((7.0, -1.5, -SENSOR_H), (9.0, 1.5, 0.2))]
+    _, after, hit = behind_occluders(scene)
+    assert len(np.unique(after[hit == 0])) == 2
+    _, after, hit = behind_occluders(scene, SegmentConfig(hidden_span_m=10.0))
+    one_label(after, hit == 0)
+    _, after, hit = behind_occluders(
+        [car_face(16.0, -2.0, 2.0), person_at(8.0, 0.0)], SegmentConfig(hidden_span_m=0.0)
+    )
+    assert len(np.unique(after[hit == 0])) == 2  # 0 turns the rule off
+
+
+def test_the_run_wraps_in_azimuth_and_allows_a_dropout_but_not_a_gap() -> None:
+    # one row: a surface at 16 m in columns W-4..W-1 (label 0) and 3..6 (label 1), an occluder
+    # at 8 m in columns 0..2
+    r = np.full((1, W), np.inf)
+    labels = np.full((1, W), -1, dtype=np.int64)
+    r[0, W - 4 :], r[0, 3:7], r[0, 0:3] = 16.0, 16.05, 8.0
+    labels[0, W - 4 :], labels[0, 3:7], labels[0, 0:3] = 0, 1, 2
+    assert merge_behind_occluders(labels, r, COL_STEP).tolist() == [0, 0, 1]
+    r[0, 1] = np.inf  # a dropout inside the occluder
+    assert merge_behind_occluders(labels, r, COL_STEP).tolist() == [0, 0, 1]
+    r[0, 1], r[0, 2] = 8.0, np.inf  # no return next to the far piece: a gap may show there
+    assert merge_behind_occluders(labels, r, COL_STEP).tolist() == [0, 1, 2]
+    r[0, 2] = 30.0  # something behind the pieces seen past the occluder
+    assert merge_behind_occluders(labels, r, COL_STEP).tolist() == [0, 1, 2]
+
+
+def test_pieces_behind_one_of_their_group_stay_apart() -> None:
+    # two people 10 m out with a third 0.7 m in front of them, between them in azimuth: people
+    # walking together, not one surface behind an occluder; a post 3 m in front would be one
+    r = np.full((1, W), np.inf)
+    labels = np.full((1, W), -1, dtype=np.int64)
+    r[0, 100:104], r[0, 104:108], r[0, 108:112] = 10.0, 9.3, 10.05
+    labels[0, 100:104], labels[0, 104:108], labels[0, 108:112] = 0, 1, 2
+    assert merge_behind_occluders(labels, r, COL_STEP).tolist() == [0, 1, 2]
+    r[0, 104:108] = 7.0
+    assert merge_behind_occluders(labels, r, COL_STEP).tolist() == [0, 1, 0]
