@@ -85,6 +85,10 @@ class SPConfig:
     gap_split_max_length_m: float = 2.6
     gap_split_max_width_m: float = 0.9
     gap_split_min_height_m: float = 1.0
+    # two confirmed vehicles at rest, both measured, whose positions lie within this (m) are
+    # pieces of one (a car's end and its side, cut apart by the car parked beside it): a
+    # vehicle is at least 1.5 m across, and two parked side by side stand a body apart
+    merge_vehicle_within_m: float = 1.5
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     # ... on a view with at least this share of the returns of the best view that had the
     # class (or on views that keep preferring the new class: sp.level4_objects.ClassEvidence)

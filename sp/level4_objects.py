@@ -349,6 +349,8 @@ class ObjectLevel:
             return np.arange(start, start - n, -1, dtype=np.int64)
 
         track_of, prev = self.tracker.step(meas, t_ns, provisional_ids, self._sensor_xy)
+        # two confirmed vehicles at rest standing closer than a body are pieces of one
+        self.tracker.merge_pieces(self._of_class("vehicle"), cfg.merge_vehicle_within_m)
         tr = self.tracker.tracks
         # M-of-N birth: hypotheses seen often enough get their frame (and "appeared") now; the
         # frame's id comes from the id source (the KD's), so images, tracks and frames share it
@@ -508,6 +510,18 @@ class ObjectLevel:
                 Lost(tid, int(finished.t_ns[j]), x_rep[j, :2].copy(), x_rep[j, 3:5].copy(),
                      float(finished.w[j, 2]), bool(moving[j]), self._forget_track(tid))
             )  # fmt: skip
+
+    def _of_class(self, name: str) -> np.ndarray:
+        """(T,) bool: the tracks whose class (as last classified) is ``name`` or a kind of it."""
+        classes = self.ctx.classes
+        ids = self.tracker.tracks.id.tolist()
+        return np.array(
+            [
+                tid in self.track_class and name in classes.lineage(self.track_class[tid][0])
+                for tid in ids
+            ],
+            dtype=bool,
+        )
 
     # ------------------------------------------------------------------ classification
 

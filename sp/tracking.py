@@ -37,6 +37,7 @@ even for degenerate measurements.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -433,6 +434,13 @@ def associate(
     return np.concatenate(out_t).astype(np.int64), np.concatenate(out_m).astype(np.int64)
 
 
+def _corners(center_xy: np.ndarray, what: np.ndarray) -> np.ndarray:
+    """(4, 2) corners of the footprint ``what`` (l, w, h, yaw) centred at ``center_xy``."""
+    c, s = math.cos(what[3]), math.sin(what[3])
+    half = 0.5 * np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * what[:2]
+    return center_xy + half @ np.array([[c, s], [-s, c]])
+
+
 def inside_footprint(
     xy: np.ndarray, center_xy: np.ndarray, what: np.ndarray, config: TrackerConfig
 ) -> np.ndarray:
@@ -554,6 +562,59 @@ class Tracker:
         prev_all = np.concatenate([prev, np.full(fm.size, -1, np.int8)])
         return track_of, prev_all
 
+    def merge_pieces(self, kind: np.ndarray, within_m: float) -> np.ndarray:
+        """Pieces of one body: of two confirmed tracks at rest, both measured this cycle and
+        both of ``kind`` ((T,) bool, a class whose bodies cannot stand closer: two parked
+        vehicles' visible centres lie a body apart), whose positions lie within ``within_m``
+        (m) of each other, the one measured with fewer returns ends (gone while measured, so
+        it is not remembered as lost) and the other's footprint grows to hold both (its
+        position moves to the middle of that footprint), so the next sweep's piece falls on
+        it and is taken as a part. Pairs are taken nearest first, each track once. Returns the
+        indices of the tracks that ended."""
+        tr = self.tracks
+        c = np.flatnonzero(kind & self._held_at_rest() & (tr.misses == 0))
+        if c.size < 2 or within_m <= 0:
+            return np.zeros(0, dtype=np.int64)
+        d = np.hypot(*(tr.x[c, None, :2] - tr.x[None, c, :2]).transpose(2, 0, 1))
+        a, b = np.nonzero(np.triu(d <= within_m, 1))
+        ended: list[int] = []
+        used: set[int] = set()
+        for n in np.argsort(d[a, b], kind="stable"):
+            i, j = int(c[a[n]]), int(c[b[n]])
+            if i in used or j in used:
+                continue
+            if tr.points[j] > tr.points[i]:
+                i, j = j, i
+            self._hold_both(i, j)
+            tr.status[j] = TrackStatus.GONE
+            used |= {i, j}
+            ended.append(j)
+        return np.array(ended, dtype=np.int64)
+
+    def _hold_both(self, i: int, j: int) -> None:
+        """Grow track i's footprint (along its own axes) to hold track j's and move its
+        position, both filters', to the middle of the new footprint."""
+        tr = self.tracks
+        yaw = tr.w[i, 3]
+        u, v = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        corners = [_corners(tr.x[k, :2], tr.w[k]) - tr.x[i, :2] for k in (i, j)]
+        p = np.vstack(corners)
+        lo_u, hi_u, lo_v, hi_v = (p @ u).min(), (p @ u).max(), (p @ v).min(), (p @ v).max()
+        shift = 0.5 * (lo_u + hi_u) * u + 0.5 * (lo_v + hi_v) * v
+        tr.x[i, :2] += shift
+        tr.xs[i, :2] += shift
+        tr.w[i, 0], tr.w[i, 1] = hi_u - lo_u, hi_v - lo_v
+        tr.points[i] = max(tr.points[i], tr.points[j])
+
+    def _held_at_rest(self) -> np.ndarray:
+        """(T,) bool: confirmed tracks the stationarity test holds at rest with more evidence
+        than the prior (``llr0``) a new track starts from (below both thresholds) and whose
+        velocity filter is not sure of a motion either (slower than ``evident_mps``:
+        :meth:`Tracks.moving`)."""
+        cfg, tr = self.config, self.tracks
+        rest = (tr.status == TrackStatus.CONFIRMED) & (tr.llr < min(cfg.llr0, cfg.llr_moving))
+        return rest & (np.hypot(tr.x[:, 3], tr.x[:, 4]) < cfg.evident_mps)
+
     def _gated_states(
         self, x_pred: np.ndarray, P_pred: np.ndarray, t_ns: int
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -566,10 +627,7 @@ class Tracker:
         faster than ``evident_mps`` (a long truck's centre may move within what the test
         allows a view), is still gated where it drives."""
         cfg, tr = self.config, self.tracks
-        # below both thresholds the test holds it at rest; slower than evident_mps, its
-        # velocity filter is not sure of a motion either (Tracks.moving)
-        rest = (tr.status == TrackStatus.CONFIRMED) & (tr.llr < min(cfg.llr0, cfg.llr_moving))
-        rest &= np.hypot(tr.x[:, 3], tr.x[:, 4]) < cfg.evident_mps
+        rest = self._held_at_rest()
         if not rest.any():
             return x_pred, P_pred
         x, P = x_pred.copy(), P_pred.copy()

@@ -253,6 +253,52 @@ def test_a_small_object_beside_a_confirmed_one_keeps_its_track() -> None:
     assert (tr.tracks.status == TrackStatus.CONFIRMED).all()
 
 
+def _parked(tr: Tracker, xy: list[tuple[float, float]], what: list, points: list[int], k0: int):
+    """Sweeps k0..k0+7 of static pieces at ``xy`` (world m) with extents ``what`` (each
+    (1, 4)) and ``points`` returns; returns the last sweep's track of each measurement."""
+    for k in range(k0, k0 + 8):
+        t = k * SWEEP_NS
+        meas = Measurements(
+            np.array([[x, y, 0.0] for x, y in xy]), np.full(len(xy), t), np.vstack(what),
+            None, np.array(points),
+        )  # fmt: skip
+        track_of, _ = tr.step(meas, t)
+    return track_of
+
+
+def test_two_pieces_of_a_parked_vehicle_become_one_track() -> None:
+    # a car's end (1.8 m across, 40 returns) and its side beyond the car parked beside it
+    # (1.5 m long, 120 returns), 1.3 m apart: two confirmed tracks at rest
+    tr = Tracker()
+    xy, what = [(0.0, 0.0), (1.2, 0.5)], [_what(1.8, 0.3, math.pi / 2), _what(1.5, 0.3)]
+    assert _parked(tr, xy, what, [40, 120], 0).tolist() == [0, 1]
+    assert (tr.tracks.status == TrackStatus.CONFIRMED).all()
+    ended = tr.merge_pieces(np.array([True, True]), 1.5)
+    # the piece of fewer returns ends; the other's footprint holds both: x -0.15..1.95 (the
+    # end's thickness to the side's far end), y -0.9..0.9 (the end's breadth)
+    assert ended.tolist() == [0]
+    assert tr.tracks.status.tolist() == [TrackStatus.GONE, TrackStatus.CONFIRMED]
+    np.testing.assert_allclose(tr.tracks.w[1, :2], [2.1, 1.8], atol=0.02)
+    np.testing.assert_allclose(tr.tracks.x[1, :2], [0.9, 0.0], atol=0.02)
+    np.testing.assert_allclose(tr.tracks.xs[1, :2], [0.9, 0.0], atol=0.02)
+    tr.drop_finished()
+    # from then on both pieces are measurements of the one track
+    assert _parked(tr, xy, what, [40, 120], 8).tolist() == [0, 0] and len(tr.tracks) == 1
+
+
+def test_vehicles_a_body_apart_moving_or_of_another_class_keep_their_tracks() -> None:
+    two = [_what(4.5, 1.8), _what(4.5, 1.8)]
+    tr = Tracker()
+    _parked(tr, [(0.0, 0.0), (0.0, 2.4)], two, [300, 300], 0)  # side by side, 2.4 m apart
+    assert tr.merge_pieces(np.array([True, True]), 1.5).size == 0
+    tr = Tracker()
+    _parked(tr, [(0.0, 0.0), (1.2, 0.5)], two, [300, 300], 0)
+    assert tr.merge_pieces(np.array([True, False]), 1.5).size == 0  # a person by a car
+    tr.tracks.llr[1] = TrackerConfig().llr_max  # one of them driving
+    assert tr.merge_pieces(np.array([True, True]), 1.5).size == 0
+    assert (tr.tracks.status == TrackStatus.CONFIRMED).all()
+
+
 def test_partial_view_does_not_make_a_static_wall_move() -> None:
     # more of a static wall comes into view each sweep: its visible centre moves 1 m a sweep
     cfg = TrackerConfig()
