@@ -74,17 +74,12 @@ class SegmentConfig:
                      fewer returns than ``near_pixels`` whose points come closer than ``near_m``
                      (metres, 3D) are one piece.
     edge_jump_m, edge_jump_frac: a range edge is a jump of ``edge_jump_m + frac * range``.
-    hidden_span_m:   behind an occluder: two segments on one row whose returns at each end of
-                     a run of columns that hold returns in front of both (by the step
-                     threshold; a single column without a return between two such is a
-                     dropout), at ranges that continue each other (within the step
-                     threshold), are one, as long as the run hides at most this much
-                     (metres, across the line of sight at the nearer end's range; 0 turns
-                     the rule off) and the occluder stands at least ``hidden_front_m`` in
-                     front of both: one less than that in front of what it hides is as
-                     likely one of a group (a person among people walking together) as
-                     something passing before a surface, and the pieces seen past it may be
-                     two of that group.
+    hidden_span_m, hidden_front_m: behind an occluder (:func:`merge_behind_occluders`): two
+                     segments whose ends on a row face each other across a run of returns
+                     in front of both, at ranges that continue each other (the step
+                     threshold), are one when the run hides at most ``hidden_span_m``
+                     (metres across the line of sight; 0 turns the rule off) and its
+                     returns lie at least ``hidden_front_m`` in front of both ends.
     graze_*:         a face seen at a grazing angle: thin pieces (at most ``graze_thick_m``
                      across) at most ``graze_cols`` columns apart in azimuth, whose centres
                      lie along the line of sight (within ``graze_max_deg`` of it) at most
@@ -762,10 +757,10 @@ def merge_behind_occluders(
     objects, and here the only boundary is the occluder's own). Where the run shows anything
     behind the occluder, something farther than the pieces (the ground, or the far side of
     a gap between two parked cars) or nothing at all (the sky through that gap), they stay
-    apart. The run may hide at most
-    ``hidden_span_m`` across the line of sight, and its returns must lie at least
-    ``hidden_front_m`` in front of both pieces: among people walking together one in front of
-    two others is less than that nearer, and the two are not one surface.
+    apart. The run may hide at most ``hidden_span_m`` across the line of sight, and its
+    returns must lie at least ``hidden_front_m`` in front of both pieces: among people walking
+    together, one in front of two others is less than that nearer, and the two are not one
+    surface.
 
     labels (H, W) int64 (-1 none, 0..K-1); range_m (H, W) m (non-finite or <= 0: no return);
     col_step_rad the egosphere's column step (rad).
@@ -819,7 +814,7 @@ def _occluded_pairs(labels, r, col_step, step_m, step_frac, span_m, front_m):  #
                     break
                 hidden += 1
                 k = _wrap(k + 1, W)
-            if hidden == 0 or hidden > max_cols or not front:
+            if hidden > max_cols or not front:
                 continue
             b = labels[i, k]
             rb = r[i, k]
