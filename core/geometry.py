@@ -283,3 +283,11 @@ def _interpolate_one(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
     for r, t in zip(rows, (t0 + a * (t1 - t0)).tolist(), strict=True):
         r.append(t)
     return np.array([*rows, [0.0, 0.0, 0.0, 1.0]])
+
+
+def box_corners(center: np.ndarray, length: float, width: float, yaw: float) -> np.ndarray:
+    """(4, 2) corners of a footprint box (``length`` along ``yaw``, ``width`` across, m),
+    counter-clockwise, in the frame of ``center`` (its first two coordinates)."""
+    u = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]]) * (length, width)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return center[:2] + u @ np.array([[c, s], [-s, c]])

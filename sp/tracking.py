@@ -46,6 +46,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.errors import EngineError
+from core.geometry import box_corners
 
 GATE_CHI2_3DOF = 16.27  # 99.9 % of a chi-square with 3 degrees of freedom
 
@@ -434,13 +435,6 @@ def associate(
     return np.concatenate(out_t).astype(np.int64), np.concatenate(out_m).astype(np.int64)
 
 
-def _corners(center_xy: np.ndarray, what: np.ndarray) -> np.ndarray:
-    """(4, 2) corners of the footprint ``what`` (l, w, h, yaw) centred at ``center_xy``."""
-    c, s = math.cos(what[3]), math.sin(what[3])
-    half = 0.5 * np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * what[:2]
-    return center_xy + half @ np.array([[c, s], [-s, c]])
-
-
 def inside_footprint(
     xy: np.ndarray, center_xy: np.ndarray, what: np.ndarray, config: TrackerConfig
 ) -> np.ndarray:
@@ -597,8 +591,7 @@ class Tracker:
         tr = self.tracks
         yaw = tr.w[i, 3]
         u, v = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
-        corners = [_corners(tr.x[k, :2], tr.w[k]) - tr.x[i, :2] for k in (i, j)]
-        p = np.vstack(corners)
+        p = np.vstack([box_corners(tr.x[k], *tr.w[k, [0, 1, 3]]) for k in (i, j)]) - tr.x[i, :2]
         lo_u, hi_u, lo_v, hi_v = (p @ u).min(), (p @ u).max(), (p @ v).min(), (p @ v).max()
         shift = 0.5 * (lo_u + hi_u) * u + 0.5 * (lo_v + hi_v) * v
         tr.x[i, :2] += shift

@@ -109,6 +109,7 @@ import numpy as np
 from fastapi import FastAPI, HTTPException, Response
 from pydantic import BaseModel, Field
 
+from core.geometry import box_corners
 from wm.config import PlannerConfig, VehicleConfig
 from wm.serve import Finite, _why
 from wm.serve_views import (
@@ -434,13 +435,6 @@ def polygon_area(poly: np.ndarray) -> float:
     """Area (m^2) of a simple polygon (K, 2), shoelace formula."""
     x, y = poly[:, 0], poly[:, 1]
     return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-
-
-def box_corners(center: np.ndarray, length: float, width: float, yaw: float) -> np.ndarray:
-    """(4, 2) world corners of a footprint box, counter-clockwise."""
-    u = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]]) * (length, width)
-    c, s = math.cos(yaw), math.sin(yaw)
-    return center[:2] + u @ np.array([[c, s], [-s, c]])
 
 
 def _segments_cross(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray) -> bool:
