@@ -512,13 +512,14 @@ class ObjectLevel:
             )  # fmt: skip
 
     def _of_class(self, name: str) -> np.ndarray:
-        """(T,) bool: the tracks whose class (as last classified) is ``name`` or a kind of it."""
-        classes = self.ctx.classes
-        ids = self.tracker.tracks.id.tolist()
+        """(T,) bool: the tracks whose class (as last classified) is ``name`` or a kind of it
+        (none when the class library has no ``name``)."""
+        kinds = self.ctx.classes.descendants(name) if name in self.ctx.classes else set()
+        no_class = (None, 0.0)
         return np.array(
             [
-                tid in self.track_class and name in classes.lineage(self.track_class[tid][0])
-                for tid in ids
+                self.track_class.get(tid, no_class)[0] in kinds
+                for tid in self.tracker.tracks.id.tolist()
             ],
             dtype=bool,
         )

@@ -775,13 +775,7 @@ def merge_behind_occluders(
         float(col_step_rad), float(cfg.step_m), float(cfg.step_frac), float(cfg.hidden_span_m),
         float(cfg.hidden_front_m),
     )  # fmt: skip
-    parent = np.arange(K)
-    for x, y in zip(a.tolist(), b.tolist(), strict=True):
-        rx, ry = _root(parent, x), _root(parent, y)
-        parent[max(rx, ry)] = min(rx, ry)
-    roots = np.array([_root(parent, k) for k in range(K)])
-    _, new = np.unique(roots, return_inverse=True)
-    return new.astype(np.int64)
+    return _merge_kernel(a, b, K)[0]
 
 
 @numba.njit(cache=True, nogil=True)

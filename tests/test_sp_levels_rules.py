@@ -5,6 +5,7 @@ appearance."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -297,6 +298,26 @@ def test_vehicles_a_body_apart_moving_or_of_another_class_keep_their_tracks() ->
     tr.tracks.llr[1] = TrackerConfig().llr_max  # one of them driving
     assert tr.merge_pieces(np.array([True, True]), 1.5).size == 0
     assert (tr.tracks.status == TrackStatus.CONFIRMED).all()
+
+
+def test_the_tracks_of_a_class_include_its_kinds_and_a_missing_class_has_none() -> None:
+    sp = KDSensoryProcessor(kd_store.open(":memory:"))
+    l4 = sp.level4
+    ids = [101, 102, 103, 104]
+    l4.tracker.tracks = l4.tracker.tracks.extend(
+        l4.tracker._births(
+            Measurements(np.zeros((4, 3)), np.zeros(4, np.int64), np.vstack([_what(4.0)] * 4)),
+            np.arange(4),
+            np.array(ids),
+        )
+    )
+    # a specific class founded under vehicle (as a confirmed object matching no class founds one)
+    sp.ctx.classes.add(
+        dataclasses.replace(sp.ctx.classes.get("vehicle"), name="van", is_a="vehicle")
+    )
+    l4.track_class.update({101: ("vehicle", 0.9), 102: ("van", 0.8), 103: ("person", 0.9)})
+    assert l4._of_class("vehicle").tolist() == [True, True, False, False]
+    assert l4._of_class("no such class").tolist() == [False] * 4
 
 
 def test_partial_view_does_not_make_a_static_wall_move() -> None:
