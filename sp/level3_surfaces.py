@@ -28,7 +28,7 @@ from kd_store import Attribute, Level, Status
 from sp.classify import Classifier
 from sp.computation import SegmentAttributes, ground_plane
 from sp.context import IMAGE_NAMES, KD_STATUS, SPConfig, SPContext, row_step, unit
-from sp.ground import ground_mask
+from sp.ground import ground_mask, raised_in_rows
 from sp.ground_prior import GROUND, OBJECT, GroundPrior, above_prior, on_known_ground
 from sp.level2_lists import ListLevel
 from sp.lists import PatchGrid, patch_grid
@@ -48,9 +48,10 @@ class GroundPixels:
     """Level 3's ground of one sweep, (H, W) bool each.
 
     ground:    the ground pixels.
-    standing:  far returns the world model's ground prior finds well above the ground it
-               expects: their segment is an object however low it stands over its column's
-               ground (:func:`sp.ground_prior.above_prior`).
+    standing:  returns found standing on the terrain, by their row
+               (:func:`sp.ground.raised_in_rows`) or, far out, well above the ground the
+               world model's ground prior expects (:func:`sp.ground_prior.above_prior`):
+               their segment is an object however low it stands over its column's ground.
     on_known:  returns off the ground that lie on the ground the world model knows at their
                places (:func:`sp.ground_prior.on_known_ground`).
     """
@@ -103,21 +104,24 @@ class SurfaceLevel:
         prior: GroundPrior | None = None,
     ) -> GroundPixels:
         """The ground of the gravity-aligned points ``xyz_g`` (H, W, 3) m
-        (:func:`ground_mask`). With the world model's ground ``prior``, the world points
+        (:func:`ground_mask`), less the returns their row shows standing on it
+        (:func:`raised_in_rows`, which make their segment an object however low it stands
+        over its column's ground). With the world model's ground ``prior``, the world points
         ``xyz_w`` (H, W, 3) m and the returns' ranges ``range_m`` (H, W) m, far returns well
         above the ground it expects are not ground, those higher still make their segment
         an object (:func:`above_prior`), and the other returns on the ground it knows are
         marked (:func:`on_known_ground`); without, none is."""
         cfg = self.ctx.config
         ground, _h = ground_mask(xyz_g, valid, cfg.ground)
+        raised = raised_in_rows(xyz_g, valid, ground, cfg.ground)
+        ground &= ~raised
         if prior is None or xyz_w is None or range_m is None:
-            none = np.zeros_like(ground)
-            return GroundPixels(ground, none, none)
+            return GroundPixels(ground, raised, np.zeros_like(ground))
         code = above_prior(xyz_w, range_m, ground, prior, cfg.ground_prior)
         ground &= code == GROUND
         # only returns off the ground can make segments, so only those are marked
         known = on_known_ground(xyz_w, range_m, valid & ~ground, prior, cfg.ground_prior)
-        return GroundPixels(ground, code == OBJECT, known)
+        return GroundPixels(ground, (code == OBJECT) | raised, known)
 
     # ------------------------------------------------------------------ the cycle
 
