@@ -89,6 +89,10 @@ class SPConfig:
     # pieces of one (a car's end and its side, cut apart by the car parked beside it): a
     # vehicle is at least 1.5 m across, and two parked side by side stand a body apart
     merge_vehicle_within_m: float = 1.5
+    # two confirmed buildings at rest, both measured, whose footprints come within this (m)
+    # are faces of one (its front and its side seen at a grazing angle, which recedes too
+    # fast along a row to join the front): buildings stand further apart
+    merge_building_gap_m: float = 0.5
     reclassify_margin: float = 0.05  # score gain needed to change a confirmed class
     # ... on a view with at least this share of the returns of the best view that had the
     # class (or on views that keep preferring the new class: sp.level4_objects.ClassEvidence)

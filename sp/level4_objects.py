@@ -351,6 +351,8 @@ class ObjectLevel:
         track_of, prev = self.tracker.step(meas, t_ns, provisional_ids, self._sensor_xy)
         # two confirmed vehicles at rest standing closer than a body are pieces of one
         self.tracker.merge_pieces(self._of_class("vehicle"), cfg.merge_vehicle_within_m)
+        # ... and two confirmed buildings whose footprints touch are faces of one
+        self.tracker.merge_touching(self._of_class("building"), cfg.merge_building_gap_m)
         tr = self.tracker.tracks
         # M-of-N birth: hypotheses seen often enough get their frame (and "appeared") now; the
         # frame's id comes from the id source (the KD's), so images, tracks and frames share it

@@ -565,12 +565,45 @@ class Tracker:
         position moves to the middle of that footprint), so the next sweep's piece falls on
         it and is taken as a part. Pairs are taken nearest first, each track once. Returns the
         indices of the tracks that ended."""
-        tr = self.tracks
-        c = np.flatnonzero(kind & self._held_at_rest() & (tr.misses == 0))
+        c = np.flatnonzero(kind & self._held_at_rest() & (self.tracks.misses == 0))
         if c.size < 2 or within_m <= 0:
             return np.zeros(0, dtype=np.int64)
-        d = np.hypot(*(tr.x[c, None, :2] - tr.x[None, c, :2]).transpose(2, 0, 1))
-        a, b = np.nonzero(np.triu(d <= within_m, 1))
+        d = np.hypot(*(self.tracks.x[c, None, :2] - self.tracks.x[None, c, :2]).transpose(2, 0, 1))
+        return self._merge_pairs(c, d, within_m)
+
+    def merge_touching(self, kind: np.ndarray, gap_m: float) -> np.ndarray:
+        """Faces of one body: :meth:`merge_pieces` for two tracks of ``kind`` whose footprints
+        come within ``gap_m`` (m) of each other, whatever their centres' distance (a
+        building's front and its side seen at a grazing angle meet at its corner, their
+        centres metres apart, where two buildings stand further apart than ``gap_m``)."""
+        c = np.flatnonzero(kind & self._held_at_rest() & (self.tracks.misses == 0))
+        if c.size < 2 or gap_m < 0:
+            return np.zeros(0, dtype=np.int64)
+        return self._merge_pairs(c, self._footprint_gaps(c), gap_m)
+
+    def _footprint_gaps(self, c: np.ndarray) -> np.ndarray:
+        """(C, C) m: the distance between the footprints of tracks ``c`` (C,), 0 where one
+        holds a corner of the other: the least distance from a corner of either to the other
+        footprint (two crossing footprints, neither holding a corner of the other, come out
+        apart by their overhang)."""
+        tr = self.tracks
+        corners = np.stack([box_corners(tr.x[k], *tr.w[k, [0, 1, 3]]) for k in c])  # (C, 4, 2)
+        cos, sin = np.cos(tr.w[c, 3]), np.sin(tr.w[c, 3])
+        # every corner (of footprint a) in the frame of every footprint b: (C_b, C_a, 4)
+        d = corners[None, :, :, :] - tr.x[c, None, None, :2]
+        u = cos[:, None, None] * d[..., 0] + sin[:, None, None] * d[..., 1]
+        v = -sin[:, None, None] * d[..., 0] + cos[:, None, None] * d[..., 1]
+        out_u = np.maximum(np.abs(u) - 0.5 * tr.w[c, 0][:, None, None], 0.0)
+        out_v = np.maximum(np.abs(v) - 0.5 * tr.w[c, 1][:, None, None], 0.0)
+        to_b = np.hypot(out_u, out_v).min(axis=2)  # [b, a]: a's corners to footprint b
+        return np.minimum(to_b, to_b.T)
+
+    def _merge_pairs(self, c: np.ndarray, d: np.ndarray, limit: float) -> np.ndarray:
+        """End one of each pair of tracks ``c`` (C,) whose distance ``d`` (C, C) is at most
+        ``limit``, nearest pairs first, each track once; the one with more returns holds
+        both (:meth:`_hold_both`). Returns the indices of the tracks that ended."""
+        tr = self.tracks
+        a, b = np.nonzero(np.triu(d <= limit, 1))
         ended: list[int] = []
         used: set[int] = set()
         for n in np.argsort(d[a, b], kind="stable"):

@@ -300,6 +300,41 @@ def test_vehicles_a_body_apart_moving_or_of_another_class_keep_their_tracks() ->
     assert (tr.tracks.status == TrackStatus.CONFIRMED).all()
 
 
+def test_a_buildings_front_and_side_meeting_at_its_corner_become_one_track() -> None:
+    # the front (10 m, 300 returns) along x, the side seen at a grazing angle (6 m, 100
+    # returns) along y from the front's right end: their centres 5.9 m apart, their
+    # footprints meeting at the corner
+    tr = Tracker()
+    xy = [(0.0, 0.0), (5.1, 3.1)]
+    what = [_what(10.0, 0.3), _what(6.0, 0.3, math.pi / 2)]
+    assert _parked(tr, xy, what, [300, 100], 0).tolist() == [0, 1]
+    assert tr.merge_pieces(np.array([True, True]), 1.5).size == 0  # centres too far apart
+    ended = tr.merge_touching(np.array([True, True]), 0.5)
+    assert ended.tolist() == [1]
+    assert tr.tracks.status.tolist() == [TrackStatus.CONFIRMED, TrackStatus.GONE]
+    # the front's footprint grows over the side: x -5..5.25, y -0.15..6.1
+    np.testing.assert_allclose(tr.tracks.w[0, :2], [10.25, 6.25], atol=0.05)
+    np.testing.assert_allclose(tr.tracks.x[0, :2], [0.125, 2.975], atol=0.05)
+    tr.drop_finished()
+    assert _parked(tr, xy, what, [300, 100], 8).tolist() == [0, 0] and len(tr.tracks) == 1
+
+
+def test_buildings_apart_of_another_class_or_moving_keep_their_tracks() -> None:
+    # two fronts in a row with a 1.5 m passage between them
+    fronts = [_what(10.0, 0.3), _what(10.0, 0.3)]
+    tr = Tracker()
+    _parked(tr, [(0.0, 0.0), (11.5, 0.0)], fronts, [300, 300], 0)
+    assert tr._footprint_gaps(np.array([0, 1]))[0, 1] == pytest.approx(1.5, abs=0.05)
+    assert tr.merge_touching(np.array([True, True]), 0.5).size == 0
+    # ... and touching, but one of them not a building, or driving
+    tr = Tracker()
+    _parked(tr, [(0.0, 0.0), (10.2, 0.0)], fronts, [300, 300], 0)
+    assert tr.merge_touching(np.array([True, False]), 0.5).size == 0
+    tr.tracks.llr[1] = TrackerConfig().llr_max
+    assert tr.merge_touching(np.array([True, True]), 0.5).size == 0
+    assert (tr.tracks.status == TrackStatus.CONFIRMED).all()
+
+
 def test_the_tracks_of_a_class_include_its_kinds_and_a_missing_class_has_none() -> None:
     sp = KDSensoryProcessor(kd_store.open(":memory:"))
     l4 = sp.level4
