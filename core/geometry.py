@@ -291,3 +291,14 @@ def box_corners(center: np.ndarray, length: float, width: float, yaw: float) -> 
     u = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]]) * (length, width)
     c, s = math.cos(yaw), math.sin(yaw)
     return center[:2] + u @ np.array([[c, s], [-s, c]])
+
+
+def footprint_distance(
+    points_xy: np.ndarray, centers_xy: np.ndarray, sizes_lw: np.ndarray, yaws: np.ndarray
+) -> np.ndarray:
+    """Distance (M, N) m from each of N points to each of M oriented rectangles (0 inside)."""
+    d = points_xy[None, :, :] - centers_xy[:, None, :]
+    c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
+    u = np.abs(c * d[..., 0] + s * d[..., 1]) - 0.5 * sizes_lw[:, 0:1]
+    w = np.abs(-s * d[..., 0] + c * d[..., 1]) - 0.5 * sizes_lw[:, 1:2]
+    return np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))

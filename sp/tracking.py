@@ -46,7 +46,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.errors import EngineError
-from core.geometry import box_corners
+from core.geometry import box_corners, footprint_distance
 
 GATE_CHI2_3DOF = 16.27  # 99.9 % of a chi-square with 3 degrees of freedom
 
@@ -565,7 +565,7 @@ class Tracker:
         position moves to the middle of that footprint), so the next sweep's piece falls on
         it and is taken as a part. Pairs are taken nearest first, each track once. Returns the
         indices of the tracks that ended."""
-        c = np.flatnonzero(kind & self._held_at_rest() & (self.tracks.misses == 0))
+        c = self._at_rest_and_measured(kind)
         if c.size < 2 or within_m <= 0:
             return np.zeros(0, dtype=np.int64)
         d = np.hypot(*(self.tracks.x[c, None, :2] - self.tracks.x[None, c, :2]).transpose(2, 0, 1))
@@ -576,7 +576,7 @@ class Tracker:
         come within ``gap_m`` (m) of each other, whatever their centres' distance (a
         building's front and its side seen at a grazing angle meet at its corner, their
         centres metres apart, where two buildings stand further apart than ``gap_m``)."""
-        c = np.flatnonzero(kind & self._held_at_rest() & (self.tracks.misses == 0))
+        c = self._at_rest_and_measured(kind)
         if c.size < 2 or gap_m < 0:
             return np.zeros(0, dtype=np.int64)
         return self._merge_pairs(c, self._footprint_gaps(c), gap_m)
@@ -587,16 +587,15 @@ class Tracker:
         footprint (two crossing footprints, neither holding a corner of the other, come out
         apart by their overhang)."""
         tr = self.tracks
-        corners = np.stack([box_corners(tr.x[k], *tr.w[k, [0, 1, 3]]) for k in c])  # (C, 4, 2)
-        cos, sin = np.cos(tr.w[c, 3]), np.sin(tr.w[c, 3])
-        # every corner (of footprint a) in the frame of every footprint b: (C_b, C_a, 4)
-        d = corners[None, :, :, :] - tr.x[c, None, None, :2]
-        u = cos[:, None, None] * d[..., 0] + sin[:, None, None] * d[..., 1]
-        v = -sin[:, None, None] * d[..., 0] + cos[:, None, None] * d[..., 1]
-        out_u = np.maximum(np.abs(u) - 0.5 * tr.w[c, 0][:, None, None], 0.0)
-        out_v = np.maximum(np.abs(v) - 0.5 * tr.w[c, 1][:, None, None], 0.0)
-        to_b = np.hypot(out_u, out_v).min(axis=2)  # [b, a]: a's corners to footprint b
+        corners = np.vstack([box_corners(tr.x[k], *tr.w[k, [0, 1, 3]]) for k in c])  # (4C, 2)
+        to_b = footprint_distance(corners, tr.x[c, :2], tr.w[c, :2], tr.w[c, 3])
+        to_b = to_b.reshape(c.size, c.size, 4).min(axis=2)  # [b, a]: a's corners to b
         return np.minimum(to_b, to_b.T)
+
+    def _at_rest_and_measured(self, kind: np.ndarray) -> np.ndarray:
+        """Indices of the tracks of ``kind`` ((T,) bool) held at rest and measured this
+        cycle: the candidates of :meth:`merge_pieces` and :meth:`merge_touching`."""
+        return np.flatnonzero(kind & self._held_at_rest() & (self.tracks.misses == 0))
 
     def _merge_pairs(self, c: np.ndarray, d: np.ndarray, limit: float) -> np.ndarray:
         """End one of each pair of tracks ``c`` (C,) whose distance ``d`` (C, C) is at most

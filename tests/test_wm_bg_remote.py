@@ -99,8 +99,8 @@ def test_a_bg_process_plans_over_http_and_never_passes_a_true_object(server, tru
     plans, each from a cycle of its own (its What If answers from that cycle or later), and
     none of the chosen paths passes within the vehicle's half-width of a true object at the
     matching times, though the goal lies behind one. The node was told the last path."""
+    from core.geometry import footprint_distance
     from wm.config import VehicleConfig
-    from wm.truth import footprint_distance
 
     live, base = server
     goal, target = _goal_beyond_an_object(truth)

@@ -27,7 +27,7 @@ import pytest
 from alignment import T_est_true, kd_self_track, move_boxes
 
 import kd_store
-from core.geometry import se3_inverse, transform_points
+from core.geometry import footprint_distance, se3_inverse, transform_points
 from fixtures.scenario import AgentSpec, ObjectClass, Scenario, load_scenario
 from kd_store import Level, Status
 from logs import open_log
@@ -35,7 +35,6 @@ from logs.types import GroundTruthPose, ObjectBoxes, TransformFrame
 from wm.config import NodeConfig, PoseSource, PredictionConfig
 from wm.poses import PoseTrack
 from wm.run import run_log, run_node
-from wm.truth import footprint_distance
 
 LOG_S = 6.0  # simulated seconds in the log
 RUN_S = 5.0  # seconds of it the node runs over (the rest is truth for the predictions)

@@ -28,9 +28,16 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from core.errors import EngineError
-from core.geometry import BODY, mount_of, pose_from_xyz_quat, se3_inverse, transform_points
+from core.geometry import (
+    BODY,
+    footprint_distance,
+    mount_of,
+    pose_from_xyz_quat,
+    se3_inverse,
+    transform_points,
+)
 from wm.poses import PoseTrack, deskew_to_world
-from wm.truth import CLASS_ALIASES, footprint_distance
+from wm.truth import CLASS_ALIASES
 
 #: SP object level (kd_store.Level.OBJECT); the level whose entities are scored.
 OBJECT_LEVEL = 4

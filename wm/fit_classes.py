@@ -106,7 +106,8 @@ class Samples:
 def label_tracks(xy: np.ndarray, boxes: ObjectBoxes) -> list[str | None]:
     """Class of the true box (world frame) each track centre ``xy`` (K, 2) m lies in (within
     ``LABEL_DISTANCE_M`` of its footprint; None for none, or for two boxes of other classes)."""
-    from wm.truth import CLASS_ALIASES, footprint_distance
+    from core.geometry import footprint_distance
+    from wm.truth import CLASS_ALIASES
 
     if len(boxes) == 0 or len(xy) == 0:
         return [None] * len(xy)

@@ -174,14 +174,3 @@ def truth_boxes_to_world(boxes: ObjectBoxes, T_world_frame: np.ndarray) -> Objec
         boxes.centers @ R.T + t, boxes.sizes, boxes.yaws + yaw,
         np.nan_to_num(boxes.velocities) @ R.T, boxes.topic, boxes.n_returns,
     )  # fmt: skip
-
-
-def footprint_distance(
-    points_xy: np.ndarray, centers_xy: np.ndarray, sizes_lw: np.ndarray, yaws: np.ndarray
-) -> np.ndarray:
-    """Distance (M, N) m from each of N points to each of M oriented rectangles (0 inside)."""
-    d = points_xy[None, :, :] - centers_xy[:, None, :]
-    c, s = np.cos(yaws)[:, None], np.sin(yaws)[:, None]
-    u = np.abs(c * d[..., 0] + s * d[..., 1]) - 0.5 * sizes_lw[:, 0:1]
-    w = np.abs(-s * d[..., 0] + c * d[..., 1]) - 0.5 * sizes_lw[:, 1:2]
-    return np.hypot(np.maximum(u, 0.0), np.maximum(w, 0.0))
