@@ -76,18 +76,33 @@ class GroundConfig:
                        joined three cars parked nose to tail across the returns between them
                        (:mod:`sp.segments` now skips a pixel only when it is empty or an
                        occluder), and the merged piece's track then failed.
+    face_slope_deg, foot_rise_m:
+                       a return the walk would take for ground is the foot of a face when
+                       the next return up its column rises more than ``step_m`` over it, at
+                       a slope steeper than ``face_slope_deg``, and it stands more than
+                       ``foot_rise_m`` above the column's last ground return. Far out the
+                       ground's rows lie metres apart, so the slope test passes the lowest
+                       row on a car 30-40 m away (0.5 m up, 4 m past the last ground
+                       return); the row above it, at the same range, shows it is a face.
+                       On development seeds a walk ground return under such a face stood
+                       over 0.15 m above the last ground return for 1 of 19 returns more than
+                       1 m from every object and 10 of 15 on an object (a curb shows 0.15 m).
     cell_m, n_sectors: polar grid of the refinement pass (radial cell length, sectors).
     refine_above_m:    in refinement, returns this far above the local lowest ground are
                        not ground; returns within ``refine_within_m`` of it are.
-    raised_m, raised_max_width_m, raised_continuity:
-                       a piece of a row no wider than ``raised_max_width_m``, whose returns
+    raised_m, raised_max_width_m, raised_continuity, raised_dropouts, raised_min_returns:
+                       a piece of a row of at least ``raised_min_returns`` returns and no
+                       wider than ``raised_max_width_m``, whose returns
                        continue each other (range steps under ``raised_continuity`` times
-                       the range) and whose neighbours on both sides lie farther, stands on
+                       the range) and whose neighbours on both sides (at most
+                       ``raised_dropouts`` empty columns away) lie farther, stands on
                        the terrain where it is more than ``raised_m`` above the ground
                        between the column's ground in front of it and those neighbours
                        (:func:`raised_in_rows`). A curb shows 0.15 m. On development seeds
                        (open and default worlds) the terrain's own bumps stood over 0.25 m
                        about half as often as over 0.2 m, low objects 70-80 % as often.
+                       A crest 50 m out showed as pieces of one to three returns (a 1 m
+                       rock 40 m out spans four columns of 1024).
     """
 
     sensor_height_m: float = 1.8
@@ -99,6 +114,8 @@ class GroundConfig:
     resume_slope_deg: float = 3.0
     resume_gap_per_m: float = 0.04
     resume_max_rise_m: float = 0.8
+    face_slope_deg: float = 45.0
+    foot_rise_m: float = 0.15
     refine: bool = True
     cell_m: float = 2.0
     n_sectors: int = 180
@@ -107,10 +124,16 @@ class GroundConfig:
     raised_m: float = 0.25
     raised_max_width_m: float = 5.0
     raised_continuity: float = 0.05
+    raised_dropouts: int = 3
+    raised_min_returns: int = 4
 
     def __post_init__(self) -> None:
         if not 0.0 < self.max_slope_deg < 80.0:
             raise GroundError(f"max_slope_deg {self.max_slope_deg} is not in (0, 80)")
+        if not 0.0 < self.face_slope_deg <= 90.0:
+            raise GroundError(f"face_slope_deg {self.face_slope_deg} is not in (0, 90]")
+        if not self.foot_rise_m >= 0.0:
+            raise GroundError(f"foot_rise_m {self.foot_rise_m} is not >= 0")
         if not self.resume_max_rise_m >= 0.0:  # inf: no cap; NaN would take no ground back
             raise GroundError(f"resume_max_rise_m {self.resume_max_rise_m} is not >= 0")
         if self.cell_m <= 0 or self.n_sectors < 1:
@@ -119,6 +142,11 @@ class GroundConfig:
             raise GroundError(
                 f"raised_m {self.raised_m}, raised_max_width_m {self.raised_max_width_m}, "
                 f"raised_continuity {self.raised_continuity}: need > 0, >= 0, > 0"
+            )
+        if self.raised_dropouts < 0 or self.raised_min_returns < 1:
+            raise GroundError(
+                f"raised_dropouts {self.raised_dropouts}, raised_min_returns "
+                f"{self.raised_min_returns}: need >= 0, >= 1"
             )
 
 
@@ -170,7 +198,7 @@ def column_walk(
 
 def _walk_params(config: GroundConfig) -> tuple[float, ...]:
     """The scalars of :func:`_column_walk_kernel` after ``height_m``: tangents of the slopes,
-    tolerances, gaps and the resume cap (m)."""
+    tolerances, gaps, the resume cap (m) and the face test (a tangent, m)."""
     return (
         float(np.tan(np.deg2rad(config.max_slope_deg))),
         float(np.tan(np.deg2rad(config.resume_slope_deg))),
@@ -179,6 +207,8 @@ def _walk_params(config: GroundConfig) -> tuple[float, ...]:
         float(config.resume_gap_m),
         float(config.resume_gap_per_m),
         float(config.resume_max_rise_m),
+        float(np.tan(np.deg2rad(config.face_slope_deg))),
+        float(config.foot_rise_m),
     )
 
 
@@ -220,7 +250,8 @@ def _row_starts(valid):  # pragma: no cover
 
 @numba.njit(cache=True, nogil=True)
 def _column_walk_kernel(  # pragma: no cover
-    r_valid, z_valid, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise
+    r_valid, z_valid, valid, height_m, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise,
+    tan_f, foot,
 ):  # fmt: skip
     """``column_walk_reference`` row by row, every column's walk state in scalars of
     arrays (W,): the same comparisons on the same float64 values, so the same mask.
@@ -232,6 +263,7 @@ def _column_walk_kernel(  # pragma: no cover
     """
     H, W = valid.shape
     row_start = _row_starts(valid)
+    above = _next_above(valid, row_start)
     ground_valid = np.empty(r_valid.shape[0], dtype=np.bool_)
     last_r = np.zeros(W)
     last_z = np.full(W, -height_m)
@@ -261,6 +293,11 @@ def _column_walk_kernel(  # pragma: no cover
                         )
                     )
                 )
+            n = above[k]
+            if g and n >= 0 and z - last_z[j] > foot:
+                # the foot of a face: the next return up stands over it, not past it
+                dz = z_valid[n] - z
+                g = not (dz > step and dz > tan_f * (r_valid[n] - r))
             ground_valid[k] = g
             k += 1
             if g:
@@ -269,6 +306,23 @@ def _column_walk_kernel(  # pragma: no cover
             prev_r[j] = r
             prev_ground[j] = g
     return ground_valid
+
+
+@numba.njit(cache=True, nogil=True)
+def _next_above(valid, row_start):  # pragma: no cover
+    """(N,) int64: for each valid pixel (row-major order), the index of the next valid pixel
+    up its column (a lower row index), -1 where there is none."""
+    H, W = valid.shape
+    above = np.full(row_start[H], -1, dtype=np.int64)
+    seen = np.full(W, -1, dtype=np.int64)
+    for i in range(H):
+        k = row_start[i]
+        for j in range(W):
+            if valid[i, j]:
+                above[k] = seen[j]
+                seen[j] = k
+                k += 1
+    return above
 
 
 def refine(
@@ -431,15 +485,16 @@ def ground_mask(
 
 @numba.njit(cache=True, nogil=True)
 def _prepare_walk_kernel(  # pragma: no cover
-    xyz, valid, prior_m, lo_m, hi_m, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise
-):
+    xyz, valid, prior_m, lo_m, hi_m, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise,
+    tan_f, foot,
+):  # fmt: skip
     """:func:`_prepare_kernel`, the sensor height (:func:`_median_height`) and the column walk
     (:func:`_column_walk_kernel`) in one call. Returns ``x_v, y_v, z_v, r_v`` as
     :func:`_prepare_kernel`, the ground mask of the valid pixels (N,) bool and the height m."""
     x_v, y_v, z_v, r_v, z_low = _prepare_kernel(xyz, valid)
     h = _median_height(z_low, prior_m, lo_m, hi_m)
     ground_v = _column_walk_kernel(
-        r_v, z_v, valid, h, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise
+        r_v, z_v, valid, h, tan_s, tan_r, start_tol, step, gap, gap_per_m, max_rise, tan_f, foot
     )
     return x_v, y_v, z_v, r_v, ground_v, h
 
@@ -528,8 +583,10 @@ def raised_in_rows(
     in front of it (the column's nearest ground return below) to the neighbour beside it
     (the same row past the break), at its own range: on terrain, the piece, the ground in
     front and the ground beside lie on one surface. Only pieces at most
-    ``raised_max_width_m`` across count (a rock or a bush, not a hillside), and only
-    neighbours one dropout away at most. What one row cannot tell: the crest of a mound,
+    ``raised_max_width_m`` across and of ``raised_min_returns`` returns or more count (a
+    rock or a bush, not a hillside nor a crest's bump), and only
+    neighbours ``raised_dropouts`` empty columns away at most (a sensor drops returns, and
+    more often far out). What one row cannot tell: the crest of a mound,
     where it stands more than ``raised_m`` over the ground in front, looks to it like a rock.
 
     The column walk may have called such a piece ground (it then is not) or not (the upper
@@ -552,14 +609,19 @@ def raised_in_rows(
         float(cfg.raised_continuity),
         float(cfg.raised_max_width_m),
         float(cfg.raised_m),
+        int(cfg.raised_dropouts),
+        int(cfg.raised_min_returns),
     )
 
 
 @numba.njit(cache=True, nogil=True)
-def _raised_kernel(xyz, valid, ground, cont, max_width, raised):  # pragma: no cover
+def _raised_kernel(  # pragma: no cover
+    xyz, valid, ground, cont, max_width, raised, dropouts, min_returns
+):
     """:func:`raised_in_rows` row by row: the row's valid columns in azimuth order, cut
-    where a range step exceeds ``cont`` times the range or more than one column is empty;
-    each piece between two range steps to farther returns is tested return by return."""
+    where a range step exceeds ``cont`` times the range or more than ``dropouts`` columns
+    are empty; each piece of ``min_returns`` or more between two range steps to farther
+    returns is tested return by return."""
     H, W = valid.shape
     out = np.zeros((H, W), dtype=np.bool_)
     cols = np.empty(W, dtype=np.int64)
@@ -579,7 +641,7 @@ def _raised_kernel(xyz, valid, ground, cont, max_width, raised):  # pragma: no c
         first = -1
         for k in range(n):
             k1 = (k + 1) % n
-            gap[k] = (cols[k1] - cols[k]) % W > 2
+            gap[k] = (cols[k1] - cols[k]) % W > dropouts + 1
             step[k] = not gap[k] and abs(rng[k1] - rng[k]) > cont * min(rng[k], rng[k1])
             if (gap[k] or step[k]) and first < 0:
                 first = k
@@ -591,9 +653,10 @@ def _raised_kernel(xyz, valid, ground, cont, max_width, raised):  # pragma: no c
             e = s
             while not (gap[e] or step[e]):
                 e = (e + 1) % n
-            _test_piece(
-                xyz, valid, ground, out, cols, rng, step, i, s, e, n, dpsi, max_width, raised
-            )
+            if (e - s) % n + 1 >= min_returns:
+                _test_piece(
+                    xyz, valid, ground, out, cols, rng, step, i, s, e, n, dpsi, max_width, raised
+                )
             s = (e + 1) % n
             if s == (first + 1) % n:
                 break

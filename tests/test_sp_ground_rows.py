@@ -177,6 +177,10 @@ def test_bad_shapes_and_limits_are_refused() -> None:
         GroundConfig(raised_m=0.0)
     with pytest.raises(GroundError, match=r"raised_continuity -1\.0"):
         GroundConfig(raised_continuity=-1.0)
+    with pytest.raises(GroundError, match=r"raised_dropouts -1"):
+        GroundConfig(raised_dropouts=-1)
+    with pytest.raises(GroundError, match=r"raised_min_returns 0"):
+        GroundConfig(raised_min_returns=0)
 
 
 def test_the_upper_row_on_a_rock_the_walk_saw_is_raised_over_its_lower_row() -> None:
@@ -191,3 +195,42 @@ def test_the_upper_row_on_a_rock_the_walk_saw_is_raised_over_its_lower_row() -> 
     assert ground[lower].all() and not ground[upper].any()
     raised = raised_in_rows(xyz, valid, ground)
     assert np.array_equal(raised, upper)
+
+
+def test_neighbours_a_few_dropouts_away_still_show_the_piece() -> None:
+    # the rock's row loses the two returns on each side of it (far out a sensor drops
+    # returns): its neighbours lie past the dropouts
+    xyz, valid, rock = cast(flat, rocks=[ROCK])
+    (row,) = set(np.nonzero(rock)[0])
+    cols = np.flatnonzero(rock[row])
+    for j in (*range(cols[0] - 2, cols[0]), *range(cols[-1] + 1, cols[-1] + 3)):
+        valid[row, j] = False
+    ground, _ = ground_mask(xyz, valid)
+    assert np.array_equal(raised_in_rows(xyz, valid, ground), rock)
+    # one dropout allowed: the cuts are gaps, not steps to farther returns
+    assert not raised_in_rows(xyz, valid, ground, GroundConfig(raised_dropouts=1)).any()
+    # a gap wider than raised_dropouts: no neighbour
+    for j in (cols[0] - 3, cols[0] - 4, cols[-1] + 3, cols[-1] + 4):
+        valid[row, j] = False
+    assert not raised_in_rows(xyz, valid, ground).any()
+
+
+def test_a_piece_of_fewer_than_raised_min_returns_is_not_raised() -> None:
+    # a crest's bump far out stands out of its row over one to three columns: too little to
+    # tell from a rock. The rock's piece holds as many returns as its columns
+    xyz, valid, rock = cast(flat, rocks=[ROCK])
+    ground, _ = ground_mask(xyz, valid)
+    n = int(np.count_nonzero(rock))
+    assert n >= GroundConfig().raised_min_returns
+    at_n = GroundConfig(raised_min_returns=n)
+    assert np.array_equal(raised_in_rows(xyz, valid, ground, at_n), rock)
+    over = GroundConfig(raised_min_returns=n + 1)
+    assert not raised_in_rows(xyz, valid, ground, over).any()
+    # a 0.5 m rock 40 m out spans three columns: not raised
+    xyz, valid, small = cast(flat, rocks=[(40.0, 0.0, 0.5, 0.5, 0.8)])
+    ground, _ = ground_mask(xyz, valid)
+    assert 1 <= np.count_nonzero(small) < GroundConfig().raised_min_returns
+    assert not raised_in_rows(xyz, valid, ground).any()
+    assert np.array_equal(
+        raised_in_rows(xyz, valid, ground, GroundConfig(raised_min_returns=1)), small & ground
+    )

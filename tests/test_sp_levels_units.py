@@ -4,6 +4,7 @@ groups, and the consistency of entity images with the KD's frames (against analy
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -139,12 +140,12 @@ def test_the_roof_of_a_car_in_the_row_behind_is_not_ground() -> None:
     assert not ground[: len(roofs)].any()
     assert ground[-len(NEAR_GROUND) :].all()
     # the former 5 degree rule took the row for ground, and 3 degrees without a cap on the
-    # rise the roofs 31 m and more out
-    five, _ = ground_mask(
-        xyz, valid, GroundConfig(resume_slope_deg=5.0, resume_max_rise_m=math.inf)
-    )
+    # rise the roofs 31 m and more out (both from the car's foot, which the walk then took
+    # for ground: no foot rule either)
+    former = GroundConfig(foot_rise_m=math.inf, resume_max_rise_m=math.inf)
+    five, _ = ground_mask(xyz, valid, replace(former, resume_slope_deg=5.0))
     assert five[: len(roofs)].all()
-    three, _ = ground_mask(xyz, valid, GroundConfig(resume_max_rise_m=math.inf))
+    three, _ = ground_mask(xyz, valid, former)
     assert three[:2].all() and not three[2:4].any()
 
 

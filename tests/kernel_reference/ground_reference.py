@@ -32,6 +32,18 @@ def column_walk_reference(
     H, W = r_m.shape
     tan_s = np.tan(np.deg2rad(config.max_slope_deg))
     tan_r = np.tan(np.deg2rad(config.resume_slope_deg))
+    tan_f = np.tan(np.deg2rad(config.face_slope_deg))
+    # the next valid return up each pixel's column (its range and height; NaN where none)
+    next_r = np.full((H, W), np.nan)
+    next_z = np.full((H, W), np.nan)
+    seen_r = np.full(W, np.nan)
+    seen_z = np.full(W, np.nan)
+    for i in range(H):
+        v = valid[i]
+        next_r[i] = np.where(v, seen_r, np.nan)
+        next_z[i] = np.where(v, seen_z, np.nan)
+        seen_r = np.where(v, r_m[i], seen_r)
+        seen_z = np.where(v, z_m[i], seen_z)
     ground = np.zeros((H, W), dtype=bool)
     last_r = np.zeros(W)  # last ground return of each column
     last_z = np.full(W, -height_m)
@@ -57,6 +69,10 @@ def column_walk_reference(
         gap_ok = prev_ground | resume_ok
         cont = v & have & (dr > 0.0) & rise_ok & drop_ok & gap_ok
         g = start | cont
+        # the foot of a face: the next return up rises over it steeply, not past it
+        dz = next_z[i] - z
+        face = (dz > config.step_m) & (dz > tan_f * (next_r[i] - r))
+        g &= ~(face & (z - last_z > config.foot_rise_m))
         ground[i] = g
         last_r = np.where(g, r, last_r)
         last_z = np.where(g, z, last_z)
