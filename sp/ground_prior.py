@@ -64,7 +64,9 @@ class GroundPriorConfig:
                   ``on_ground_m`` of the ground the map holds at their places, is terrain the
                   column walk misjudged and goes back to the ground (:func:`on_known_ground`):
                   the top of a bank or a crest seen past a dip, where the column's ground,
-                  continued from before the dip, lies under the terrain. Taller segments are
+                  continued from before the dip, lies under the terrain. Not when its row
+                  shows it standing (:func:`sp.ground.raised_in_rows`): the map may have
+                  fused a low object's own returns as ground before. Taller segments are
                   never taken back: a car seen only by its roof over nearer cars may lie on
                   cells the map took for ground.
     on_ground_min_range_m: the marking's own nearest range (m): near, the map knows the

@@ -254,10 +254,10 @@ class ObjectLevel:
         ``xyz_g``, (H, W, 3) m; level 3's ground ``gp``); pieces of one face or wall are
         merged, people walking side by side cut where their tracks predict them, and segments
         too low or terrain-like go to the ground. Far out, the ground the world model holds
-        judges a segment's height better than the ground below it in its column: a low
-        segment holding a ``gp.standing`` return is an object, and a segment of returns on
-        the ground the model knows (``gp.on_known``, :class:`sp.ground_prior.GroundPriorConfig`
-        ``on_ground_*``) is terrain."""
+        judges a segment's height better than the ground below it in its column: a segment
+        of returns on the ground the model knows (``gp.on_known``,
+        :class:`sp.ground_prior.GroundPriorConfig` ``on_ground_*``) is terrain, and one
+        holding a ``gp.standing`` return is an object, however low, flat or on known ground."""
         cfg = self.ctx.config
         seg_cfg = cfg.segments
         valid = img.valid_first
@@ -307,14 +307,17 @@ class ObjectLevel:
             labels = split
             attrs = segment_attributes(labels, xyz_w, inten, range0_m, t_off, gz)
         # too low to stand out of the terrain (bumps, ruts), a gently sloping plane (a
-        # hillside seen past a gap) or rising from the ground as the ground does (a bank, a
-        # mound): ground, not objects
+        # hillside seen past a gap), on the ground the model knows or rising from the ground
+        # as the ground does (a bank, a mound): ground, not objects. The first three not when
+        # its row shows it standing: a low rock's one or two rows far out are low and flat,
+        # and the model may have fused them as ground before that row showed it
         k = len(attrs)
-        low = (attrs.height_m < cfg.min_object_height_m) & (count_in(labels, gp.standing, k) == 0)
-        low |= terrain_patch(attrs, cfg)
+        standing = count_in(labels, gp.standing, k) > 0
+        low = (attrs.height_m < cfg.min_object_height_m) & ~standing
+        low |= terrain_patch(attrs, cfg) & ~standing
         on = cfg.ground_prior
         on_known = count_in(labels, gp.on_known, k) >= on.on_ground_share * attrs.n_pixels
-        low |= on_known & (attrs.height_m < on.on_ground_below_m)
+        low |= on_known & (attrs.height_m < on.on_ground_below_m) & ~standing
         rise_deg, n_cols = foot_rise_deg(
             labels, xyz_g, valid, ground, len(attrs), seg_cfg.row_gap, cfg.foot_chord_m,
             cfg.foot_rise_m,

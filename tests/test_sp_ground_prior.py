@@ -253,10 +253,15 @@ N_ROWS, N_COLS = 16, 720
 FAR_COLS = slice(356, 368)  # 6 degrees: 3.9 m at 37.5 m
 
 
-def _scan_rows(ground: list[tuple[float, float]], far: list[tuple[float, float]]):
+def _scan_rows(
+    ground: list[tuple[float, float]],
+    far: list[tuple[float, float]],
+    beside: list[tuple[float, float]] | None = None,
+):
     """A LadarScan at t = 0 whose every column holds the ``ground`` rows ((range m, height m)
     below the sensor, bottom row first) and, over ``FAR_COLS`` only, the ``far`` rows above
-    them; returns (scan, (H, W) bool valid pixels, (H, W) bool the top far row's pixels)."""
+    them (holding ``beside``, one per far row, in the other columns, when given); returns
+    (scan, (H, W) bool valid pixels, (H, W) bool the top far row's pixels over ``FAR_COLS``)."""
     from logs.types import LadarScan
 
     az = np.pi - (np.arange(N_COLS) + 0.5) * 2 * np.pi / N_COLS
@@ -265,6 +270,12 @@ def _scan_rows(ground: list[tuple[float, float]], far: list[tuple[float, float]]
         cols = FAR_COLS if k >= len(ground) else slice(None)
         xyz[N_ROWS - 1 - k, cols] = np.stack(
             [r * np.cos(az[cols]), r * np.sin(az[cols]), np.full_like(az[cols], z)], -1
+        )
+    out = np.ones(N_COLS, dtype=bool)
+    out[FAR_COLS] = False
+    for k, (r, z) in enumerate(beside or []):
+        xyz[N_ROWS - 1 - len(ground) - k, out] = np.stack(
+            [r * np.cos(az[out]), r * np.sin(az[out]), np.full_like(az[out], z)], -1
         )
     valid = np.isfinite(xyz[..., 0])
     pts = xyz[valid].astype(np.float32)
@@ -276,7 +287,9 @@ def _scan_rows(ground: list[tuple[float, float]], far: list[tuple[float, float]]
     return scan, valid, top
 
 
-def _ground_after_sp(scan, prior: GroundPrior, config: GroundPriorConfig) -> np.ndarray:
+def _ground_after_sp(
+    scan, prior: GroundPrior, config: GroundPriorConfig, ground: GroundConfig | None = None
+) -> np.ndarray:
     """(H, W) bool ground mask of one SP cycle on ``scan`` with the ground ``prior``, the
     sensor 1.8 m over the world's ground at z = 0."""
     import kd_store
@@ -287,6 +300,7 @@ def _ground_after_sp(scan, prior: GroundPrior, config: GroundPriorConfig) -> np.
     cfg = SPConfig(
         egosphere=EgosphereConfig(n_rows=N_ROWS, n_cols=N_COLS, max_returns=1),
         ground_prior=config,
+        ground=ground or GroundConfig(),
     )
     sp = KDSensoryProcessor(kd_store.open(":memory:"), cfg)
     T = np.eye(4)
@@ -359,3 +373,39 @@ def test_a_far_step_on_the_ground_the_map_knows_is_terrain(map_knows_bank: bool)
     # the step's top row stands 0.6 m over the column's ground: an object to the column walk;
     # on a bank the map knows it is terrain, on ground the map knows flat it stays an object
     assert (ground[top] == map_knows_bank).all()
+
+
+def test_a_far_rock_its_row_shows_standing_stays_an_object_where_the_map_fused_it() -> None:
+    # flat ground out to 25 m; the top row meets a rock 0.6 m up at 37.5 m over FAR_COLS and
+    # the ground 60 m out beside it. The map holds 0.6 m past x = 31.2 m: it fused the rock's
+    # own returns as ground (the column walk took them for ground in earlier sweeps)
+    flat = [(3.0 + 2.0 * k, -SENSOR_H) for k in range(12)]
+    scan, _, rock = _scan_rows(flat, [(37.5, -SENSOR_H + 0.6)], beside=[(60.0, -SENSOR_H)])
+    n = 256
+    ix = (np.arange(n) + n // 2) % n - n // 2
+    z = np.zeros((n, n), dtype=np.float32)
+    z[:, (ix + 0.5) * RES > 31.2] = 0.6
+    prior = GroundPrior(z, (-n // 2, -n // 2), RES)
+    # the rock's returns lie on the ground the map knows, but its row shows it standing
+    ground = _ground_after_sp(scan, prior, GroundPriorConfig())
+    assert not ground[rock].any()
+    # without the row's evidence (no piece stands raised_m over the ground line) it is terrain
+    blind = GroundConfig(raised_m=5.0)
+    assert _ground_after_sp(scan, prior, GroundPriorConfig(), blind)[rock].all()
+
+
+def test_a_far_low_body_its_rows_show_standing_is_no_terrain_patch() -> None:
+    # two rows on the top of a low, broad body 36-37.5 m out (0.28 m and 0.9 m up, a plane
+    # tilted 22 degrees, starting within terrain_clearance_m of the ground), both passed by
+    # their rows beside it: a terrain patch by its shape, standing by its rows
+    flat = [(3.0 + 2.0 * k, -SENSOR_H) for k in range(12)]
+    body = [(36.0, -SENSOR_H + 0.28), (37.5, -SENSOR_H + 0.9)]
+    scan, valid, top = _scan_rows(flat, body, beside=[(45.0, -SENSOR_H), (60.0, -SENSOR_H)])
+    on_body = np.zeros_like(valid)
+    on_body[N_ROWS - len(flat) - 2 : N_ROWS - len(flat), FAR_COLS] = True
+    assert valid[on_body].all() and top[on_body].sum() == 12
+    ground = _ground_after_sp(scan, None, GroundPriorConfig())
+    assert not ground[on_body].any()
+    # without its rows' evidence it is mostly ground (the walk's and the patch rule's)
+    blind = GroundConfig(raised_m=5.0)
+    assert _ground_after_sp(scan, None, GroundPriorConfig(), blind)[on_body].sum() >= 20
