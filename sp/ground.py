@@ -102,8 +102,8 @@ class GroundConfig:
                        (:func:`raised_in_rows`). A curb shows 0.15 m. On development seeds
                        (open and default worlds) the terrain's own bumps stood over 0.25 m
                        about half as often as over 0.2 m, low objects 70-80 % as often.
-                       A crest 50 m out showed as pieces of one to three returns (a 1 m
-                       rock 40 m out spans four columns of 1024).
+                       A bump of the terrain 50 m out showed as pieces of one to three
+                       returns (a 1 m rock 40 m out spans four columns of 1024).
     """
 
     sensor_height_m: float = 1.8
@@ -585,7 +585,7 @@ def raised_in_rows(
     (the same row past the break), at its own range: on terrain, the piece, the ground in
     front and the ground beside lie on one surface. Only pieces at most
     ``raised_max_width_m`` across and of ``raised_min_returns`` returns or more count (a
-    rock or a bush, not a hillside nor a crest's bump), and only neighbours at most
+    rock or a bush, not a hillside nor a bump of it), and only neighbours at most
     ``raised_dropouts`` empty columns away (a sensor drops returns, more often far out).
     What one row cannot tell: the crest of a mound, where it stands more than ``raised_m``
     over the ground in front, looks to it like a rock.
