@@ -312,12 +312,11 @@ class ObjectLevel:
         # its row shows it standing: a low rock's one or two rows far out are low and flat,
         # and the model may have fused them as ground before that row showed it
         k = len(attrs)
-        standing = count_in(labels, gp.standing, k) > 0
-        low = (attrs.height_m < cfg.min_object_height_m) & ~standing
-        low |= terrain_patch(attrs, cfg) & ~standing
         on = cfg.ground_prior
         on_known = count_in(labels, gp.on_known, k) >= on.on_ground_share * attrs.n_pixels
-        low |= on_known & (attrs.height_m < on.on_ground_below_m) & ~standing
+        low = (attrs.height_m < cfg.min_object_height_m) | terrain_patch(attrs, cfg)
+        low |= on_known & (attrs.height_m < on.on_ground_below_m)
+        low &= count_in(labels, gp.standing, k) == 0
         rise_deg, n_cols = foot_rise_deg(
             labels, xyz_g, valid, ground, len(attrs), seg_cfg.row_gap, cfg.foot_chord_m,
             cfg.foot_rise_m,
