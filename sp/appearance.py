@@ -66,12 +66,15 @@ def object_appearance(
     if camera.depth is not None:
         d = camera.depth[row, col].astype(np.float64)
         on &= np.isfinite(d) & (np.abs(d - p_cam[:, 2]) <= cfg.max_depth_gap_m)
-    img = camera.image.astype(np.float64)
-    grey = img.mean(axis=2) if img.ndim == 3 else img
-    uniq, inv = np.unique(ids, return_inverse=True)
+    # the few objects' indices by a search in their sorted ids, and the grey value only at
+    # the pixels the seen returns land on: the whole image's grey is mostly never read
+    uniq = np.unique(ids)
+    inv = np.searchsorted(uniq, ids)
     total = np.bincount(inv, minlength=uniq.size)
+    px = camera.image[row[on], col[on]].astype(np.float64)
+    grey = px.mean(axis=1) if px.ndim == 2 else px
     seen = np.bincount(inv[on], minlength=uniq.size)
-    sums = np.bincount(inv[on], weights=grey[row[on], col[on]] / 255.0, minlength=uniq.size)
+    sums = np.bincount(inv[on], weights=grey / 255.0, minlength=uniq.size)
     keep = seen >= cfg.min_pixels
     return Appearance(
         ids=uniq[keep],

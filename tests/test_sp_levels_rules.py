@@ -459,6 +459,38 @@ def test_appearance_is_the_mean_grey_where_the_returns_land() -> None:
     assert object_appearance(pts, ids, cam_near, T).ids.size == 0
 
 
+def test_appearance_of_a_colour_image_per_object_as_counted_one_by_one() -> None:
+    """Many objects with large, unsorted ids on a colour image: each object's grey is the
+    mean over its seen returns of the mean of the three channels at the pixel it lands on,
+    its coverage the share seen; the same as counting one object at a time."""
+    rng = np.random.default_rng(7)
+    cam, T = _camera()
+    img = rng.integers(0, 256, size=(256, 256, 3), dtype=np.uint8)
+    cam = CameraFrame(0, "camera", img, cam.K, None)
+    n = 4000
+    # in front, beside and behind the camera, so some returns of most objects are not seen
+    pts = np.c_[rng.uniform(-5.0, 30.0, n), rng.uniform(-20.0, 20.0, n), rng.uniform(-3, 3, n)]
+    ids = rng.choice([9_000_017, 12, 4_500_000_001, 77, 300], size=n)
+    a = object_appearance(pts, ids, cam, T)
+    K = cam.K
+    want = {}
+    for oid in np.unique(ids):
+        p = pts[ids == oid]
+        x_opt, y_opt, z_opt = -p[:, 1], -p[:, 2], p[:, 0]  # R_WORLD_OPTICAL's inverse
+        front = z_opt > 1e-3
+        u = K[0, 0] * x_opt / np.where(front, z_opt, 1.0) + K[0, 2]
+        v = K[1, 1] * y_opt / np.where(front, z_opt, 1.0) + K[1, 2]
+        on = front & (u >= -0.5) & (u < 255.5) & (v >= -0.5) & (v < 255.5)
+        greys = [img[round(vv), round(uu)].astype(float).mean() / 255 for uu, vv in
+                 zip(u[on], v[on], strict=True)]  # fmt: skip
+        if len(greys) >= 3:
+            want[int(oid)] = (np.mean(greys), on.mean())
+    assert a.ids.tolist() == sorted(want)
+    assert len(want) >= 4
+    np.testing.assert_allclose(a.intensity, [want[i][0] for i in sorted(want)], rtol=1e-12)
+    np.testing.assert_allclose(a.coverage, [want[i][1] for i in sorted(want)], rtol=1e-12)
+
+
 def test_pipeline_writes_camera_appearance_of_confirmed_objects() -> None:
     kd = kd_store.open(":memory:")
     cfg = SPConfig(egosphere=EgosphereConfig(n_rows=64, n_cols=1024, max_returns=1))
