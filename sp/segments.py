@@ -718,12 +718,22 @@ def split_at_gap(
         & (length_m >= gap_m + 0.2)
     )  # fmt: skip
     out, next_label = labels, int(labels.max(initial=-1)) + 1
-    for k in look:
-        rows, cols = np.nonzero(labels == k)
-        if rows.size < 2 * min_pixels:
+    if look.size == 0:
+        return out
+    # the looked-at segments' pixels (flat indices), grouped by segment in one stable sort,
+    # each group in row-major order
+    flat = labels.reshape(-1)
+    pix = np.flatnonzero(np.isin(flat, look))
+    pix = pix[np.argsort(flat[pix], kind="stable")]
+    start = np.searchsorted(flat[pix], look, "left")
+    end = np.searchsorted(flat[pix], look, "right")
+    xy = points_world.reshape(-1, 3)[:, :2]
+    for k, s, e in zip(look.tolist(), start.tolist(), end.tolist(), strict=True):
+        if e - s < 2 * min_pixels:
             continue
+        mine = pix[s:e]
         axis = np.array([math.cos(yaw_rad[k]), math.sin(yaw_rad[k])])
-        u = points_world[rows, cols, :2] @ axis
+        u = xy[mine] @ axis
         order = np.argsort(u)
         gaps = np.diff(u[order])
         j = int(np.argmax(gaps))
@@ -731,8 +741,7 @@ def split_at_gap(
             continue
         if out is labels:
             out = labels.copy()
-        far = order[j + 1 :]
-        out[rows[far], cols[far]] = next_label
+        out.reshape(-1)[mine[order[j + 1 :]]] = next_label
         next_label += 1
     return out
 
