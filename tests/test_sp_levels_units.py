@@ -448,6 +448,28 @@ def test_sp_places_returns_where_the_caller_deskewed_them(caplog) -> None:
     assert not bad.ok and "points_world has shape" in caplog.text
 
 
+def test_placing_the_callers_points_fills_every_pixel_with_a_return_in_any_layout() -> None:
+    """Each pixel with a return takes its return's point, the others keep theirs, whether the
+    (H, W, 3) array is C-contiguous or a strided view."""
+    from types import SimpleNamespace
+
+    from sp.level1 import _place
+
+    rng = np.random.default_rng(3)
+    index = np.full((8, 16, 2), -1, np.int32)
+    index[..., 0].reshape(-1)[rng.permutation(128)[:90]] = rng.permutation(100)[:90]
+    img = SimpleNamespace(point_index=index)
+    pw = rng.random((100, 3))
+    want = np.full((8, 16, 3), -7.0)
+    has = index[..., 0] >= 0
+    want[has] = pw[index[..., 0][has]]
+    dense = np.full((8, 16, 3), -7.0)
+    strided = np.full((3, 8, 16), -7.0).transpose(1, 2, 0)
+    for xyz_w in (dense, strided):
+        _place(xyz_w, img, pw, 100)
+        np.testing.assert_array_equal(xyz_w, want)
+
+
 def test_level2_lists_are_confirmed_by_persistence_and_denied_when_not_seen_again() -> None:
     """A list starts hypothesized; seen three sweeps running it is confirmed, while one seen
     once and never again is denied after its confidence decays below the deny threshold."""
