@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from kd_store import Attribute, Level, Status
@@ -480,20 +481,6 @@ def vertical_face(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:
     return upright & (a.breadth_m >= cfg.face_breadth_m) & (a.thickness_m <= cfg.face_thick_m)
 
 
-def _next_return(has: np.ndarray, i: np.ndarray, j: np.ndarray, step: int, gap: int) -> np.ndarray:
-    """(n,) int64 row of the next return from pixels (i, j) ((n,) int64 each) along their
-    column in ``has`` (H, W) bool, ``step`` = +1 down or -1 up, across at most ``gap`` rows
-    without one; -1 where there is none (or ``i`` is -1)."""
-    H = has.shape[0]
-    out = np.full(i.shape, -1, dtype=np.int64)
-    for k in range(gap + 1, 0, -1):  # the nearest row wins: written last
-        r = i + step * k
-        inside = (i >= 0) & (r >= 0) & (r < H)
-        hit = inside & has[np.clip(r, 0, H - 1), j]
-        out = np.where(hit, r, out)
-    return out
-
-
 def foot_rise_deg(
     labels: np.ndarray,
     xyz_g: np.ndarray,
@@ -523,65 +510,109 @@ def foot_rise_deg(
     centred on the sensor (m); has_return, ground (H, W) bool. Returns the median rise per
     segment (K,) float64 degrees (NaN where no column qualifies) and the number of columns
     (K,) int64.
+
+    The walks up the columns are one compiled pass (:func:`_foot_walks`); the angles and
+    medians stay numpy. ``tests/kernel_reference/surfaces_reference.py`` holds the walk in
+    numpy, and the two agree to the bit (tested).
     """
-    i_s, j_s = np.nonzero(labels >= 0)
-    below = _next_return(has_return, i_s, j_s, +1, row_gap)
-    # the segment's feet: its pixels whose next return down is ground
-    foot = below >= 0
-    foot[foot] = ground[below[foot], j_s[foot]]
-    i_f, j_f, i_g = i_s[foot], j_s[foot], below[foot]
-    lab = labels[i_f, j_f]
+    lab, at_foot, at_first, at_top = _foot_walks(
+        np.ascontiguousarray(labels, dtype=np.int64),
+        np.ascontiguousarray(xyz_g, dtype=np.float64),
+        np.ascontiguousarray(has_return, dtype=np.bool_),
+        np.ascontiguousarray(ground, dtype=np.bool_),
+        int(row_gap), float(max_chord_m), float(rise_m), int(max_rows),
+    )  # fmt: skip
 
-    def hr_z(i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p = xyz_g[i, j_f]
-        return np.hypot(p[:, 0], p[:, 1]), p[:, 2]
-
-    def step_m(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        return np.hypot(b[0] - a[0], b[1] - a[1])
-
-    at_foot = hr_z(i_f)
-    alive = step_m(hr_z(i_g), at_foot) <= max_chord_m
-    top, at_top = i_f.copy(), at_foot
-    at_first = at_foot  # the walk's first step up (where it counts, the walk took one)
-    reached = np.zeros(i_f.size, dtype=bool)
-    ended = np.zeros(i_f.size, dtype=bool)  # the segment's top in this column came first
-    for step in range(max_rows):
-        walking = alive & ~reached & ~ended
-        if not walking.any():
-            break
-        nxt = _next_return(has_return, np.where(walking, top, -1), j_f, -1, row_gap)
-        own = (nxt >= 0) & (labels[np.maximum(nxt, 0), j_f] == lab)
-        ended |= walking & ~own
-        at_next = hr_z(np.maximum(nxt, 0))
-        close = step_m(at_top, at_next) <= max_chord_m
-        alive &= ~(walking & own & ~close)
-        move = walking & own & close
-        top = np.where(move, nxt, top)
-        at_top = (np.where(move, at_next[0], at_top[0]), np.where(move, at_next[1], at_top[1]))
-        if step == 0:
-            at_first = at_top
-        reached |= move & (at_top[1] - at_foot[1] >= rise_m)
-    rise = at_top[1] - at_foot[1]
-    # a segment lower than rise_m above its foot (the crest of a bank whose flank is ground)
-    # counts from half of it
-    counted = alive & (reached | (ended & (rise >= 0.5 * rise_m)))
-
-    def angle_to(at: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        return np.degrees(np.arctan2(at[1] - at_foot[1], at[0] - at_foot[0]))
+    def angle_to(at: np.ndarray) -> np.ndarray:
+        return np.degrees(np.arctan2(at[:, 1] - at_foot[:, 1], at[:, 0] - at_foot[:, 0]))
 
     # a bank is gentle in both, a dome or a rounded car body steep in one of them
     angle = np.maximum(angle_to(at_first), angle_to(at_top))
-    lab, angle = lab[counted], angle[counted]
+    return _median_by_segment(lab, angle, n_segments)
+
+
+def _median_by_segment(
+    lab: np.ndarray, value: np.ndarray, n_segments: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The median of ``value`` (n,) float64 per segment of ``lab`` (n,) int64 in
+    0..n_segments-1: (K,) float64 (NaN where a segment has none), and the count (K,) int64."""
     count = np.bincount(lab, minlength=n_segments)
     median = np.full(n_segments, np.nan)
     if lab.size:
-        order = np.lexsort((angle, lab))
+        order = np.lexsort((value, lab))
         start = np.concatenate([[0], np.cumsum(count)[:-1]])
         has = count > 0
         lo = start[has] + (count[has] - 1) // 2
         hi = start[has] + count[has] // 2
-        median[has] = 0.5 * (angle[order][lo] + angle[order][hi])
+        median[has] = 0.5 * (value[order][lo] + value[order][hi])
     return median, count
+
+
+@numba.njit(cache=True, nogil=True)
+def _next_row(has, i, j, step, gap):  # pragma: no cover
+    """Row of the next return from pixel (i, j) along its column of ``has`` (H, W) bool,
+    ``step`` +1 down or -1 up, across at most ``gap`` rows without one; -1 if none."""
+    for k in range(1, gap + 2):
+        r = i + step * k
+        if r < 0 or r >= has.shape[0]:
+            return -1
+        if has[r, j]:
+            return r
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _foot_walks(labels, xyz_g, has, ground, gap, max_chord_m, rise_m, max_rows):  # pragma: no cover
+    """The walks of :func:`foot_rise_deg`, one per foot (a segment's pixel whose next return
+    down is ground), in row-major order. Returns, for the feet whose column counts: the
+    segment (n,) int64, and (n, 2) float64 (horizontal range, z) of the foot, of the first
+    return up from it and of the last one reached."""
+    H, W = labels.shape
+    n = 0
+    for i in range(H):
+        for j in range(W):
+            n += labels[i, j] >= 0
+    lab = np.empty(n, np.int64)
+    at = np.empty((3, n, 2))  # foot, first step, top
+    m = 0
+    for i in range(H):
+        for j in range(W):
+            s = labels[i, j]
+            if s < 0:
+                continue
+            g = _next_row(has, i, j, 1, gap)
+            if g < 0 or not ground[g, j]:
+                continue
+            f_hr, f_z = np.hypot(xyz_g[i, j, 0], xyz_g[i, j, 1]), xyz_g[i, j, 2]
+            g_hr, g_z = np.hypot(xyz_g[g, j, 0], xyz_g[g, j, 1]), xyz_g[g, j, 2]
+            alive = np.hypot(f_hr - g_hr, f_z - g_z) <= max_chord_m
+            top, t_hr, t_z = i, f_hr, f_z
+            a_hr, a_z = f_hr, f_z
+            reached = ended = False
+            for step in range(max_rows):
+                if not alive or reached or ended:
+                    break
+                r = _next_row(has, top, j, -1, gap)
+                if r < 0 or labels[r, j] != s:
+                    ended = True
+                    break
+                n_hr, n_z = np.hypot(xyz_g[r, j, 0], xyz_g[r, j, 1]), xyz_g[r, j, 2]
+                if not np.hypot(n_hr - t_hr, n_z - t_z) <= max_chord_m:
+                    alive = False
+                    break
+                top, t_hr, t_z = r, n_hr, n_z
+                if step == 0:
+                    a_hr, a_z = t_hr, t_z
+                reached = t_z - f_z >= rise_m
+            # a segment lower than rise_m above its foot (the crest of a bank whose flank is
+            # ground) counts from half of it
+            if alive and (reached or (ended and t_z - f_z >= 0.5 * rise_m)):
+                lab[m] = s
+                at[0, m, 0], at[0, m, 1] = f_hr, f_z
+                at[1, m, 0], at[1, m, 1] = a_hr, a_z
+                at[2, m, 0], at[2, m, 1] = t_hr, t_z
+                m += 1
+    return lab[:m], at[0, :m], at[1, :m], at[2, :m]
 
 
 def terrain_patch(a: SegmentAttributes, cfg: SPConfig) -> np.ndarray:

@@ -44,6 +44,7 @@ from kernel_reference.ground_reference import (
 from kernel_reference.lists_reference import list_slots_reference, list_sums_reference
 from kernel_reference.poses_reference import deskew_to_world_reference
 from kernel_reference.pyramid_reference import register_reference
+from kernel_reference.surfaces_reference import foot_rise_deg_reference
 from kernel_reference.sweep_points_reference import sweep_points_reference
 from kernel_reference.voxels_reference import first_per_voxel_reference
 from kernel_reference.windowing_reference import window_mask_reference
@@ -91,6 +92,7 @@ from sp.ground_prior import (
     above_prior,
     on_known_ground,
 )
+from sp.level3_surfaces import foot_rise_deg
 from sp.lists import (
     brightness_edges,
     list_slots,
@@ -564,28 +566,33 @@ def _attribute_dtype_check(_: None, calls: list[Call]) -> None:
 
 
 @functools.cache
-def _pipeline_attribute_calls() -> list[Args]:
-    """The arguments of every segment_attributes call of the pipeline on a few simulated
-    sweeps (before and after the merge of collinear pieces)."""
+def _pipeline_calls() -> dict[str, list[Args]]:
+    """The arguments of every segment_attributes call (before and after the merge of
+    collinear pieces) and every foot_rise_deg call of the pipeline on a few simulated
+    sweeps."""
     import kd_store
     import sp.level4_objects
     from fixtures.simulate import simulate
     from logs.types import GroundTruthPose, TransformFrame
     from wm.entities import KDSensoryProcessor
 
-    calls: list[Args] = []
+    calls: dict[str, list[Args]] = {"segment_attributes": [], "foot_rise_deg": []}
 
-    def recording(*args: Any, **kwargs: Any) -> SegmentAttributes:
-        assert not kwargs  # the harness passes arguments by position
-        calls.append(args)
-        return segment_attributes(*args)
+    def recording(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
+        def record(*args: Any, **kwargs: Any) -> Any:
+            assert not kwargs  # the harness passes arguments by position
+            calls[name].append(args)
+            return fn(*args)
+
+        return record
 
     mp = pytest.MonkeyPatch()
-    mp.setattr(sp.level4_objects, "segment_attributes", recording)
+    for name in calls:
+        mp.setattr(sp.level4_objects, name, recording(name, getattr(sp.level4_objects, name)))
     try:
         proc = KDSensoryProcessor(kd_store.open(":memory:"))
         T_body_ladar = T_world_body = None
-        for f in simulate("default", seconds=0.35):
+        for f in simulate("village", seconds=0.35):
             if isinstance(f, TransformFrame) and f.child_frame_id == "ladar":
                 T_body_ladar = f.T_parent_child
             elif isinstance(f, GroundTruthPose):
@@ -599,13 +606,50 @@ def _pipeline_attribute_calls() -> list[Args]:
 
 
 def _pipeline_attribute_inputs(_: None) -> Iterator[Args]:
-    yield from _pipeline_attribute_calls()
+    yield from _pipeline_calls()["segment_attributes"]
 
 
 def _pipeline_attribute_check(_: None, calls: list[Call]) -> None:
     assert len(calls) >= 3
     for _, _, want in calls:
         assert len(want) >= 5 and (want.n_pixels > 0).all()
+
+
+# --- sp.level3_surfaces: the walks up the columns from the feet of segments ------------------
+
+
+def _foot_inputs(param: tuple[int, int]) -> Iterator[Args]:
+    """A ray-cast sweep, its ground (``ground_mask``) and its other returns cut into blocks of
+    ``cols`` columns (and of 5 rows when ``rows_cut``: walks that leave their segment), some
+    returns dropped (walks across gaps); each walk limit on and off."""
+    seed, cols = param
+    xyz, valid = ground_sweep(seed, fill="zero")
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    i, j = np.indices(valid.shape)
+    for rows_cut in (False, True):
+        labels = np.where(valid & ~ground, j // cols + (i // 5) * 1024 * rows_cut, -1)
+        labels = np.unique(labels, return_inverse=True)[1].reshape(labels.shape) - 1
+        K = int(labels.max()) + 1
+        for gap, chord_m, rise_m, max_rows in [
+            (2, 0.25, 0.4, 8), (0, 0.25, 0.4, 8), (2, 2.0, 0.1, 8), (2, 0.25, 0.4, 1),
+            (2, 0.25, 0.4, 0), (5, 1.0, 1.5, 8),
+        ]:  # fmt: skip
+            yield labels, xyz, valid, ground, K, gap, chord_m, rise_m, max_rows
+
+
+def _foot_check(_: Any, calls: list[Call]) -> None:
+    """Segments with and without counting columns, and limits that change the answer."""
+    counts = [want[1].sum() for _, _, want in calls]
+    assert max(counts) > 50 and min(counts) == 0  # max_rows 0 counts nothing
+    assert len(set(counts)) > 3
+
+
+def _foot_pipeline_inputs(_: None) -> Iterator[Args]:
+    yield from _pipeline_calls()["foot_rise_deg"]
+
+
+def _foot_pipeline_check(_: None, calls: list[Call]) -> None:
+    assert len(calls) >= 3 and sum(want[1].sum() for _, _, want in calls) > 20
 
 
 # --- sp.egosphere: the image of a scan (bit for bit, the NaN of an empty pixel too) ----------
@@ -2081,6 +2125,10 @@ CASES = [
          _attribute_dtype_check),
     Case("segment_attributes_simulated", [None], _pipeline_attribute_inputs, segment_attributes,
          segment_attributes_reference, _same_attributes, _pipeline_attribute_check),
+    Case("foot_rise_deg", _product(range(3), [16, 200]), _foot_inputs, foot_rise_deg,
+         foot_rise_deg_reference, _equal, _foot_check),
+    Case("foot_rise_deg_simulated", [None], _foot_pipeline_inputs, foot_rise_deg,
+         foot_rise_deg_reference, _equal, _foot_pipeline_check),
     Case("to_egosphere", _product(range(3), [1_000, 20_000, 70_000], [True, False], [1, 2, 3]),
          _egosphere_inputs, to_egosphere, to_egosphere_reference, _same_image, _egosphere_check,
          marks=[EGOSPHERE_CAST]),
