@@ -512,7 +512,7 @@ def foot_rise_deg(
     (K,) int64.
 
     The walks up the columns are one compiled pass (:func:`_foot_walks`); the angles and
-    medians stay numpy. ``tests/kernel_reference/surfaces_reference.py`` holds the walk in
+    medians stay numpy. ``tests/kernel_reference/level3_surfaces_reference.py`` holds the walk in
     numpy, and the two agree to the bit (tested).
     """
     lab, at_foot, at_first, at_top = _foot_walks(

@@ -41,10 +41,10 @@ from kernel_reference.ground_reference import (
     ground_mask_reference,
     refine_reference,
 )
+from kernel_reference.level3_surfaces_reference import foot_rise_deg_reference
 from kernel_reference.lists_reference import list_slots_reference, list_sums_reference
 from kernel_reference.poses_reference import deskew_to_world_reference
 from kernel_reference.pyramid_reference import register_reference
-from kernel_reference.surfaces_reference import foot_rise_deg_reference
 from kernel_reference.sweep_points_reference import sweep_points_reference
 from kernel_reference.voxels_reference import first_per_voxel_reference
 from kernel_reference.windowing_reference import window_mask_reference
