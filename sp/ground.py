@@ -96,7 +96,9 @@ class GroundConfig:
                        wider than ``raised_max_width_m``, whose returns
                        continue each other (range steps under ``raised_continuity`` times
                        the range) and whose neighbours on both sides (at most
-                       ``raised_dropouts`` empty columns away) lie farther, stands on
+                       ``raised_dropouts`` empty columns away) lie farther, or on one
+                       side with the row empty for more columns on the other up to a
+                       return farther still, stands on
                        the terrain where it is more than ``raised_m`` above the ground
                        between the column's ground in front of it and those neighbours
                        (:func:`raised_in_rows`). A curb shows 0.15 m. On development seeds
@@ -579,14 +581,19 @@ def raised_in_rows(
     from a rise of the terrain: the column walk and the refinement take it for ground. Its
     row can. Along a row the ground's range varies smoothly; a low object is a short piece
     of the row nearer than the returns on both sides of it, which pass it and meet the
-    ground behind (reference 001, 4.5.2: grouping by continuity, and a break in it). Such a
+    ground behind (reference 001, 4.5.2: grouping by continuity, and a break in it). On one
+    side the row may hold no return at all for more than ``raised_dropouts`` columns (a
+    row near the horizon, whose beams pass the object and meet nothing within the sensor's
+    range); the other side must then show the step to farther returns, and the next return
+    past the empty columns must lie farther too. Such a
     piece is raised where it stands more than ``raised_m`` above the line from the ground
     in front of it (the column's nearest ground return below) to the neighbour beside it
     (the same row past the break), at its own range: on terrain, the piece, the ground in
     front and the ground beside lie on one surface. Only pieces at most
     ``raised_max_width_m`` across and of ``raised_min_returns`` returns or more count (a
     rock or a bush, not a hillside nor a bump of it), and only neighbours at most
-    ``raised_dropouts`` empty columns away (a sensor drops returns, more often far out).
+    ``raised_dropouts`` empty columns away (a sensor drops returns, more often far out), but
+    for the empty side above.
     What one row cannot tell: the crest of a mound, where it stands more than ``raised_m``
     over the ground in front, looks to it like a rock.
 
@@ -621,8 +628,8 @@ def _raised_kernel(  # pragma: no cover
 ):
     """:func:`raised_in_rows` row by row: the row's valid columns in azimuth order, cut
     where a range step exceeds ``cont`` times the range or more than ``dropouts`` columns
-    are empty; each piece of ``min_returns`` or more between two range steps to farther
-    returns is tested return by return."""
+    are empty; each piece of ``min_returns`` or more between two cuts to farther returns, at
+    least one of them a range step, is tested return by return."""
     H, W = valid.shape
     out = np.zeros((H, W), dtype=np.bool_)
     cols = np.empty(W, dtype=np.int64)
@@ -656,7 +663,21 @@ def _raised_kernel(  # pragma: no cover
                 e = (e + 1) % n
             if (e - s) % n + 1 >= min_returns:
                 _test_piece(
-                    xyz, valid, ground, out, cols, rng, step, i, s, e, n, dpsi, max_width, raised
+                    xyz,
+                    valid,
+                    ground,
+                    out,
+                    cols,
+                    rng,
+                    step,
+                    gap,
+                    i,
+                    s,
+                    e,
+                    n,
+                    dpsi,
+                    max_width,
+                    raised,
                 )
             s = (e + 1) % n
             if s == (first + 1) % n:
@@ -666,13 +687,16 @@ def _raised_kernel(  # pragma: no cover
 
 @numba.njit(cache=True, nogil=True)
 def _test_piece(
-    xyz, valid, ground, out, cols, rng, step, i, s, e, n, dpsi, max_width, raised
+    xyz, valid, ground, out, cols, rng, step, gap, i, s, e, n, dpsi, max_width, raised
 ):  # pragma: no cover
     """Mark the raised returns of the piece at positions ``s``..``e`` (wrapping) of row
     ``i``'s valid columns ``cols``, whose horizontal ranges are ``rng``: both its cuts must
-    be range steps to farther returns, and it at most ``max_width`` m across."""
+    lead to farther returns, one at least by a range step (``step``; the other may be a run
+    of empty columns, ``gap``), and it at most ``max_width`` m across."""
     before = (s - 1) % n
-    if not (step[before] and step[e]):
+    # a range step on both sides, or on one side with the row empty on the other (its
+    # beams meet nothing within range there); the ranges are compared below
+    if not ((step[before] or gap[before]) and (step[e] or gap[e]) and (step[before] or step[e])):
         return
     a, b = cols[s], cols[e]
     lf, rf = cols[before], cols[(e + 1) % n]

@@ -215,6 +215,31 @@ def test_neighbours_a_few_dropouts_away_still_show_the_piece() -> None:
     assert not raised_in_rows(xyz, valid, ground).any()
 
 
+def test_a_row_empty_on_one_side_still_shows_the_piece_by_the_other() -> None:
+    # the rock's row meets nothing for 12 columns on its right (near the horizon its beams
+    # pass it and meet no ground within range): the step to the ground on its left shows it
+    xyz, valid, rock = cast(flat, rocks=[ROCK])
+    (row,) = set(np.nonzero(rock)[0])
+    cols = np.flatnonzero(rock[row])
+    right = np.arange(cols[-1] + 1, cols[-1] + 13)
+    valid[row, right] = False
+    xyz[row, right] = np.nan
+    ground, _ = ground_mask(xyz, valid)
+    assert np.array_equal(raised_in_rows(xyz, valid, ground), rock)
+    # ... but not when the next return past the empty columns is nearer than the rock
+    past = cols[-1] + 13
+    assert valid[row, past]
+    nearer = xyz.copy()
+    nearer[row, past] *= 0.5
+    assert not raised_in_rows(nearer, valid, ground).any()
+    # ... nor when the row is empty on both sides: no step to farther returns shows it
+    left = np.arange(cols[0] - 12, cols[0])
+    valid[row, left] = False
+    xyz[row, left] = np.nan
+    ground, _ = ground_mask(xyz, valid)
+    assert not raised_in_rows(xyz, valid, ground).any()
+
+
 def test_a_piece_of_fewer_than_raised_min_returns_is_not_raised() -> None:
     # a crest's bump far out stands out of its row over one to three columns: too little to
     # tell from a rock. The rock's piece holds as many returns as its columns
