@@ -663,21 +663,7 @@ def _raised_kernel(  # pragma: no cover
                 e = (e + 1) % n
             if (e - s) % n + 1 >= min_returns:
                 _test_piece(
-                    xyz,
-                    valid,
-                    ground,
-                    out,
-                    cols,
-                    rng,
-                    step,
-                    gap,
-                    i,
-                    s,
-                    e,
-                    n,
-                    dpsi,
-                    max_width,
-                    raised,
+                    xyz, valid, ground, out, cols, rng, step, i, s, e, n, dpsi, max_width, raised
                 )
             s = (e + 1) % n
             if s == (first + 1) % n:
@@ -687,16 +673,16 @@ def _raised_kernel(  # pragma: no cover
 
 @numba.njit(cache=True, nogil=True)
 def _test_piece(
-    xyz, valid, ground, out, cols, rng, step, gap, i, s, e, n, dpsi, max_width, raised
+    xyz, valid, ground, out, cols, rng, step, i, s, e, n, dpsi, max_width, raised
 ):  # pragma: no cover
     """Mark the raised returns of the piece at positions ``s``..``e`` (wrapping) of row
-    ``i``'s valid columns ``cols``, whose horizontal ranges are ``rng``: both its cuts must
-    lead to farther returns, one at least by a range step (``step``; the other may be a run
-    of empty columns, ``gap``), and it at most ``max_width`` m across."""
+    ``i``'s valid columns ``cols``, whose horizontal ranges are ``rng``: both its cuts
+    (each a range step or a run of empty columns) must lead to farther returns, one at
+    least by a range step (``step``), and it at most ``max_width`` m across."""
     before = (s - 1) % n
-    # a range step on both sides, or on one side with the row empty on the other (its
-    # beams meet nothing within range there); the ranges are compared below
-    if not ((step[before] or gap[before]) and (step[e] or gap[e]) and (step[before] or step[e])):
+    # both ends are cuts; the row may be empty past one of them (its beams meet nothing
+    # within range there), not past both
+    if not (step[before] or step[e]):
         return
     a, b = cols[s], cols[e]
     lf, rf = cols[before], cols[(e + 1) % n]
