@@ -171,12 +171,12 @@ def _place(xyz_w: np.ndarray, img: EgosphereImage, points_world: np.ndarray, n: 
     if pw.shape != (n, 3):
         raise PixelLevelError(f"points_world has shape {pw.shape}; the sweep has {n} points")
     first = img.point_index[..., 0]
-    has = np.flatnonzero(first >= 0)
-    if xyz_w.flags.c_contiguous:  # through a flat view: faster than an (H, W) mask
+    if xyz_w.flags.c_contiguous:  # through a flat view: faster than the (H, W) mask
+        has = np.flatnonzero(first >= 0)
         xyz_w.reshape(-1, 3)[has] = pw.take(first.reshape(-1)[has], axis=0)
     else:
-        i, j = np.unravel_index(has, first.shape)
-        xyz_w[i, j] = pw[first[i, j]]
+        has = first >= 0
+        xyz_w[has] = pw[first[has]]
 
 
 def column_poses(

@@ -724,9 +724,10 @@ def split_at_gap(
     # each group in row-major order
     flat = labels.reshape(-1)
     pix = np.flatnonzero(np.isin(flat, look))
-    pix = pix[np.argsort(flat[pix], kind="stable")]
-    start = np.searchsorted(flat[pix], look, "left")
-    end = np.searchsorted(flat[pix], look, "right")
+    lab = flat[pix]
+    by_label = np.argsort(lab, kind="stable")
+    pix, lab = pix[by_label], lab[by_label]
+    start, end = np.searchsorted(lab, look, "left"), np.searchsorted(lab, look, "right")
     xy = points_world.reshape(-1, 3)[:, :2]
     for k, s, e in zip(look.tolist(), start.tolist(), end.tolist(), strict=True):
         if e - s < 2 * min_pixels:
