@@ -104,9 +104,10 @@ class GroundConfig:
                        (:func:`raised_in_rows`). A curb shows 0.15 m. Far out a row meets
                        a rock 0.4-0.7 m high 0.15-0.35 m up its face. On development seeds
                        (all four worlds, 13-20; open world, 21-39) 0.2 m against 0.25 m
-                       missed 75 fewer box-frames (default 174 -> 156, open 77 -> 68 and
-                       272 -> 247) with 55 more false positives in the village (a second
-                       track on a car's lower rows, mostly) and none more elsewhere; 0.15 m added
+                       missed 75 fewer box-frames in all (default 174 -> 156, open 77 -> 68 and
+                       272 -> 247) with 55 more false positives in the village (mostly a
+                       second vehicle track beside a car, 1-1.2 m high) and none more
+                       elsewhere; 0.15 m added
                        false positives on the terrain's own bumps (default 36 -> 61,
                        village 2030 -> 2201, open 1 -> 32).
                        A bump of the terrain 50 m out showed as pieces of one to three
