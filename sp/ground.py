@@ -93,25 +93,23 @@ class GroundConfig:
                        not ground; returns within ``refine_within_m`` of it are.
     raised_m, raised_max_width_m, raised_continuity, raised_dropouts, raised_min_returns:
                        a piece of a row of at least ``raised_min_returns`` returns and no
-                       wider than ``raised_max_width_m``, whose returns
-                       continue each other (range steps under ``raised_continuity`` times
-                       the range) and whose neighbours on both sides (at most
-                       ``raised_dropouts`` empty columns away) lie farther, or on one
-                       side with the row empty for more columns on the other up to a
-                       return farther still, stands on
-                       the terrain where it is more than ``raised_m`` above the ground
-                       between the column's ground in front of it and those neighbours
+                       wider than ``raised_max_width_m``, whose returns continue each other
+                       (range steps under ``raised_continuity`` times the range) and whose
+                       neighbours on both sides (at most ``raised_dropouts`` empty columns
+                       away) lie farther, or on one side with the row empty for more
+                       columns on the other up to a return farther still, stands on the
+                       terrain where it is more than ``raised_m`` above the ground between
+                       the column's ground in front of it and those neighbours
                        (:func:`raised_in_rows`). A curb shows 0.15 m. Far out a row meets
                        a rock 0.4-0.7 m high 0.15-0.35 m up its face. On development seeds
                        (all four worlds, 13-20; open world, 21-39) 0.2 m against 0.25 m
-                       missed 75 fewer box-frames in all (default 174 -> 156, open 77 -> 68 and
-                       272 -> 247) with 55 more false positives in the village (mostly a
-                       second vehicle track beside a car, 1-1.2 m high) and none more
-                       elsewhere; 0.15 m added
-                       false positives on the terrain's own bumps (default 36 -> 61,
-                       village 2030 -> 2201, open 1 -> 32).
-                       A bump of the terrain 50 m out showed as pieces of one to three
-                       returns (a 1 m rock 40 m out spans four columns of 1024).
+                       missed 75 fewer box-frames in all (default 174 -> 156, open 77 -> 68
+                       and 272 -> 247) with 55 more false positives in the village (mostly
+                       a second vehicle track beside a car, 1-1.2 m high) and none more
+                       elsewhere; 0.15 m added false positives on the terrain's own bumps
+                       (default 36 -> 61, village 2030 -> 2201, open 1 -> 32). A bump of
+                       the terrain 50 m out showed as pieces of one to three returns (a 1 m
+                       rock 40 m out spans four columns of 1024).
     """
 
     sensor_height_m: float = 1.8
