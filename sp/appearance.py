@@ -4,9 +4,13 @@ Reference 001, 4.5.1 (computation: attributes such as "colour" integrated over t
 4.4.6 (a camera image is a patch of its sensor egosphere; LADAR points give its pixels range).
 Each object's LADAR returns are projected into the camera image taken closest in time; the
 mean grey value of the pixels they land on (0..1) is the object's observed camera intensity,
-and the share of its returns the camera sees is its camera coverage. Where the frame carries a
-depth image, a return whose depth disagrees with the pixel's by more than ``max_depth_gap_m``
-is hidden behind something nearer and is not counted.
+the share of its returns the camera sees is its camera coverage, and, in a colour image, the
+excess green of the light from those pixels, ``(2G - R - B) / (R + G + B)`` summed over them
+(Woebbecke et al., 1995, the vegetation index of colour cameras), is its excess green: about
+0 for grey, brown and white surfaces, 0.3-0.5 for leaves. A ratio of the channels, it does not
+change with exposure, gain or the shading of the surface, where the grey value does. Where
+the frame carries a depth image, a return whose depth disagrees with the pixel's by more than
+``max_depth_gap_m`` is hidden behind something nearer and is not counted.
 """
 
 from __future__ import annotations
@@ -34,12 +38,14 @@ class AppearanceConfig:
 @dataclass
 class Appearance:
     """Per object: ids (A,) int64, intensity (A,) float64 mean grey 0..1, coverage (A,)
-    float64 share of the object's returns seen by the camera, n (A,) int64 returns seen."""
+    float64 share of the object's returns seen by the camera, n (A,) int64 returns seen,
+    excess_green (A,) float64 in [-1, 2] (NaN in a grey image or on black pixels)."""
 
     ids: np.ndarray
     intensity: np.ndarray
     coverage: np.ndarray
     n: np.ndarray
+    excess_green: np.ndarray
 
 
 def object_appearance(
@@ -75,10 +81,17 @@ def object_appearance(
     grey = px.mean(axis=1) if px.ndim == 2 else px
     seen = np.bincount(inv[on], minlength=uniq.size)
     sums = np.bincount(inv[on], weights=grey / 255.0, minlength=uniq.size)
+    excess_green = np.full(uniq.size, np.nan)
+    if px.ndim == 2:
+        light = np.bincount(inv[on], weights=px.sum(axis=1), minlength=uniq.size)
+        g = np.bincount(inv[on], weights=px[:, 1], minlength=uniq.size)
+        lit = light > 0
+        excess_green[lit] = 3.0 * g[lit] / light[lit] - 1.0  # (2G - R - B) / (R + G + B)
     keep = seen >= cfg.min_pixels
     return Appearance(
         ids=uniq[keep],
         intensity=sums[keep] / seen[keep],
         coverage=seen[keep] / total[keep],
         n=seen[keep].astype(np.int64),
+        excess_green=excess_green[keep],
     )

@@ -157,6 +157,7 @@ class ObjectLevel:
         self.track_class: dict[int, tuple[str | None, float]] = {}
         self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
         self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
+        self.track_green: dict[int, float] = {}  # object id -> mean excess green (-1..2)
         self.track_shape: dict[int, np.ndarray] = {}  # object id -> running shape (SHAPE_KEYS)
         self.track_roughness: dict[int, float] = {}  # object id -> mean texture, m
         self.attention = np.zeros((0, 0), dtype=bool)  # last sweep's unexplained pixels
@@ -471,6 +472,7 @@ class ObjectLevel:
             "evidence": self.class_evidence,
             "reflectance": self.track_reflectance,
             "camera": self.track_camera,
+            "green": self.track_green,
             "shape": self.track_shape,
             "roughness": self.track_roughness,
         }
@@ -680,17 +682,19 @@ class ObjectLevel:
         camera: CameraFrame,
         T_world_camera: np.ndarray,
     ) -> None:
-        """Camera intensity and coverage of the confirmed objects of this cycle, observed from
-        the world points (N, 3) and their object ids (N,) (-1 none)."""
+        """Camera intensity, coverage and excess green of the confirmed objects of this
+        cycle, observed from the world points (N, 3) and their object ids (N,) (-1 none)."""
         tr = self.tracker.tracks
         confirmed = tr.id[(tr.status == TrackStatus.CONFIRMED) & (tr.id >= 0)]
         sel = np.isin(point_ids, confirmed)
         if not sel.any():
             return
         a = object_appearance(points_world[sel], point_ids[sel], camera, T_world_camera)
-        for oid, inten, cov in zip(a.ids, a.intensity, a.coverage, strict=True):
-            self.ctx.record(AppearanceObserved(int(oid), float(inten), float(cov)))
+        seen = zip(a.ids, a.intensity, a.coverage, a.excess_green, strict=True)
+        for oid, inten, cov, green in seen:
+            self.ctx.record(AppearanceObserved(int(oid), float(inten), float(cov), float(green)))
             self.observe_appearance(self.track_camera, int(oid), float(inten))
+            self.observe_appearance(self.track_green, int(oid), float(green))
 
     def observe_appearance(self, table: dict[int, float], tid: int, value: float) -> None:
         """Running mean (exponential, ``appearance_gain``) of an object's observed appearance
@@ -736,8 +740,9 @@ class ObjectLevel:
 
     def appearance_of(self, tid: int) -> dict[str, float]:
         """The appearance attributes object ``tid`` has been observed with: ``reflectance``
-        (mean LADAR intensity over ``intensity_per_reflectance``, when that is known) and
-        ``camera_intensity`` (mean grey 0..1 of its returns in the camera image). An
+        (mean LADAR intensity over ``intensity_per_reflectance``, when that is known),
+        ``camera_intensity`` (mean grey 0..1 of its returns in the camera image) and
+        ``camera_excess_green`` (their excess green in a colour image). An
         attribute never observed is left out, so the classifier ignores it rather than
         reading it as zero."""
         cfg = self.ctx.config
@@ -748,6 +753,8 @@ class ObjectLevel:
             out["reflectance"] = self.track_reflectance[tid] / cfg.intensity_per_reflectance
         if tid in self.track_camera:
             out["camera_intensity"] = self.track_camera[tid]
+        if tid in self.track_green:
+            out["camera_excess_green"] = self.track_green[tid]
         return out
 
 

@@ -18,6 +18,7 @@ KD's frames share the id.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
@@ -141,12 +142,14 @@ class ClassFounded:
 
 @dataclass(frozen=True)
 class AppearanceObserved:
-    """Camera grey (0..1, mean of the object's returns in the image) and coverage (0..1
-    share of its returns inside the image) of object ``entity_id`` this cycle."""
+    """Camera grey (0..1, mean of the object's returns in the image), coverage (0..1
+    share of its returns inside the image) and excess green (-1..2, NaN in a grey image;
+    :mod:`sp.appearance`) of object ``entity_id`` this cycle."""
 
     entity_id: int
     camera_intensity: float
     camera_coverage: float
+    camera_excess_green: float = math.nan
 
 
 Observation: TypeAlias = (

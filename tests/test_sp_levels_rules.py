@@ -454,6 +454,7 @@ def test_appearance_is_the_mean_grey_where_the_returns_land() -> None:
     assert a.ids.tolist() == [1, 2]  # nothing of object 3 is in front of the camera
     np.testing.assert_allclose(a.intensity, [200 / 255, 50 / 255])
     np.testing.assert_allclose(a.coverage, [1.0, 1.0])
+    assert np.isnan(a.excess_green).all()  # a grey image has no colour to tell
     # with a depth image, returns hidden behind something nearer are not counted
     cam_near, _ = _camera(depth_m=5.0)
     assert object_appearance(pts, ids, cam_near, T).ids.size == 0
@@ -462,7 +463,8 @@ def test_appearance_is_the_mean_grey_where_the_returns_land() -> None:
 def test_appearance_of_a_colour_image_per_object_as_counted_one_by_one() -> None:
     """Many objects with large, unsorted ids on a colour image: each object's grey is the
     mean over its seen returns of the mean of the three channels at the pixel it lands on,
-    its coverage the share seen; the same as counting one object at a time."""
+    its coverage the share seen and its excess green the sum of 2G - R - B over the sum of
+    R + G + B at those pixels; the same as counting one object at a time."""
     rng = np.random.default_rng(7)
     cam, T = _camera()
     img = rng.integers(0, 256, size=(256, 256, 3), dtype=np.uint8)
@@ -481,14 +483,41 @@ def test_appearance_of_a_colour_image_per_object_as_counted_one_by_one() -> None
         u = K[0, 0] * x_opt / np.where(front, z_opt, 1.0) + K[0, 2]
         v = K[1, 1] * y_opt / np.where(front, z_opt, 1.0) + K[1, 2]
         on = front & (u >= -0.5) & (u < 255.5) & (v >= -0.5) & (v < 255.5)
-        greys = [img[round(vv), round(uu)].astype(float).mean() / 255 for uu, vv in
-                 zip(u[on], v[on], strict=True)]  # fmt: skip
-        if len(greys) >= 3:
-            want[int(oid)] = (np.mean(greys), on.mean())
+        px = np.array([img[round(vv), round(uu)].astype(float) for uu, vv in
+                       zip(u[on], v[on], strict=True)]).reshape(-1, 3)  # fmt: skip
+        if len(px) >= 3:
+            exg = (2 * px[:, 1] - px[:, 0] - px[:, 2]).sum() / px.sum()
+            want[int(oid)] = (px.mean() / 255, on.mean(), exg)
     assert a.ids.tolist() == sorted(want)
     assert len(want) >= 4
     np.testing.assert_allclose(a.intensity, [want[i][0] for i in sorted(want)], rtol=1e-12)
     np.testing.assert_allclose(a.coverage, [want[i][1] for i in sorted(want)], rtol=1e-12)
+    np.testing.assert_allclose(a.excess_green, [want[i][2] for i in sorted(want)], rtol=1e-12)
+
+
+def test_excess_green_tells_leaves_from_stone_in_any_light() -> None:
+    """A leafy green object and a grey-brown one, each under full light, in shade (a third of
+    it) and overexposed twice as bright: the grey value follows the light, the excess green
+    stays with the surface."""
+    cam, T = _camera()
+    left = np.c_[np.full(5, 10.0), np.linspace(1.0, 2.0, 5), np.zeros(5)]  # left half
+    pts, ids = np.vstack([left, left * [1, -1, 1]]), np.repeat([1, 2], 5)
+    leaf, stone = np.array([60.0, 110.0, 40.0]), np.array([100.0, 95.0, 85.0])
+    green, grey = [], []
+    for light in (1.0, 1.0 / 3.0, 2.0):
+        img = np.empty((256, 256, 3), np.uint8)
+        img[:, :128] = np.clip(leaf * light, 0, 255)
+        img[:, 128:] = np.clip(stone * light, 0, 255)
+        a = object_appearance(pts, ids, CameraFrame(0, "camera", img, cam.K, None), T)
+        green.append(a.excess_green)
+        grey.append(a.intensity)
+    green = np.array(green)
+    np.testing.assert_allclose(green[:, 0], 120 / 210, atol=0.03)  # leaves: (220 - 100) / 210
+    np.testing.assert_allclose(green[:, 1], 5 / 280, atol=0.03)  # stone: about none
+    assert np.ptp(np.array(grey)[:, 0]) > 0.2  # while the grey value moved with the light
+    # black pixels carry no colour: no chromaticity rather than a division by zero
+    dark = CameraFrame(0, "camera", np.zeros((256, 256, 3), np.uint8), cam.K, None)
+    assert np.isnan(object_appearance(pts, ids, dark, T).excess_green).all()
 
 
 def test_pipeline_writes_camera_appearance_of_confirmed_objects() -> None:
@@ -506,10 +535,21 @@ def test_pipeline_writes_camera_appearance_of_confirmed_objects() -> None:
     assert obj.status == kd_store.Status.CONFIRMED
     assert obj.attributes["camera_intensity"].observed == pytest.approx(200 / 255)
     assert obj.attributes["camera_coverage"].observed > 0.5
+    assert "camera_excess_green" not in obj.attributes  # a grey camera shows no colour
     assert "height_m" in obj.attributes  # the LADAR attributes are kept beside it
+    # a colour camera: the wall is a green hedge, its excess green in the KD and in the
+    # attributes it is classified by
+    hedge = np.zeros((256, 256, 3), np.uint8)
+    hedge[:] = (40, 90, 30)
+    cam = CameraFrame(0, "camera", hedge, cam.K, None)
+    r = sp.process(_moving_sweep(wall, 6 * SWEEP_NS, 0.0), _pose(6 * SWEEP_NS, 0.0), camera=cam,
+                   T_world_camera=T_cam)  # fmt: skip
+    obj = kd.get(r.objects[0])
+    assert obj.attributes["camera_excess_green"].observed == pytest.approx(110 / 160)
+    assert sp.level4.appearance_of(r.objects[0])["camera_excess_green"] == pytest.approx(110 / 160)
     # a broken camera frame is skipped, the sweep's result kept
     bad = CameraFrame(0, "camera", np.zeros((4, 4), np.uint8), np.eye(3) * 0.0)
-    r = sp.process(_moving_sweep(wall, 6 * SWEEP_NS, 0.0), _pose(6 * SWEEP_NS, 0.0), camera=bad,
+    r = sp.process(_moving_sweep(wall, 7 * SWEEP_NS, 0.0), _pose(7 * SWEEP_NS, 0.0), camera=bad,
                    T_world_camera=T_cam)  # fmt: skip
     assert r.ok and r.objects
 

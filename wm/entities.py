@@ -17,6 +17,7 @@ on its own and want its frames in the KD at once (tests, benchmarks).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -137,6 +138,8 @@ class EntityUpdater:
             observed=op.camera_intensity, observed_var=0.01
         )
         attrs["camera_coverage"] = kd_store.Attribute(observed=op.camera_coverage)
+        if math.isfinite(op.camera_excess_green):
+            attrs["camera_excess_green"] = kd_store.Attribute(observed=op.camera_excess_green)
         self.kd.update_entity(op.entity_id, attributes=attrs)
 
 
