@@ -39,6 +39,9 @@ across that plane: a wall piece is a plane, a car a bent one, a crown a volume o
 Neither tells a bush from a rock of its size, and a crown from a car's body only in part; the
 texture of the points does (``roughness_m``, :func:`sp.computation.segment_roughness`,
 averaged over the sweeps): leaves scatter a LADAR's returns in depth, a smooth body does not.
+A dense hedge is nearly as smooth as a rock, and a far object shows too few returns for a
+texture; where a colour camera sees the object, the excess green of its colour
+(``camera_excess_green``, :mod:`sp.appearance`) tells leaves from stone.
 
 Fitted prototypes (``ClassPrototype.fitted``: ``kd_store/classes_fitted.yaml``, made by
 ``wm.fit_classes`` from SP's own attributes of labelled tracks on training seeds) replace the
@@ -103,6 +106,7 @@ EPS: dict[str, float] = {
     "contrast": 0.05,
     "reflectance": 0.05,
     "camera_intensity": 0.05,
+    "camera_excess_green": 0.05,
     # shape of an object's points (sp.level4_objects.SHAPE_KEYS): floors near a LADAR's range noise
     # (a few cm), so a plane's 0.005 m and 0.02 m thickness are both "planar"
     "thickness_m": 0.02,

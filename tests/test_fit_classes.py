@@ -216,6 +216,41 @@ def test_the_discriminant_separates_classes_only_attributes_together_separate() 
     assert _accuracy(with_disc, held_out) > 0.8
 
 
+def _seen_mostly_green(n: int, seed: int) -> Samples:
+    """Rocks and bushes of one size distribution (height log-normal around 1 m, 0.3 log
+    units), rocks grey (excess green 0) and bushes green (0.4), where the camera saw every rock
+    but only a tenth of the bushes (the others lack ``camera_excess_green``)."""
+    rng = np.random.default_rng(seed)
+    s = Samples([], [], [])
+    for cls, green, seen in (("rock", 0.0, 1.0), ("bush", 0.4, 0.1)):
+        h = np.exp(0.3 * rng.standard_normal(n))
+        s.rows += [
+            {"height_m": float(v)} | ({"camera_excess_green": green} if rng.random() < seen else {})
+            for v in h
+        ]
+        s.labels += [cls] * n
+        s.tracks += [("log", i) for i in range(n)]
+    return s
+
+
+def test_an_object_the_camera_did_not_see_gets_the_classes_of_all_objects() -> None:
+    """Objects the training camera missed were mostly bushes; an object no camera saw (a
+    suite without a colour camera) must not be called a bush for that alone: with the copies
+    without ``camera_excess_green`` it is a toss between the two classes of one size, as it is
+    among all the samples; while the green still tells the two apart when seen."""
+    from sp.classify import discriminant_probabilities
+
+    s = _seen_mostly_green(2000, 3)
+    attributes = ["height_m", "camera_excess_green"]
+    classes = ["bush", "rock"]
+    X = np.array([[1.0, np.nan], [1.0, 0.0], [1.0, 0.4]])
+    naive = discriminant_probabilities(fit_discriminant(s, attributes, classes, optional=()), X)
+    p = discriminant_probabilities(fit_discriminant(s, attributes, classes), X)
+    assert naive[0, 0] > 0.85  # unseen, so a bush: what the camera happened to miss
+    assert 0.4 < p[0, 0] < 0.6
+    assert p[1, 1] > 0.8 and p[2, 0] > 0.8  # seen: grey is rock, green is bush
+
+
 def test_the_discriminant_keeps_plausible_bounds_and_tells_when_nothing_matches() -> None:
     lib = _library_with_discriminant(_samples(2000, 1), ["height_m", "length_m", "width_m"])
     clf = Classifier(lib, Level.OBJECT)

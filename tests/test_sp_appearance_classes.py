@@ -1,6 +1,7 @@
 """Appearance in classification: an observed appearance attribute (LADAR reflectance, camera
 intensity) counts; one never observed is left out, not read as zero. On the written-down
-prototypes, which carry appearance (the fitted ones leave it out: wm.fit_classes)."""
+prototypes, which carry appearance (the fitted ones leave brightness out and use the camera's
+excess green: wm.fit_classes)."""
 
 from __future__ import annotations
 
@@ -78,3 +79,31 @@ def test_pipeline_passes_only_observed_appearance() -> None:
     unknown.level4.observe_appearance(unknown.level4.track_reflectance, 5, 100.0)
     unknown.level4.observe_appearance(unknown.level4.track_camera, 5, 0.25)
     assert unknown.level4.appearance_of(5) == {"camera_intensity": 0.25}
+
+
+def test_the_fitted_classes_tell_green_leaves_from_grey_stone() -> None:
+    """The shipped library, fitted on training seeds: an object halfway between the fitted
+    bush and rock in every attribute of size, shape and texture (the centre of the two in the
+    classifier's log feature space) is named by the colour the camera saw: a bush when green,
+    a rock when grey. Brightness does not move it."""
+    from sp.classify import DEFAULT_EPS, EPS
+
+    lib = ClassLibrary.default()
+    bush, rock = lib.get("bush"), lib.get("rock")
+    assert bush.fitted and rock.fitted
+    mid = {}
+    for a in set(bush.attributes) & set(rock.attributes) - {"camera_excess_green"}:
+        eps = EPS.get(a, DEFAULT_EPS)
+        mid[a] = math.sqrt((bush.attributes[a] + eps) * (rock.attributes[a] + eps)) - eps
+    c = Classifier(lib, Level.OBJECT)
+    leaves = c.classify(mid | {"camera_excess_green": 0.4})
+    stone = c.classify(mid | {"camera_excess_green": 0.0})
+    assert leaves.name == "bush" and stone.name == "rock"
+    # the colour, not a lean of the other attributes, decides: it moves the scores well
+    # past where they stand for the object the camera did not see
+    unseen = c.classify(mid).scores
+    assert stone.scores["rock"] > unseen["rock"] + 0.3
+    assert leaves.scores["bush"] > unseen["bush"] + 0.1
+    for grey in (0.05, 0.6):  # dark or bright, the same class
+        seen = mid | {"camera_excess_green": 0.4, "camera_intensity": grey}
+        assert c.classify(seen).name == "bush"

@@ -19,9 +19,12 @@ and vehicle tracks), so a refit after the classifier changed moves the prototype
 
 The split (docs/evaluation.md): prototypes are fitted on development seeds only
 (``TRAINING_SETS``), never on the evaluation seeds; ``python -m wm.fit_classes`` refuses an
-evaluation seed. Appearance (LADAR reflectance, camera grey) is left out by default: it
+evaluation seed. Brightness (LADAR reflectance, camera grey) is left out by default: it
 depends on a sensor's calibration, and a prototype fitted to one sensor's intensity scale
-would not carry over to another's.
+would not carry over to another's. The camera's excess green (``camera_excess_green``,
+:mod:`sp.appearance`) is fitted: a ratio of colour channels, it is the same under any exposure
+or gain, and it is what tells leaves from stone where the points alone do not (a bush and a rock
+of one size and roughness). An object the camera never saw lacks it and is classified without.
 
 Usage::
 
@@ -62,12 +65,16 @@ TRAINING_SETS: dict[str, tuple[int, ...]] = {
 }
 TRAINING_SCENARIOS: tuple[str, ...] = tuple(TRAINING_SETS)
 TRAINING_SEEDS: tuple[int, ...] = tuple(sorted(set().union(*TRAINING_SETS.values())))
-#: attributes fitted by default: geometry, motion, the shape of the points and their texture
-#: (not appearance)
+#: attributes fitted by default: geometry, motion, the shape of the points, their texture and
+#: their colour's excess green (not their brightness)
 FIT_ATTRIBUTES: tuple[str, ...] = (
     "height_m", "width_m", "length_m", "speed_mps", "thickness_m", "curvature",
-    "verticality", "breadth_m", "clearance_m", "longest_m", "roughness_m",
+    "verticality", "breadth_m", "clearance_m", "longest_m", "roughness_m", "camera_excess_green",
 )  # fmt: skip
+#: attributes some sensor suites never give (no colour camera), and the camera gives only for
+#: the objects it happens to see: the discriminant is also fitted on a copy of every sample
+#: without them (:func:`fit_discriminant`)
+OPTIONAL_ATTRIBUTES: tuple[str, ...] = ("camera_excess_green",)
 #: the simulator's true classes -> the library's level-4 classes
 TRUE_TO_LIBRARY: dict[str, str] = {"wall": "freestanding wall"}
 MIN_STD = 0.05  # floor of a fitted spread (log units): a class never seen to vary still may
@@ -236,13 +243,21 @@ def fit_discriminant(
     classes: Sequence[str] | None = None,
     balance: float = CLASS_BALANCE,
     l2: float = L2,
+    optional: Sequence[str] = OPTIONAL_ATTRIBUTES,
 ) -> Discriminant:
     """The level-4 :class:`~kd_store.Discriminant` of ``samples``: a softmax over ``classes``
     (default: those with ``MIN_SAMPLES``) of :func:`sp.classify.discriminant_features`,
     fitted by weighted maximum likelihood (L-BFGS, ``MAX_ITER``) with a ridge ``l2`` on all
     but the biases; each sample weighs ``count(its class) ** -balance``. It states the
     class shares that weighting gives (``prior``, :func:`training_prior`) and the mean
-    samples per track of each class (``views``), for ``sp.scene_prior``."""
+    samples per track of each class (``views``), for ``sp.scene_prior``.
+
+    A sample with an attribute of ``optional`` also enters a second time without it, at the
+    same weight, so that the samples lacking the attribute are all the samples. Without the
+    copies, an object lacking it would be classified as the training objects that lacked it
+    were, those the camera did not see (beside or behind the vehicle: few rocks and bushes,
+    many parked cars), and a sensor suite without a colour camera would get that class mix
+    for every object; with them, it gets the class mix of all the samples."""
     from scipy.optimize import minimize
 
     from kd_store import Level
@@ -262,7 +277,6 @@ def fit_discriminant(
     centre = np.nanmean(L, axis=0)
     if not np.all(np.isfinite(centre)):
         raise FitError(f"attributes {list(attributes)}: one is never observed in the samples")
-    Z = discriminant_features(L - centre)
     count = np.bincount(y, minlength=len(classes)).astype(np.float64)
     if not np.all(count > 0):
         raise FitError(
@@ -272,7 +286,15 @@ def fit_discriminant(
     for i, k in zip(keep, y.tolist(), strict=True):
         tracks[k].add(samples.tracks[i])
     sw = count[y] ** -balance
-    sw /= sw.sum()
+    # the copies without the optional attributes (see the docstring)
+    cols = [list(attributes).index(a) for a in optional if a in attributes]
+    has = np.isfinite(L[:, cols]).any(axis=1) if cols else np.zeros(len(y), bool)
+    bare = L[has].copy()
+    bare[:, cols] = np.nan
+    L, y = np.vstack([L, bare]), np.concatenate([y, y[has]])
+    sw /= sw.sum()  # the ridge weighs against the samples as they are, not their copies
+    sw = np.concatenate([sw, sw[has]])
+    Z = discriminant_features(L - centre)
     D, C = Z.shape[1], len(classes)
     rows = np.arange(len(y))
     ridge = np.ones((D, 1))
@@ -291,8 +313,8 @@ def fit_discriminant(
 
     r = minimize(nll, np.zeros(D * C), jac=True, method="L-BFGS-B",
                  options={"maxiter": MAX_ITER})  # fmt: skip
-    log.info("discriminant: %d samples, %d classes, %d iterations, %s",
-             len(y), C, r.nit, r.message)  # fmt: skip
+    log.info("discriminant: %d samples (%d copies without %s), %d classes, %d iterations, %s",
+             len(y), int(has.sum()), list(optional), C, r.nit, r.message)  # fmt: skip
     if not r.success:
         log.warning("discriminant fit did not converge (%s): the weights are the last iterate",
                     r.message)  # fmt: skip
