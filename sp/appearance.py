@@ -83,7 +83,7 @@ def object_appearance(
     sums = np.bincount(inv[on], weights=grey / 255.0, minlength=uniq.size)
     excess_green = np.full(uniq.size, np.nan)
     if px.ndim == 2:
-        light = np.bincount(inv[on], weights=px.sum(axis=1), minlength=uniq.size)
+        light = sums * (3.0 * 255.0)  # R + G + B summed: the grey values' sum, rescaled
         g = np.bincount(inv[on], weights=px[:, 1], minlength=uniq.size)
         lit = light > 0
         excess_green[lit] = 3.0 * g[lit] / light[lit] - 1.0  # (2G - R - B) / (R + G + B)
