@@ -157,7 +157,7 @@ class ObjectLevel:
         self.track_class: dict[int, tuple[str | None, float]] = {}
         self.track_reflectance: dict[int, float] = {}  # object id -> mean LADAR intensity
         self.track_camera: dict[int, float] = {}  # object id -> mean camera grey (0..1)
-        self.track_green: dict[int, float] = {}  # object id -> mean excess green (-1..2)
+        self.track_excess_green: dict[int, float] = {}  # object id -> mean excess green (-1..2)
         self.track_shape: dict[int, np.ndarray] = {}  # object id -> running shape (SHAPE_KEYS)
         self.track_roughness: dict[int, float] = {}  # object id -> mean texture, m
         self.attention = np.zeros((0, 0), dtype=bool)  # last sweep's unexplained pixels
@@ -472,7 +472,7 @@ class ObjectLevel:
             "evidence": self.class_evidence,
             "reflectance": self.track_reflectance,
             "camera": self.track_camera,
-            "green": self.track_green,
+            "excess_green": self.track_excess_green,
             "shape": self.track_shape,
             "roughness": self.track_roughness,
         }
@@ -694,7 +694,7 @@ class ObjectLevel:
         for oid, inten, cov, green in seen:
             self.ctx.record(AppearanceObserved(int(oid), float(inten), float(cov), float(green)))
             self.observe_appearance(self.track_camera, int(oid), float(inten))
-            self.observe_appearance(self.track_green, int(oid), float(green))
+            self.observe_appearance(self.track_excess_green, int(oid), float(green))
 
     def observe_appearance(self, table: dict[int, float], tid: int, value: float) -> None:
         """Running mean (exponential, ``appearance_gain``) of an object's observed appearance
@@ -753,8 +753,8 @@ class ObjectLevel:
             out["reflectance"] = self.track_reflectance[tid] / cfg.intensity_per_reflectance
         if tid in self.track_camera:
             out["camera_intensity"] = self.track_camera[tid]
-        if tid in self.track_green:
-            out["camera_excess_green"] = self.track_green[tid]
+        if tid in self.track_excess_green:
+            out["camera_excess_green"] = self.track_excess_green[tid]
         return out
 
 

@@ -255,9 +255,10 @@ def fit_discriminant(
     A sample with an attribute of ``optional`` also enters a second time without it, at the
     same weight, so that the samples lacking the attribute are all the samples. Without the
     copies, an object lacking it would be classified as the training objects that lacked it
-    were, those the camera did not see (beside or behind the vehicle: few rocks and bushes,
-    many parked cars), and a sensor suite without a colour camera would get that class mix
-    for every object; with them, it gets the class mix of all the samples."""
+    were, those the forward camera did not see (on the shipped training logs it saw persons
+    in 28 % of their samples, vehicles in 47 %), and a sensor suite without a colour camera
+    would get that class mix for every object; with them, it gets the class mix of all the
+    samples."""
     from scipy.optimize import minimize
 
     from kd_store import Level
