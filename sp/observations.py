@@ -18,7 +18,6 @@ KD's frames share the id.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
@@ -149,7 +148,7 @@ class AppearanceObserved:
     entity_id: int
     camera_intensity: float
     camera_coverage: float
-    camera_excess_green: float = math.nan
+    camera_excess_green: float
 
 
 Observation: TypeAlias = (

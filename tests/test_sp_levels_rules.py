@@ -515,7 +515,7 @@ def test_excess_green_tells_leaves_from_stone_in_any_light() -> None:
     np.testing.assert_allclose(green[:, 0], 120 / 210, atol=0.03)  # leaves: (220 - 100) / 210
     np.testing.assert_allclose(green[:, 1], 5 / 280, atol=0.03)  # stone: about none
     assert np.ptp(np.array(grey)[:, 0]) > 0.2  # while the grey value moved with the light
-    # black pixels carry no colour: no chromaticity rather than a division by zero
+    # black pixels carry no colour: no excess green rather than a division by zero
     dark = CameraFrame(0, "camera", np.zeros((256, 256, 3), np.uint8), cam.K, None)
     assert np.isnan(object_appearance(pts, ids, dark, T).excess_green).all()
 

@@ -289,7 +289,7 @@ def fit_discriminant(
     sw = count[y] ** -balance
     # the copies without the optional attributes (see the docstring)
     cols = [list(attributes).index(a) for a in optional if a in attributes]
-    has = np.isfinite(L[:, cols]).any(axis=1) if cols else np.zeros(len(y), bool)
+    has = np.isfinite(L[:, cols]).any(axis=1)  # none when cols is empty
     bare = L[has].copy()
     bare[:, cols] = np.nan
     L, y = np.vstack([L, bare]), np.concatenate([y, y[has]])
