@@ -90,6 +90,19 @@ class TrackerConfig:
                     confirmed at ``min_hits``. Four hits, not five (development seeds 13-20):
                     small objects are tracked a sweep sooner at about the same precision;
                     three (no rule) added identity switches in the parking and village worlds.
+    min_hits_alone, alone_m, alone_min_height_m: ... unless it stands at least
+                    ``alone_min_height_m`` tall and no other track's footprint lies within
+                    ``alone_m`` of its own: then ``min_hits_alone`` hits do. The few-returns
+                    hypotheses the extra hit holds back are mostly pieces of a larger object
+                    beside them (a building's corner, a car's mirror, a wall's end), which
+                    would be confirmed as a second object on it, and folds of the terrain
+                    far out, a few centimetres tall along one scan row; a rock or bush far
+                    out in a field, seen for a few sweeps only, is neither and is reported a
+                    sweep sooner. Development seeds 13-39 of the open world: misses 315 ->
+                    293 of 2438 box-frames, false positives 1 -> 1 (without the height, 1 ->
+                    17: folds confirmed at three hits and never seen again); the default
+                    world's misses 156 -> 134 of 4596; the parking lot and village within
+                    0.001 MOTA.
     q_static_m:     random walk (m per sqrt(s)) of the stationary model's position.
     llr0:           log-likelihood ratio (moving vs stationary) of a new track: a prior for
                     rest, as most things a vehicle passes do not move; llr_moving is the
@@ -122,6 +135,9 @@ class TrackerConfig:
     deny: float = 0.15
     min_hits: int = 3
     min_hits_small: int = 4
+    min_hits_alone: int = 3
+    alone_m: float = 4.0
+    alone_min_height_m: float = 0.25
     small_points: int = 30
     max_misses: int = 8
     max_misses_per_m: float = 0.2
@@ -712,6 +728,11 @@ class Tracker:
         hyp = tr.status == TrackStatus.HYPOTHESIZED
         conf = tr.status == TrackStatus.CONFIRMED
         need = np.where(tr.points > cfg.small_points, cfg.min_hits, cfg.min_hits_small)
+        small = np.flatnonzero(
+            hyp & (tr.points <= cfg.small_points) & (tr.w[:, 2] >= cfg.alone_min_height_m)
+        )
+        if small.size:
+            need[small[self._alone(small)]] = cfg.min_hits_alone
         tr.status[hyp & (tr.confidence >= cfg.confirm) & (tr.hits >= need)] = TrackStatus.CONFIRMED
         tr.status[hyp & ((tr.confidence < cfg.deny) | (tr.misses > cfg.max_misses_hyp))] = (
             TrackStatus.DENIED
@@ -722,6 +743,16 @@ class Tracker:
         # fell below deny while measured, not while unseen) has lost its object: a duplicate
         # on part of another object or one following clutter
         tr.status[conf & (tr.misses == 0) & (tr.confidence < cfg.deny)] = TrackStatus.GONE
+
+    def _alone(self, ti: np.ndarray) -> np.ndarray:
+        """(len(ti),) bool: no other live track's footprint within ``alone_m`` (m, world xy) of
+        the footprint of track ``ti``, taken as a disc of its larger half-extent."""
+        tr = self.tracks
+        d = footprint_distance(tr.x[ti, :2], tr.x[:, :2], tr.w[:, :2], tr.w[:, 3])  # (T, n)
+        d = d - 0.5 * tr.w[ti, :2].max(axis=1)[None, :]
+        d[ti, np.arange(ti.size)] = np.inf
+        d[tr.status == TrackStatus.DENIED] = np.inf
+        return (d > self.config.alone_m).all(axis=0)
 
     def _births(self, meas: Measurements, fm: np.ndarray, ids: np.ndarray) -> Tracks:
         cfg = self.config

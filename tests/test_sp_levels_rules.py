@@ -184,24 +184,76 @@ def test_a_tracks_largest_segment_speaks_for_it_not_a_sliver_that_joined_it() ->
     assert largest_segment_of_track(np.zeros(0, np.int64), np.zeros(0), 2).tolist() == [-1, -1]
 
 
-def _status_after_hits(n_points: int | None, hits: int) -> TrackStatus:
+def _status_after_hits(
+    n_points: int | None, hits: int, neighbour_at_m: float | None = 1.0, height_m: float = 2.0
+) -> TrackStatus:
+    """The status of a 0.6 x 0.5 m track ``height_m`` tall at the origin after ``hits``
+    sweeps, with a 4 x 2 m body of 500 returns (a car) seen beside it, its near side
+    ``neighbour_at_m`` m away (None: nothing else in view)."""
     tr = Tracker()
     for k in range(hits):
         t = k * SWEEP_NS
+        pos, what = np.zeros((1, 3)), _what(0.6, 0.5)
+        what[0, 2] = height_m
         pts = None if n_points is None else np.array([n_points])
-        tr.step(Measurements(np.zeros((1, 3)), np.array([t]), _what(0.6, 0.5), None, pts), t)
-    return TrackStatus(int(tr.tracks.status[0]))
+        if neighbour_at_m is not None:
+            y = 0.25 + neighbour_at_m + 1.0  # the car's centre: its 2 m width across y
+            pos = np.array([[0.0, 0.0, 0.0], [0.0, y, 0.0]])
+            what = np.vstack([what, _what(4.0, 2.0)])
+            pts = None if pts is None else np.array([n_points, 500])
+        tr.step(Measurements(pos, np.full(len(pos), t), what, None, pts), t)
+    k = int(np.argmin(np.linalg.norm(tr.tracks.x[:, :2], axis=1)))
+    return TrackStatus(int(tr.tracks.status[k]))
 
 
 def test_a_few_returns_need_more_sweeps_to_be_confirmed() -> None:
     cfg = TrackerConfig()
-    assert cfg.min_hits < cfg.min_hits_small
-    # clutter of a few returns: still a hypothesis when a large object would be confirmed
+    assert cfg.min_hits_alone < cfg.min_hits_small
+    # a few returns beside a larger object: more often a piece of it than an object of its
+    # own, so still a hypothesis when a large object would be confirmed
     assert _status_after_hits(cfg.small_points, cfg.min_hits) == TrackStatus.HYPOTHESIZED
     assert _status_after_hits(cfg.small_points, cfg.min_hits_small) == TrackStatus.CONFIRMED
     assert _status_after_hits(cfg.small_points + 1, cfg.min_hits) == TrackStatus.CONFIRMED
     # measurements that do not say how many returns they hold are taken as objects
     assert _status_after_hits(None, cfg.min_hits) == TrackStatus.CONFIRMED
+
+
+@pytest.mark.parametrize("neighbour_at_m", [None, 4.5, 10.0])
+def test_a_few_returns_alone_are_confirmed_sooner(neighbour_at_m: float | None) -> None:
+    # a rock far out in a field: nothing within alone_m, so it is confirmed at
+    # min_hits_alone, where beside a car (the test above, 1 m) it needs min_hits_small
+    cfg = TrackerConfig()
+    assert neighbour_at_m is None or neighbour_at_m > cfg.alone_m
+    assert cfg.min_hits_alone < cfg.min_hits_small
+    before = _status_after_hits(cfg.small_points, cfg.min_hits_alone - 1, neighbour_at_m)
+    assert before == TrackStatus.HYPOTHESIZED
+    after = _status_after_hits(cfg.small_points, cfg.min_hits_alone, neighbour_at_m)
+    assert after == TrackStatus.CONFIRMED
+
+
+def test_a_flat_fold_alone_waits_for_the_extra_hit() -> None:
+    # a few centimetres of terrain along one scan row far out in a field: nothing beside it,
+    # but no taller than a fold of the ground, so it needs min_hits_small like clutter
+    cfg = TrackerConfig()
+    fold = _status_after_hits(cfg.small_points, cfg.min_hits_alone, None, height_m=0.08)
+    assert fold == TrackStatus.HYPOTHESIZED
+    assert _status_after_hits(cfg.small_points, cfg.min_hits_small, None, height_m=0.08) == (
+        TrackStatus.CONFIRMED
+    )
+    low_rock = cfg.alone_min_height_m + 0.05
+    rock = _status_after_hits(cfg.small_points, cfg.min_hits_alone, None, height_m=low_rock)
+    assert rock == TrackStatus.CONFIRMED
+
+
+@pytest.mark.parametrize("neighbour_at_m", [1.0, 2.0, 3.5])
+def test_a_few_returns_beside_a_body_wait_for_the_extra_hit(neighbour_at_m: float) -> None:
+    cfg = TrackerConfig()
+    assert neighbour_at_m < cfg.alone_m
+    held = _status_after_hits(cfg.small_points, cfg.min_hits_alone, neighbour_at_m)
+    assert held == TrackStatus.HYPOTHESIZED
+    assert _status_after_hits(cfg.small_points, cfg.min_hits_small, neighbour_at_m) == (
+        TrackStatus.CONFIRMED
+    )
 
 
 def test_a_track_once_seen_large_is_not_held_back_by_a_partial_view() -> None:
