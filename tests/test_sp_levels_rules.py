@@ -231,13 +231,19 @@ def test_a_few_returns_alone_are_confirmed_sooner(neighbour_at_m: float | None) 
     assert after == TrackStatus.CONFIRMED
 
 
-def test_a_flat_fold_alone_waits_for_the_extra_hit() -> None:
+def test_a_flat_fold_or_a_sparse_one_alone_waits_for_the_extra_hit() -> None:
     # a few centimetres of terrain along one scan row far out in a field: nothing beside it,
     # but no taller than a fold of the ground, so it needs min_hits_small like clutter
     cfg = TrackerConfig()
     fold = _status_after_hits(cfg.small_points, cfg.min_hits_alone, None, height_m=0.08)
     assert fold == TrackStatus.HYPOTHESIZED
     assert _status_after_hits(cfg.small_points, cfg.min_hits_small, None, height_m=0.08) == (
+        TrackStatus.CONFIRMED
+    )
+    # ... and so does a thin upright thing of too few returns to be named by
+    sparse = _status_after_hits(cfg.alone_min_points - 1, cfg.min_hits_alone, None)
+    assert sparse == TrackStatus.HYPOTHESIZED
+    assert _status_after_hits(cfg.alone_min_points, cfg.min_hits_alone, None) == (
         TrackStatus.CONFIRMED
     )
     low_rock = cfg.alone_min_height_m + 0.05
