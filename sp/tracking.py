@@ -735,8 +735,13 @@ class Tracker:
         hyp = tr.status == TrackStatus.HYPOTHESIZED
         conf = tr.status == TrackStatus.CONFIRMED
         need = np.where(tr.points > cfg.small_points, cfg.min_hits, cfg.min_hits_small)
+        # the neighbours are looked for only where they decide: a small hypothesis that
+        # min_hits_alone would confirm now and min_hits_small not yet
         small = np.flatnonzero(
             hyp
+            & (tr.confidence >= cfg.confirm)
+            & (tr.hits >= cfg.min_hits_alone)
+            & (tr.hits < cfg.min_hits_small)
             & (tr.points <= cfg.small_points)
             & (tr.points >= cfg.alone_min_points)
             & (tr.w[:, 2] >= cfg.alone_min_height_m)
