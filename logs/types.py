@@ -128,7 +128,8 @@ class ObjectBoxes:
     centers:     (M, 3) float64 box centres, metres.
     sizes:       (M, 3) float64 full extents along the box's own x, y, z, metres.
     yaws:        (M,) float64 heading about z, radians.
-    velocities:  (M, 3) float64 m/s in ``frame_id``.
+    velocities:  (M, 3) float64 m/s in ``frame_id``; NaN where unknown (a track annotated
+                 once has no difference to take).
     n_returns:   (M,) int64 returns of the LADAR sweep starting at ``t_ns`` that hit each
                  object (ground truth per return, as a labelled point cloud gives it), or
                  None when the log does not say.

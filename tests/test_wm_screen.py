@@ -174,6 +174,11 @@ CASES: dict[str, tuple[type, Spoil, str]] = {
         lambda b: dataclasses.replace(b, centers=_nan(b.centers)),
         "bad object boxes",
     ),
+    "infinite box velocity": (
+        ObjectBoxes,
+        lambda b: dataclasses.replace(b, velocities=_nan(b.velocities, value=np.inf)),
+        "bad object boxes",
+    ),
     "classes short of ids": (
         ObjectBoxes,
         lambda b: dataclasses.replace(b, classes=b.classes[:-1]),
@@ -220,6 +225,15 @@ def test_a_good_imu_frame_is_taken(frames) -> None:
 
 def test_every_frame_of_a_good_log_passes_the_screen(frames) -> None:
     assert [check_frame(f) for f in frames] == [None] * len(frames)
+
+
+def test_an_unknown_box_velocity_is_taken(frames) -> None:
+    """NaN is the velocity of a box nobody measured it for (an annotated log's track seen
+    once, as the Argoverse 2 reader gives it): the boxes are taken, infinity is not."""
+    b = next(f for f in frames if isinstance(f, ObjectBoxes) and len(f) > 1)
+    assert check_frame(dataclasses.replace(b, velocities=_nan(b.velocities, (1, 2)))) is None
+    spoiled = dataclasses.replace(b, velocities=_nan(b.velocities, (1, 2), -np.inf))
+    assert check_frame(spoiled) == "bad object boxes: velocities has non-finite values"
 
 
 def test_non_finite_points_are_dropped_and_counted_not_the_sweep(frames, clean) -> None:

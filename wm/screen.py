@@ -102,10 +102,16 @@ def _time(t: object) -> None:
 
 
 def _array(
-    reason: str, name: str, a: object, shape: tuple[int | None, ...], kind: str = "fi"
+    reason: str,
+    name: str,
+    a: object,
+    shape: tuple[int | None, ...],
+    kind: str = "fi",
+    nan_ok: bool = False,
 ) -> np.ndarray:
     """``a`` as an ndarray of ``shape`` (None: any length) and a dtype kind in ``kind``
-    ('f' float, 'i'/'u' integer), finite when float; else raise naming ``name``."""
+    ('f' float, 'i'/'u' integer), finite when float (NaN allowed, for "unknown", when
+    ``nan_ok``); else raise naming ``name``."""
     if not isinstance(a, np.ndarray):
         raise _Bad(f"{reason}: {name} is a {type(a).__name__}, not an array")
     if a.ndim != len(shape) or any(
@@ -115,7 +121,7 @@ def _array(
         raise _Bad(f"{reason}: {name} of shape {a.shape}, not {want}")
     if a.dtype.kind not in kind:
         raise _Bad(f"{reason}: {name} of dtype {a.dtype}")
-    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a) | (nan_ok & np.isnan(a))):
         raise _Bad(f"{reason}: {name} has non-finite values")
     return a
 
@@ -208,7 +214,7 @@ def _truth_pose(p: GroundTruthPose) -> None:
 
 
 def _boxes(b: ObjectBoxes) -> None:
-    """Every per-box array of one length M, finite; sizes >= 0."""
+    """Every per-box array of one length M, finite (velocities may be NaN); sizes >= 0."""
     why = "bad object boxes"
     m = _array(why, "ids", b.ids, (None,), "iu").shape[0]
     if not isinstance(b.classes, list | tuple) or len(b.classes) != m:
@@ -220,7 +226,8 @@ def _boxes(b: ObjectBoxes) -> None:
     if np.any(sizes < 0):
         raise _Bad(f"{why}: negative sizes {sizes[np.any(sizes < 0, axis=1)].tolist()}")
     _array(why, "yaws", b.yaws, (m,))
-    _array(why, "velocities", b.velocities, (m, 3))
+    # NaN is a velocity nobody measured (a track annotated once), which readers may give
+    _array(why, "velocities", b.velocities, (m, 3), nan_ok=True)
     _names(why, b.frame_id)
 
 
