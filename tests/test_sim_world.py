@@ -133,10 +133,11 @@ def test_convoy_members_keep_their_spacing(world: World) -> None:
 
 @pytest.mark.parametrize("name", ["default", "village", "parking"])
 def test_the_members_of_a_crowd_keep_apart(name: str) -> None:
-    """Simulator 10: no two walkers of a crowd share space. On straight stretches of their
-    path, over 30 seeds, every pair of members' footprints (aligned with the path) keeps
-    ``CROWD_CLEARANCE_M`` apart along or across it. Simulator 9's scatter put 2.5 % (village)
-    to 11 % (car park) of these pairs inside each other, a third on some seeds."""
+    """Simulator 10: no two walkers of a crowd share space. Over 30 seeds, every pair of
+    members' footprints, placed by their offsets from the leader's path point (as they stand
+    on a straight stretch of the path), keeps ``CROWD_CLEARANCE_M`` apart along or across it.
+    Simulator 9's scatter put 2.5 % (village) to 11 % (car park) of these pairs inside each
+    other, a third on some seeds."""
     from fixtures.world import CROWD_CLEARANCE_M, _make_tracks
 
     base = load_scenario(name)
