@@ -121,8 +121,9 @@ def _array(
         raise _Bad(f"{reason}: {name} of shape {a.shape}, not {want}")
     if a.dtype.kind not in kind:
         raise _Bad(f"{reason}: {name} of dtype {a.dtype}")
-    if a.dtype.kind == "f" and not np.all(np.isfinite(a) | (nan_ok & np.isnan(a))):
-        raise _Bad(f"{reason}: {name} has non-finite values")
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        if not nan_ok or np.isinf(a).any():  # NaN may stand for "unknown", infinity never
+            raise _Bad(f"{reason}: {name} has non-finite values")
     return a
 
 
