@@ -69,10 +69,14 @@ def _truth(
 
 
 def _kd(
-    self_poses: list[np.ndarray], tracks: dict[str, tuple[tuple[str, ...], dict[int, tuple]]]
+    self_poses: list[np.ndarray],
+    tracks: dict[str, tuple[tuple[str, ...], dict[int, tuple]]],
+    lag_ns: dict[str, int] | None = None,
 ) -> kd_store.KnowledgeDatabase:
     """A KD whose self entity has a state per pose (frame ``world``, at k * DT) and one object
-    entity per track: name -> (generic classes, {frame k: ((x, y) odom, speed m/s)})."""
+    entity per track: name -> (generic classes, {frame k: ((x, y) odom, speed m/s)}), each
+    state at k * DT plus the track's ``lag_ns`` (default 0: the object measured at the self
+    time)."""
     kd = kd_store.open(":memory:")
     kd.begin_cycle(0)
     me = kd.add_entity("self", Level.OBJECT, generic_classes=("vehicle",))
@@ -89,7 +93,10 @@ def _kd(
         for name, (_, states) in tracks.items():
             if k in states:
                 (x, y), v = states[k]
-                kd.observe(ids[name], State(t, "world", (x, y, 1.0), velocity_xyz=(v, 0.0, 0.0)))
+                t_obj = t + (lag_ns or {}).get(name, 0)
+                kd.observe(
+                    ids[name], State(t_obj, "world", (x, y, 1.0), velocity_xyz=(v, 0.0, 0.0))
+                )
     kd.flush()
     return kd
 
@@ -143,6 +150,27 @@ def test_id_switch_counted_once_per_handover():
     assert s["switches_per_100"] == pytest.approx(10.0)
     assert s["precision"] == pytest.approx(10 / 12)
     assert s["idf1"] == pytest.approx(2 * 7 / (10 + 12))  # a holds the id for 7 frames
+
+
+def test_the_states_of_the_scored_sweep_count_at_its_self_time():
+    # the self pose is stamped at a sweep's middle, an object at its returns' own time, up to
+    # half a sweep later: a state 30 ms after the self time is that sweep's, one 70 ms after
+    # is the next sweep's (half of DT is 50 ms)
+    boxes = [
+        (1, "vehicle", (10.0, 0.0), (4.0, 2.0), 0.0),
+        (2, "tree", (0.0, 12.0), (2.0, 2.0), 0.0),
+    ]
+    tracks = {
+        "late_in_sweep": (("vehicle",), {k: ((10.0, 0.0), 0.0) for k in range(3, 10)}),
+        "next_sweep": (("tree",), {k: ((0.0, 12.0), 0.0) for k in range(3, 10)}),
+    }
+    kd = _kd(STILL, tracks, {"late_in_sweep": 30_000_000, "next_sweep": 70_000_000})
+    s = _score(_truth(STILL, boxes), kd)
+    # the vehicle is found from frame 3 (its own sweep), the tree from frame 4
+    assert s["num_objects"] == 20 and s["num_misses"] == 3 + 4
+    assert s["num_false_positives"] == 0 and s["num_switches"] == 0
+    assert s["recall_vehicle"] == pytest.approx(7 / 10)
+    assert s["recall_tree"] == pytest.approx(6 / 10)
 
 
 def test_dont_care_boxes_and_hypotheses_are_neither_tp_fp_nor_fn():

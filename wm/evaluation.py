@@ -58,7 +58,7 @@ class EvalConfig:
     range_m: float = 40.0  # scored range, body xy plane
     dont_care_band_m: float = 1.0  # [range_m, range_m + band) is "don't care"
     match_m: float = 1.0  # largest footprint distance of a match
-    state_window_ns: int = 250_000_000  # a hypothesis needs a state in (t - window, t]
+    state_window_ns: int = 250_000_000  # a hypothesis needs a state in (t - window, t + lead]
     truth_dt_ns: int = 100_000_000  # truth boxes at most this far from t
     min_points: int = 5  # fewer LADAR returns on the object (or in its grown box): "don't care"
     box_grow_m: float = 0.1  # each box grown by this on every side to count returns
@@ -415,10 +415,17 @@ class FrameData:
     hspeed: np.ndarray
 
 
-def hypotheses_at(run: KDRun, t_ns: int, T_odom_body: np.ndarray, window_ns: int) -> tuple:
-    """Each scored entity's latest state in ``(t_ns - window_ns, t_ns]``, moved into the
-    estimated body frame: ids (H,), xy (H, 2) m, horizontal speed (H,) m/s."""
-    sel = np.flatnonzero((run.t_ns > t_ns - window_ns) & (run.t_ns <= t_ns))
+def hypotheses_at(
+    run: KDRun, t_ns: int, T_odom_body: np.ndarray, window_ns: int, lead_ns: int = 0
+) -> tuple:
+    """Each scored entity's latest state in ``(t_ns - window_ns, t_ns + lead_ns]``, as stored
+    (What Is does not predict), moved into the estimated body frame: ids (H,), xy (H, 2) m,
+    horizontal speed (H,) m/s.
+
+    ``lead_ns``: the self pose of a cycle is stamped at its sweep's middle and the objects of
+    that sweep at their returns' own times, up to half a sweep later; those states belong to
+    the cycle scored at ``t_ns`` (:func:`sweep_lead_ns`)."""
+    sel = np.flatnonzero((run.t_ns > t_ns - window_ns) & (run.t_ns <= t_ns + lead_ns))
     if not len(sel):
         return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
     # rows are in time order per entity: the last row of each entity is its latest state
@@ -426,6 +433,14 @@ def hypotheses_at(run: KDRun, t_ns: int, T_odom_body: np.ndarray, window_ns: int
     last = sel[np.r_[ids[1:] != ids[:-1], True]]
     p_body = transform_points(se3_inverse(T_odom_body), run.xyz[last])
     return run.ent_id[last], p_body[:, :2], np.hypot(run.vxy[last, 0], run.vxy[last, 1])
+
+
+def sweep_lead_ns(self_t_ns: np.ndarray) -> int:
+    """Half the median spacing of the KD's self times (int64 ns; 0 for fewer than two): how far
+    after a cycle's self time (its sweep's middle) the object states of that sweep reach."""
+    if len(self_t_ns) < 2:
+        return 0
+    return int(np.median(np.diff(np.asarray(self_t_ns, dtype=np.int64))) // 2)
 
 
 def points_in_boxes(
@@ -485,7 +500,9 @@ def frame_at(
     pts = np.full(len(near), -1, dtype=np.int64)
     if len(seen_mid_ns) and len(near):
         pts = truth.seen[int(np.argmin(np.abs(seen_mid_ns - t)))].count(boxes.ids[near])
-    hid, hxy, hspeed = hypotheses_at(run, t, run.T_odom_body[k], config.state_window_ns)
+    hid, hxy, hspeed = hypotheses_at(
+        run, t, run.T_odom_body[k], config.state_window_ns, sweep_lead_ns(run.self_t_ns)
+    )
     return FrameData(
         t, boxes.ids[near], [boxes.classes[i] for i in near], c_body[near, :2],
         boxes.sizes[near, :2], yaw_body[near],
