@@ -60,6 +60,10 @@ class SPConfig:
     groups: GroupConfig = field(default_factory=GroupConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
     birth_hits: int = 2  # a hypothesis gets a KD frame (and "appeared") after this many hits
+    # classes whose bodies are fixed where they stand (and their kinds): an object of one is
+    # reported at rest whatever its filter's velocity, which follows the seen centre of a
+    # face sliding along itself as more of it comes into view (the aperture problem)
+    fixed_classes: tuple[str, ...] = ("building", "wall", "tree")
     min_pixels_attended: int = 2  # smallest hypothesis inside an attention window
     max_object_range_m: float = 120.0  # farther segments are left ungrouped
     min_object_height_m: float = 0.5  # lower segments are ground (bumps, ruts, curbs)

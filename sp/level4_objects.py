@@ -396,8 +396,9 @@ class ObjectLevel:
         hit = np.flatnonzero(track_of >= 0)
         upd = np.unique(track_of[hit])
         self._seen_returns = {int(tr.id[track_of[j]]): int(a.n_pixels[j]) for j in hit}
-        # tracks the stationarity test finds at rest are reported at zero speed
-        x_rep, P_rep = tr.reported(cfg.tracker)
+        # tracks the stationarity test finds at rest, and objects of classes fixed where
+        # they stand, are reported at zero speed
+        x_rep, P_rep = tr.reported(cfg.tracker, self._of_classes(cfg.fixed_classes))
         if upd.size:
             yaw = tr.w[upd, 3]
             moving = np.hypot(x_rep[upd, 3], x_rep[upd, 4]) > 1.0
@@ -516,6 +517,13 @@ class ObjectLevel:
                 Lost(tid, int(finished.t_ns[j]), x_rep[j, :2].copy(), x_rep[j, 3:5].copy(),
                      float(finished.w[j, 2]), bool(moving[j]), self._forget_track(tid))
             )  # fmt: skip
+
+    def _of_classes(self, names: tuple[str, ...]) -> np.ndarray:
+        """(T,) bool: the tracks of any of the classes ``names`` (:meth:`_of_class`)."""
+        out = np.zeros(len(self.tracker.tracks), dtype=bool)
+        for name in names:
+            out |= self._of_class(name)
+        return out
 
     def _of_class(self, name: str) -> np.ndarray:
         """(T,) bool: the tracks whose class (as last classified) is ``name`` or a kind of it

@@ -224,14 +224,19 @@ class Tracks:
         speed = evident_speed(self.x, self.P, config.evident_sigmas)
         return np.where(self.llr > config.llr_moving, speed, 0.0)
 
-    def reported(self, config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
+    def reported(
+        self, config: TrackerConfig, fixed: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The state to report per track: (x (T, 6), P (T, 6, 6)), the constant-velocity
-        filter's for moving tracks; for the others its position at zero velocity (with the
+        filter's for moving tracks; for the others, and for the tracks ``fixed`` ((T,) bool:
+        known from what they are not to move), its position at zero velocity (with the
         velocity variance of a track at rest, ``q_static_m**2``, and no position-velocity
         correlation). The position stays the filter's, not the stationary model's smoothed
         one, so a mover not yet found moving is not left behind where it was first seen."""
         x, P = self.x.copy(), self.P.copy()
         rest = ~self.moving(config)
+        if fixed is not None:
+            rest |= fixed
         x[rest, 3:] = 0.0
         P[rest, :3, 3:] = 0.0
         P[rest, 3:, :3] = 0.0

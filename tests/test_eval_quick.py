@@ -47,6 +47,10 @@ def test_tracking_precision_and_identity(scores) -> None:
 
 def test_static_objects_are_at_rest(scores) -> None:
     assert scores["static_speed_median_mps"] <= 0.2, scores
+    # ... and few are given a speed at all: before buildings, walls and trees were reported at
+    # rest whatever their filters' velocities, the village's mean was 0.235 m/s on this log
+    # (building faces sliding along themselves as they came into view), against 0.046
+    assert scores["static_speed_mean_mps"] <= 0.15, scores
 
 
 def test_classes_and_odometry(scores) -> None:

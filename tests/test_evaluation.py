@@ -131,6 +131,7 @@ def test_mota_precision_classification_and_static_speed_by_construction():
     assert s["classification_accuracy"] == pytest.approx(15 / 25)
     # 10 pairs at 0.1, 5 at 0.2, 10 at 0.3 m/s: the median (13th of 25) is 0.2
     assert s["static_speed_median_mps"] == pytest.approx(0.2)
+    assert s["static_speed_mean_mps"] == pytest.approx((10 * 0.1 + 5 * 0.2 + 10 * 0.3) / 25)
     assert s["persons_truth"] == 1 and s["persons_kd"] == 0 and s["person_count_error"] == 1
     assert s["motp"] == pytest.approx(0.0)  # every hypothesis inside its box's footprint
     assert s["hota"] < 1.0

@@ -66,3 +66,26 @@ def test_a_parked_car_that_drives_off_is_moving_soon_after(seed: int) -> None:
     first = next(i for i, (m, _, _) in enumerate(out) if i >= 30 and m)
     assert first <= 48  # within 1.8 s of starting (3.2 m, 3.6 m/s): a 4.5 m car at rest
     # wanders by a fraction of its length as the view changes, so motion needs a few metres
+
+
+def test_a_track_of_a_fixed_class_is_reported_at_rest_where_its_filter_is() -> None:
+    # a building's face sliding along itself at 3 m/s: the filter follows the seen centre, and
+    # the test calls it moving; known to be a building, it is reported at zero speed (its
+    # position the filter's), and not the other tracks
+    k = np.arange(20)
+    slide = np.column_stack([10.0 + 0.3 * k, 5.0 + 0.0 * k, 3.0 + 0.0 * k])
+    tracker = Tracker(TrackerConfig())
+    for i, p in enumerate(slide):
+        meas = Measurements(p[None], np.array([i * DT_NS]), np.array([[6.0, 0.1, 6.0, 0.0]]),
+                            np.array([15.0]))  # fmt: skip
+        tracker.step(meas, i * DT_NS)
+    tr = tracker.tracks
+    assert tr.moving(tracker.config)[0]
+    x_free, _ = tr.reported(tracker.config)
+    x_fixed, P_fixed = tr.reported(tracker.config, np.array([True]))
+    assert np.hypot(*x_free[0, 3:5]) == pytest.approx(3.0, abs=0.3)
+    assert np.all(x_fixed[0, 3:] == 0.0)
+    assert np.allclose(x_fixed[0, :3], x_free[0, :3])
+    assert np.allclose(P_fixed[0, 3:, 3:], np.eye(3) * tracker.config.q_static_m**2)
+    x_other, _ = tr.reported(tracker.config, np.array([False]))
+    assert np.allclose(x_other, x_free)

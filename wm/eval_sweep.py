@@ -77,6 +77,7 @@ FIGURES: tuple[Figure, ...] = (
     Figure("num_fragmentations", "count", False),
     Figure("classification_accuracy", "ratio", True, 0.85),
     Figure("static_speed_median_mps", "m/s", False, 0.2),
+    Figure("static_speed_mean_mps", "m/s", False),
     Figure("person_count_error", "persons", False),
     Figure("ape_rmse_m", "m", False),
     Figure("rpe_pct", "%", False),

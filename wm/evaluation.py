@@ -625,6 +625,7 @@ def _pair_figures(
         "classification_accuracy": right / total if total else math.nan,
         "static_pairs": float(len(speeds)),
         "static_speed_median_mps": float(np.median(speeds)) if speeds else math.nan,
+        "static_speed_mean_mps": float(np.mean(speeds)) if speeds else math.nan,
     }
 
 

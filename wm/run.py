@@ -401,7 +401,8 @@ def _tracking(
 #: the scores of :mod:`wm.evaluation` a run's report carries (``wm evaluate`` prints them all)
 REPORTED_TRACKING = (
     "precision", "recall", "mota", "idf1", "hota", "switches_per_100",
-    "classification_accuracy", "static_speed_median_mps", "person_count_error",
+    "classification_accuracy", "static_speed_median_mps", "static_speed_mean_mps",
+    "person_count_error",
 )  # fmt: skip
 
 
