@@ -19,7 +19,10 @@ the stationary one, summed and clipped to ``+-llr_max``; both allow the visible 
 on the footprint, :func:`footprint_spread`). While it stays below ``llr_moving`` and the
 filter is not sure of a clear speed (``evident_mps``) the track is at rest and reported at
 zero velocity, so a bush whose centre wanders as more of it comes into view is not given a
-speed (reference 001, 4.5.3: hypotheses tested against predictions).
+speed (reference 001, 4.5.3: hypotheses tested against predictions). A view longer than the
+track's footprint that grew at its far end (a building's side coming into view at a grazing
+angle) is measured from its near end, which the track already had, and the footprint's step
+moves both filters' positions, not their velocity (:meth:`Tracker._grow_far_side`).
 
 Association gates on the Mahalanobis distance of the position innovation (chi-square, 3 dof)
 and solves the optimal assignment (scipy's ``linear_sum_assignment``). Confidence follows the
@@ -521,8 +524,21 @@ class Tracker:
             what = along_motion(meas.what[mi], tr.x[ti], tr.P[ti], cfg)
             R = measurement_R(what, cfg, tr.w[ti])
             z = meas.position_xyz[mi].copy()
+            w_old = tr.w[ti].copy()
+            grew = np.zeros(ti.size, dtype=bool)
             if sensor_xy is not None:
-                z[:, :2] += far_side_shift(z[:, :2], what, tr.w[ti], sensor_xy)
+                z[:, :2] += far_side_shift(z[:, :2], what, w_old, sensor_xy)
+                # a view longer than the estimate that grew at its far end, where the sensor
+                # saw nothing before (a building's side coming into view at a grazing angle),
+                # keeps its near end where the track had it: measured from there, the centre's
+                # step by half the growth is the footprint's, not a motion. Taken only where it
+                # explains the view better than the centre does (an occluder moving off a
+                # face's near end grows it towards the sensor instead)
+                g = far_side_shift(z[:, :2], w_old, what, sensor_xy)
+                grew = np.linalg.norm(z[:, :2] - g - xp[:, :2], axis=1) < np.linalg.norm(
+                    z[:, :2] - xp[:, :2], axis=1
+                )
+                z[grew, :2] -= g[grew]
             # both hypotheses allow the visible centre anywhere on the footprint: a large
             # object at rest wanders that much as the view changes, and only a displacement
             # beyond it is evidence of motion
@@ -537,6 +553,8 @@ class Tracker:
             tr.llr[ti] = np.clip(llr, -cfg.llr_max, cfg.llr_max)
             tr.t_ns[ti] = np.maximum(meas.t_ns[mi], tr.t_ns[ti] + 1)
             self._update_what(ti, what, dt)
+            if grew.any():
+                self._grow_far_side(ti[grew], w_old[grew], z[grew, :2], sensor_xy)
             score = np.exp(-np.maximum(nis - 3.0, 0.0) / 6.0)
             tr.confidence[ti] += cfg.alpha * (score - tr.confidence[ti])
             tr.hits[ti] += 1
@@ -733,6 +751,17 @@ class Tracker:
         w = w + K * y
         w[:, 3] = wrap_half_pi(w[:, 3])
         tr.w[ti], tr.Pw[ti] = w, (1 - K) * Pw
+
+    def _grow_far_side(
+        self, ti: np.ndarray, w_old: np.ndarray, z_xy: np.ndarray, sensor_xy: np.ndarray
+    ) -> None:
+        """Move the positions of tracks ``ti`` (both filters', not their velocities) by half
+        of what their extents grew this update (from ``w_old`` (T, 4)), towards the far side
+        seen from ``sensor_xy`` (2,) world m past ``z_xy`` (T, 2): the footprint grew there."""
+        tr = self.tracks
+        step = far_side_shift(z_xy, w_old, tr.w[ti], sensor_xy)
+        tr.x[ti, :2] += step
+        tr.xs[ti, :2] += step
 
     def _confirm_or_deny(self) -> None:
         cfg = self.config

@@ -89,3 +89,50 @@ def test_a_track_of_a_fixed_class_is_reported_at_rest_where_its_filter_is() -> N
     assert np.allclose(P_fixed[0, 3:, 3:], np.eye(3) * tracker.config.q_static_m**2)
     x_other, _ = tr.reported(tracker.config, np.array([False]))
     assert np.allclose(x_other, x_free)
+
+
+def _run_views(near_end: np.ndarray, lengths: np.ndarray, seed: int = 0):
+    """A face along x (yaw 0, 0.05 m thick) whose near end is at ``near_end`` (K, 3) and whose
+    visible length is ``lengths`` (K,) m, seen by a sensor at the origin: the view's centre lies
+    half the length past the near end. Returns per cycle (moving?, reported x (6,), length)."""
+    rng = np.random.default_rng(seed)
+    tracker = Tracker(TrackerConfig())
+    out = []
+    for k, (p, L) in enumerate(zip(near_end, lengths, strict=True)):
+        z = p + np.array([0.5 * L, 0.0, 0.0]) + rng.normal(0.0, 0.05, 3) * [1.0, 1.0, 0.3]
+        what = np.array([[L, 0.05, 4.0, 0.0]])
+        meas = Measurements(z[None], np.array([k * DT_NS]), what, np.array([15.0]))
+        tracker.step(meas, k * DT_NS, None, np.zeros(2))
+        tr = tracker.tracks
+        assert len(tr) == 1, f"cycle {k}: the face split into {len(tr)} tracks"
+        x_rep, _ = tr.reported(tracker.config)
+        out.append((bool(tr.moving(tracker.config)[0]), x_rep[0], float(tr.w[0, 0])))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_face_coming_into_view_along_itself_is_at_rest(seed: int) -> None:
+    # a building's side at a grazing angle: its near corner stays at (10, 3) while the seen
+    # length grows 2 -> 10 m in 2 s, which slides the seen centre away at 2 m/s
+    k = np.arange(40)
+    lengths = np.minimum(2.0 + 0.4 * k, 10.0)
+    out = _run_views(np.tile([10.0, 3.0, 2.0], (40, 1)), lengths, seed)
+    assert not any(m for m, _, _ in out[3:])
+    assert max(np.hypot(*x[3:5]) for _, x, _ in out) == 0.0
+    # the track's footprint follows the face: centre half its length past the corner
+    _, x_end, L_end = out[-1]
+    assert L_end > 8.0
+    assert abs(x_end[0] - (10.0 + 0.5 * L_end)) < 0.5 and abs(x_end[1] - 3.0) < 0.3
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_truck_coming_into_view_as_it_drives_off_is_moving(seed: int) -> None:
+    # its rear, the near end, drives away at 5 m/s while the seen length grows 2 -> 8 m
+    k = np.arange(40)
+    rear = np.column_stack([10.0 + 0.5 * k, 3.0 + 0.0 * k, 2.0 + 0.0 * k])
+    out = _run_views(rear, np.minimum(2.0 + 0.4 * k, 8.0), seed)
+    first = next(i for i, (m, _, _) in enumerate(out) if m)
+    assert first <= 12
+    assert all(m for m, _, _ in out[first:])
+    v = np.array([x[3] for _, x, _ in out[-10:]])
+    assert np.median(v) == pytest.approx(5.0, abs=0.5)
