@@ -398,7 +398,7 @@ class ObjectLevel:
         self._seen_returns = {int(tr.id[track_of[j]]): int(a.n_pixels[j]) for j in hit}
         # tracks the stationarity test finds at rest, and objects of classes fixed where
         # they stand, are reported at zero speed
-        x_rep, P_rep = tr.reported(cfg.tracker, self._of_classes(cfg.fixed_classes))
+        x_rep, P_rep = tr.reported(cfg.tracker, self._of_class(*cfg.fixed_classes))
         if upd.size:
             yaw = tr.w[upd, 3]
             moving = np.hypot(x_rep[upd, 3], x_rep[upd, 4]) > 1.0
@@ -518,17 +518,11 @@ class ObjectLevel:
                      float(finished.w[j, 2]), bool(moving[j]), self._forget_track(tid))
             )  # fmt: skip
 
-    def _of_classes(self, names: tuple[str, ...]) -> np.ndarray:
-        """(T,) bool: the tracks of any of the classes ``names`` (:meth:`_of_class`)."""
-        out = np.zeros(len(self.tracker.tracks), dtype=bool)
-        for name in names:
-            out |= self._of_class(name)
-        return out
-
-    def _of_class(self, name: str) -> np.ndarray:
-        """(T,) bool: the tracks whose class (as last classified) is ``name`` or a kind of it
-        (none when the class library has no ``name``)."""
-        kinds = self.ctx.classes.descendants(name) if name in self.ctx.classes else set()
+    def _of_class(self, *names: str) -> np.ndarray:
+        """(T,) bool: the tracks whose class (as last classified) is one of ``names`` or a kind
+        of one (none for a name the class library does not hold)."""
+        lib = self.ctx.classes
+        kinds = set().union(*(lib.descendants(n) for n in names if n in lib))
         no_class = (None, 0.0)
         return np.array(
             [

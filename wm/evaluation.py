@@ -479,10 +479,10 @@ def truth_at(truth: Truth, t_ns: int, config: EvalConfig) -> tuple | None:
 
 
 def frame_at(
-    truth: Truth, run: KDRun, k: int, config: EvalConfig, seen_mid_ns: np.ndarray
+    truth: Truth, run: KDRun, k: int, config: EvalConfig, seen_mid_ns: np.ndarray, lead_ns: int
 ) -> FrameData | None:
     """The scored data at the KD's k-th self time (None when the truth has no pose or boxes
-    there)."""
+    there); ``lead_ns`` from :func:`sweep_lead_ns` of the run's self times."""
     t = int(run.self_t_ns[k])
     if not truth.poses.covers(t):
         return None
@@ -500,9 +500,7 @@ def frame_at(
     pts = np.full(len(near), -1, dtype=np.int64)
     if len(seen_mid_ns) and len(near):
         pts = truth.seen[int(np.argmin(np.abs(seen_mid_ns - t)))].count(boxes.ids[near])
-    hid, hxy, hspeed = hypotheses_at(
-        run, t, run.T_odom_body[k], config.state_window_ns, sweep_lead_ns(run.self_t_ns)
-    )
+    hid, hxy, hspeed = hypotheses_at(run, t, run.T_odom_body[k], config.state_window_ns, lead_ns)
     return FrameData(
         t, boxes.ids[near], [boxes.classes[i] for i in near], c_body[near, :2],
         boxes.sizes[near, :2], yaw_body[near],
@@ -798,9 +796,10 @@ def evaluate_run(truth: Truth, run: KDRun, config: EvalConfig = EvalConfig()) ->
     """Every figure of one run (docs/evaluation.md): tracking over the KD's self times, the
     trajectory over those of them the truth covers."""
     seen_mid = np.array([s.mid_ns for s in truth.seen], dtype=np.int64)
+    lead_ns = sweep_lead_ns(run.self_t_ns)
     frames = []
     for k in range(len(run.self_t_ns)):
-        fd = frame_at(truth, run, k, config, seen_mid)
+        fd = frame_at(truth, run, k, config, seen_mid, lead_ns)
         if fd is not None:
             frames.append(fd)
     if not frames:
