@@ -142,14 +142,21 @@ def av2_scores(folder: Path) -> dict:
     """Cuboids with >= MIN_CUBOID_POINTS interior points in a sweep: found by an object entity
     (any status: two sweeps are too few to confirm a track) and does its class agree with the
     cuboid's category (CLASS_ALIASES)? On odometry poses (LADAR alone: the log has no wheel
-    odometry); points and cuboids are compared per sweep, so no alignment is needed."""
+    odometry); points and cuboids are compared per sweep, so no alignment is needed.
+
+    ``recall_framed`` is the recall over the cuboids with that many points in a sweep where
+    any object can have an entity: a hypothesis gets its KD frame at its ``birth_hits``-th
+    hit (M-of-N birth), so the sweeps before that one hold none (the bound the simulated
+    worlds' ``recall_startup`` shows too); ``first_sweeps_only`` counts the cuboids that
+    have the points in those sweeps alone."""
     kd, cycles, source, node = _run_node(folder, NodeConfig(pose_source=PoseSource.ODOMETRY))
     results = [c.sp_result for c in cycles if c.sp_result is not None]
+    first_framed = node.engine_config.sp.birth_hits - 1  # index of the first sweep with frames
     odometry_error_m, moved_m = odometry_motion_error(cycles, node.truth)
     sweeps = {int(s.t_ns): s for s in source.frames() if type(s).__name__ == "LadarScan"}
     boxes = {b.t_ns: b for b in source.boxes()}
     rows: dict[int, dict] = {}
-    for r in results:
+    for i, r in enumerate(results):
         scan, b = sweeps.get(int(r.t_ns)), boxes.get(int(r.t_ns))
         if scan is None or b is None:
             continue
@@ -161,7 +168,10 @@ def av2_scores(folder: Path) -> dict:
             if member.sum() < MIN_CUBOID_POINTS:
                 continue
             true_cls = CLASS_ALIASES.get(b.classes[j], b.classes[j].lower())
-            row = rows.setdefault(int(b.ids[j]), {"found": False, "agree": False, "true": true_cls})
+            row = rows.setdefault(
+                int(b.ids[j]), {"found": False, "agree": False, "framed": False, "true": true_cls}
+            )
+            row["framed"] |= i >= first_framed
             eid = _object_of(r.point_entity_ids, member)
             if eid is None or eid not in kd:
                 continue
@@ -171,11 +181,14 @@ def av2_scores(folder: Path) -> dict:
             row.setdefault("got", set()).add(f.most_specific_class)
     n = max(len(rows), 1)
     found = [r for r in rows.values() if r["found"]]
+    framed = [r for r in rows.values() if r["framed"]]
     known = [r for r in found if r["true"] in ("vehicle", "person", "post")]
     by_class = Counter((r["true"], str(sorted(map(str, r.get("got", ()))))) for r in found)
     return {
         "cuboids": len(rows),
         "recall": len(found) / n,
+        "recall_framed": sum(r["found"] for r in framed) / max(len(framed), 1),
+        "first_sweeps_only": len(rows) - len(framed),
         "class_agreement": sum(r["agree"] for r in known) / max(len(known), 1),
         "n_known": len(known),
         "by_class": dict(by_class),
@@ -237,6 +250,7 @@ def test_av2_cuboids_are_found(real_data: Path) -> None:
 
     s = av2_scores(real_data / "av2")
     record("av2_cuboid_recall", s["recall"], "", target=">= 0.9", command="make eval")
+    record("av2_cuboid_recall_framed", s["recall_framed"], "", command="make eval")
     record("av2_class_agreement", s["class_agreement"], "", command="make eval")
     record("av2_odometry_error", s["odometry_error_m"], "m", target="< 0.2", command="make eval")
     # the log's two sweeps are 0.1 s apart: the vehicle moves a few centimetres between them,
@@ -246,19 +260,15 @@ def test_av2_cuboids_are_found(real_data: Path) -> None:
     # unknown) among them
     assert s["skipped"] == {}, s
     # the target (0.9) is missed: measured on odometry poses 23 of 26 cuboids with >= 20
-    # interior points found (recall 0.885; missed: two vehicles and a bicycle), class agreement
-    # 9 of 21 (0.429) with the classes fitted on simulator 9, 10 of 21 (0.476) with those of
-    # simulator 8 (8 of the vehicles called vehicle, against 9; 3 rock, against 1; 3 tree,
-    # against 4); 11 of 21 before level 4 measured texture, 13 with the classes fitted on
-    # simulator 6, whose plants all scattered returns by one depth (texture told a tree from a
-    # car by construction there; fitted on plants as smooth as a hedge or as open as a crown,
-    # 9 of the 18 vehicles found are called vehicle, against 12, and 4 tree and 1 bush,
-    # against 1 and 0). Before the log reader gave the scans from the LiDAR's origin with rows
-    # in elevation order (they were seen from the ground under the rear axle, rows in firing
-    # order, so every column of the egosphere jumped between elevations and a pedestrian
-    # broke into five pieces): 20 of 24 (0.833), 10 of 19 (0.526). These bounds guard against
+    # interior points found (recall 0.885; missed: two vehicles and a bicycle). The three
+    # have 20-26 points in the first sweep and 18-19 in the second, so they count by the
+    # first alone, which by the M-of-N birth holds no object entity; of the cuboids with the
+    # points in the second sweep all 23 are found (two of the three missed are held there
+    # too, by fewer points than count). Class agreement is 12 of 21 (0.571); how the refits
+    # of the class library moved it is in docs/evaluation.md. These bounds guard against
     # losing more
     assert s["recall"] >= 0.85, s
+    assert s["recall_framed"] >= 0.95, s
     assert s["class_agreement"] >= 0.4, s
 
 
