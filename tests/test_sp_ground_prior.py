@@ -152,6 +152,24 @@ def test_the_one_row_on_a_rock_face_is_not_ground_once_the_map_saw_the_face() ->
     assert (above_prior(xyz, rng, ground, tall, cfg) == GROUND).all()
 
 
+def test_the_one_row_on_a_rock_under_half_a_metre_is_not_ground_once_its_face_was_seen() -> None:
+    # a 0.38 m rock 30 m out: earlier sweeps' rows met it from its foot to 0.35 m up, and
+    # this sweep's row hits it 0.3 m over its foot, which the column walk calls ground
+    ground_z = -SENSOR_H
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, ground_z + 0.3)])
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert ground[0].all()
+    rock = _span_prior(ground_z, ground_z + 0.35)
+    code = above_prior(xyz, rng, ground, rock, GroundPriorConfig())
+    assert (code[0] == OBJECT).all() and (code[1:] == GROUND).all()
+    # (a cell must span half a metre by the former rule: the rock's face never did) ...
+    assert (above_prior(xyz, rng, ground, rock, GroundPriorConfig(span_m=0.5)) == GROUND).all()
+    # ... while terrain's cells, 0.25 m from their lowest to their highest return (a fold, a
+    # steep slope, range noise far out), stay ground
+    fold = _span_prior(ground_z + 0.05, ground_z + 0.3)
+    assert (above_prior(xyz, rng, ground, fold, GroundPriorConfig()) == GROUND).all()
+
+
 def test_a_prior_with_only_one_of_the_span_layers_is_refused() -> None:
     z = np.zeros((4, 4), dtype=np.float32)
     with pytest.raises(GroundPriorError, match="both z_min_m and z_max_m"):
