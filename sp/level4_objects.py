@@ -509,8 +509,10 @@ class ObjectLevel:
         )
         if not gone.size:
             return
-        x_rep, _ = finished.reported(cfg.tracker)
-        moving = finished.moving(cfg.tracker)
+        # a building lost while its filter drifted is remembered where it stands, at rest
+        fixed = self._ids_of_class(finished.id, *cfg.fixed_classes)
+        x_rep, _ = finished.reported(cfg.tracker, fixed)
+        moving = finished.moving(cfg.tracker) & ~fixed
         for j in gone.tolist():
             tid = int(finished.id[j])
             self.lost.add(
@@ -521,15 +523,16 @@ class ObjectLevel:
     def _of_class(self, *names: str) -> np.ndarray:
         """(T,) bool: the tracks whose class (as last classified) is one of ``names`` or a kind
         of one (none for a name the class library does not hold)."""
+        return self._ids_of_class(self.tracker.tracks.id, *names)
+
+    def _ids_of_class(self, ids: np.ndarray, *names: str) -> np.ndarray:
+        """(N,) bool: the tracks of ``ids`` (N,) int64 whose class (as last classified) is
+        one of ``names`` or a kind of one."""
         lib = self.ctx.classes
         kinds = set().union(*(lib.descendants(n) for n in names if n in lib))
         no_class = (None, 0.0)
         return np.array(
-            [
-                self.track_class.get(tid, no_class)[0] in kinds
-                for tid in self.tracker.tracks.id.tolist()
-            ],
-            dtype=bool,
+            [self.track_class.get(tid, no_class)[0] in kinds for tid in ids.tolist()], dtype=bool
         )
 
     # ------------------------------------------------------------------ classification

@@ -413,6 +413,29 @@ def test_the_tracks_of_a_class_include_its_kinds_and_a_missing_class_has_none() 
     assert l4._of_class("no such class").tolist() == [False] * 4
 
 
+def test_a_building_lost_while_its_filter_drifted_is_remembered_at_rest() -> None:
+    # two tracks gone unseen, both filters at 2 m/s and found moving: a building (a face
+    # sliding into view can do that to its filter) and a vehicle
+    sp = KDSensoryProcessor(kd_store.open(":memory:"))
+    l4 = sp.level4
+    tracks = l4.tracker._births(
+        Measurements(np.zeros((2, 3)), np.zeros(2, np.int64), np.vstack([_what(4.0)] * 2)),
+        np.arange(2),
+        np.array([201, 202]),
+    )
+    tracks.x[:, 3] = 2.0
+    tracks.llr[:] = TrackerConfig().llr_max
+    tracks.status[:] = TrackStatus.GONE
+    tracks.misses[:] = 9
+    assert tracks.moving(TrackerConfig()).all()
+    l4.track_class.update({201: ("building", 0.9), 202: ("vehicle", 0.9)})
+    l4._remember_lost(tracks)
+    building, vehicle = l4.lost.lost[201], l4.lost.lost[202]
+    # the building is looked for where it stood, the vehicle along its way
+    assert not building.moving and np.allclose(building.v_xy, 0.0)
+    assert vehicle.moving and np.allclose(vehicle.v_xy, [2.0, 0.0])
+
+
 def test_partial_view_does_not_make_a_static_wall_move() -> None:
     # more of a static wall comes into view each sweep: its visible centre moves 1 m a sweep
     cfg = TrackerConfig()
