@@ -170,6 +170,24 @@ def test_the_one_row_on_a_rock_under_half_a_metre_is_not_ground_once_its_face_wa
     assert (above_prior(xyz, rng, ground, fold, GroundPriorConfig()) == GROUND).all()
 
 
+def test_the_hits_sinking_down_a_low_rocks_face_stay_on_it() -> None:
+    # later sweeps' hits on the same 0.38 m rock, the range grown, lie 0.15 m over its foot:
+    # in a cell spanning the rock's face (under low_body_m) they are on the face ...
+    ground_z = -SENSOR_H
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, ground_z + 0.15)])
+    ground, _ = ground_mask(xyz, valid, GroundConfig())
+    assert ground[0].all()
+    rock = _span_prior(ground_z, ground_z + 0.35)
+    code = above_prior(xyz, rng, ground, rock, GroundPriorConfig())
+    assert (code[0] == OBJECT).all() and (code[1:] == GROUND).all()
+    assert (above_prior(xyz, rng, ground, rock, GroundPriorConfig(low_body_m=0.0)) == GROUND).all()
+    # ... while in a cell of a car (1.5 m) they are the ground beside it, and a fold of the
+    # terrain (0.25 m) holds no face at all
+    for high_m in (1.5, 0.25):
+        cell = _span_prior(ground_z, ground_z + high_m)
+        assert (above_prior(xyz, rng, ground, cell, GroundPriorConfig()) == GROUND).all(), high_m
+
+
 def test_a_prior_with_only_one_of_the_span_layers_is_refused() -> None:
     z = np.zeros((4, 4), dtype=np.float32)
     with pytest.raises(GroundPriorError, match="both z_min_m and z_max_m"):
