@@ -87,12 +87,7 @@ class GroundPriorConfig:
                   park's misses 3129 -> 3088 and false positives 5346 ->
                   5538 (the lowest returns of parked cars make a second, low segment beside
                   the car's, tracked as a second object now and then; MOTA 0.886 -> 0.884);
-                  0.25 m added false positives on the terrain's own folds. A lower
-                  ``span_rise_m`` keeps the hits that sink down a low rock's face as the
-                  range grows: 0.1 m took the default world's misses 116 -> 75 and the open
-                  world's (21-39) 183 -> 154 with no false positive there, but the car park's
-                  false positives 5538 -> 6444 and the village's 2288 -> 2341 (a parked
-                  car's lowest returns); 0.15 m, 5538 -> 5823 and 2288 -> 2341.
+                  0.25 m added false positives on the terrain's own folds.
     low_body_m, low_rise_m: ... and in a cell whose returns span at most ``low_body_m``,
                   the face of a body lower than that (a rock, a bush), a return more than
                   ``low_rise_m`` over the lowest is on that face too: as the range grows one
@@ -107,6 +102,9 @@ class GroundPriorConfig:
                   0.8838); village false positives 2288 -> 2363 (MOTA 0.8744 -> 0.8720): a
                   parked car's rim cells span less than the car and give its lowest returns
                   a segment of their own, now and then tracked as a second object.
+                  ``span_rise_m`` 0.1 m in every cell found about as many (default 116 -> 75,
+                  open 183 -> 154) but gave the car park 906 more false positives (0.15 m:
+                  285), its cars' ground beside them taken for their bodies.
     radius_m:     the expected ground at a point is the lowest known ground within this
                   distance of it, each cell raised by ``slope_deg`` over its distance (a slope
                   is not taken for an object; a car's roof is judged against the ground
