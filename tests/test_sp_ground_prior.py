@@ -5,6 +5,7 @@ the simulator's terrain."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -152,40 +153,45 @@ def test_the_one_row_on_a_rock_face_is_not_ground_once_the_map_saw_the_face() ->
     assert (above_prior(xyz, rng, ground, tall, cfg) == GROUND).all()
 
 
-def test_the_one_row_on_a_rock_under_half_a_metre_is_not_ground_once_its_face_was_seen() -> None:
-    # a 0.38 m rock 30 m out: earlier sweeps' rows met it from its foot to 0.35 m up, and
-    # this sweep's row hits it 0.3 m over its foot, which the column walk calls ground
+def _row_on_rock(up_m: float) -> Callable[..., np.ndarray]:
+    """One row's hit ``up_m`` over the foot of a 0.38 m rock 30 m out, which the column walk
+    calls ground: a function ``code(cfg, low_m, high_m)`` giving :func:`above_prior`'s codes
+    of the column against a prior whose cells span ``low_m``..``high_m`` over the foot
+    (default 0..0.35 m: the rock's face seen from its foot up)."""
     ground_z = -SENSOR_H
-    xyz, valid, rng = _column([*FAR_GROUND, (30.0, ground_z + 0.3)])
+    xyz, valid, rng = _column([*FAR_GROUND, (30.0, ground_z + up_m)])
     ground, _ = ground_mask(xyz, valid, GroundConfig())
     assert ground[0].all()
-    rock = _span_prior(ground_z, ground_z + 0.35)
-    code = above_prior(xyz, rng, ground, rock, GroundPriorConfig())
-    assert (code[0] == OBJECT).all() and (code[1:] == GROUND).all()
+
+    def code(cfg: GroundPriorConfig, low_m: float = 0.0, high_m: float = 0.35) -> np.ndarray:
+        return above_prior(xyz, rng, ground, _span_prior(ground_z + low_m, ground_z + high_m), cfg)
+
+    return code
+
+
+def test_the_one_row_on_a_rock_under_half_a_metre_is_not_ground_once_its_face_was_seen() -> None:
+    # this sweep's row hits the rock 0.3 m over its foot
+    code = _row_on_rock(0.3)
+    c = code(GroundPriorConfig())
+    assert (c[0] == OBJECT).all() and (c[1:] == GROUND).all()
     # (a cell must span half a metre by the former rule: the rock's face never did) ...
-    assert (above_prior(xyz, rng, ground, rock, GroundPriorConfig(span_m=0.5)) == GROUND).all()
+    assert (code(GroundPriorConfig(span_m=0.5)) == GROUND).all()
     # ... while terrain's cells, 0.25 m from their lowest to their highest return (a fold, a
     # steep slope, range noise far out), stay ground
-    fold = _span_prior(ground_z + 0.05, ground_z + 0.3)
-    assert (above_prior(xyz, rng, ground, fold, GroundPriorConfig()) == GROUND).all()
+    assert (code(GroundPriorConfig(), 0.05, 0.3) == GROUND).all()
 
 
 def test_the_hits_sinking_down_a_low_rocks_face_stay_on_it() -> None:
-    # later sweeps' hits on the same 0.38 m rock, the range grown, lie 0.15 m over its foot:
-    # in a cell spanning the rock's face (under low_body_m) they are on the face ...
-    ground_z = -SENSOR_H
-    xyz, valid, rng = _column([*FAR_GROUND, (30.0, ground_z + 0.15)])
-    ground, _ = ground_mask(xyz, valid, GroundConfig())
-    assert ground[0].all()
-    rock = _span_prior(ground_z, ground_z + 0.35)
-    code = above_prior(xyz, rng, ground, rock, GroundPriorConfig())
-    assert (code[0] == OBJECT).all() and (code[1:] == GROUND).all()
-    assert (above_prior(xyz, rng, ground, rock, GroundPriorConfig(low_body_m=0.0)) == GROUND).all()
+    # later sweeps' hits on the same rock, the range grown, lie 0.15 m over its foot: in a
+    # cell spanning the rock's face (under low_body_m) they are on the face ...
+    code = _row_on_rock(0.15)
+    c = code(GroundPriorConfig())
+    assert (c[0] == OBJECT).all() and (c[1:] == GROUND).all()
+    assert (code(GroundPriorConfig(low_body_m=0.0)) == GROUND).all()
     # ... while in a cell of a car (1.5 m) they are the ground beside it, and a fold of the
     # terrain (0.25 m) holds no face at all
     for high_m in (1.5, 0.25):
-        cell = _span_prior(ground_z, ground_z + high_m)
-        assert (above_prior(xyz, rng, ground, cell, GroundPriorConfig()) == GROUND).all(), high_m
+        assert (code(GroundPriorConfig(), 0.0, high_m) == GROUND).all(), high_m
 
 
 def test_a_prior_with_only_one_of_the_span_layers_is_refused() -> None:
