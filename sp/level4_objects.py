@@ -512,7 +512,7 @@ class ObjectLevel:
         # a building lost while its filter drifted is remembered where it stands, at rest
         fixed = self._ids_of_class(finished.id, *cfg.fixed_classes)
         x_rep, _ = finished.reported(cfg.tracker, fixed)
-        moving = finished.moving(cfg.tracker) & ~fixed
+        moving = finished.moving(cfg.tracker, fixed)
         for j in gone.tolist():
             tid = int(finished.id[j])
             self.lost.add(

@@ -209,13 +209,15 @@ class Tracks:
     def __len__(self) -> int:
         return int(self.id.shape[0])
 
-    def moving(self, config: TrackerConfig) -> np.ndarray:
+    def moving(self, config: TrackerConfig, fixed: np.ndarray | None = None) -> np.ndarray:
         """(T,) bool: the sequential test favours the moving model, or the constant-velocity
         filter is sure of a ground speed of at least ``evident_mps`` (its speed less
         ``evident_sigmas`` standard deviations): a vehicle first seen driving is moving as
-        soon as its filter has its speed, before the test has gathered its evidence."""
+        soon as its filter has its speed, before the test has gathered its evidence. Never
+        the tracks ``fixed`` ((T,) bool: known from what they are not to move)."""
         evident = evident_speed(self.x, self.P, config.evident_sigmas) >= config.evident_mps
-        return (self.llr > config.llr_moving) | evident
+        moving = (self.llr > config.llr_moving) | evident
+        return moving if fixed is None else moving & ~fixed
 
     def tested_speed(self, config: TrackerConfig) -> np.ndarray:
         """(T,) ground speed (m/s) the tracks show as evidence of what they are: the filter's
@@ -231,15 +233,13 @@ class Tracks:
         self, config: TrackerConfig, fixed: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The state to report per track: (x (T, 6), P (T, 6, 6)), the constant-velocity
-        filter's for moving tracks; for the others, and for the tracks ``fixed`` ((T,) bool:
-        known from what they are not to move), its position at zero velocity (with the
-        velocity variance of a track at rest, ``q_static_m**2``, and no position-velocity
-        correlation). The position stays the filter's, not the stationary model's smoothed
-        one, so a mover not yet found moving is not left behind where it was first seen."""
+        filter's for the tracks :meth:`moving` (given ``fixed``); for the others its position
+        at zero velocity (with the velocity variance of a track at rest, ``q_static_m**2``,
+        and no position-velocity correlation). The position stays the filter's, not the
+        stationary model's smoothed one, so a mover not yet found moving is not left behind
+        where it was first seen."""
         x, P = self.x.copy(), self.P.copy()
-        rest = ~self.moving(config)
-        if fixed is not None:
-            rest |= fixed
+        rest = ~self.moving(config, fixed)
         x[rest, 3:] = 0.0
         P[rest, :3, 3:] = 0.0
         P[rest, 3:, :3] = 0.0
